@@ -1,0 +1,1 @@
+"""Dataset, trajectory, point cloud and mesh input/output."""

@@ -1,0 +1,1 @@
+"""Rendering maps into cameras: mesh ray casting, surfel and point splatting."""

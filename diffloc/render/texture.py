@@ -1,0 +1,97 @@
+"""Mip-mapped, wrapping texture sampling for many materials at once."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from diffloc.checks import check_shape
+
+
+def _to_power_of_two(texture: np.ndarray, size: int) -> torch.Tensor:
+    """(S, T, 3) array -> (3, size, size) tensor, resized bilinearly when needed."""
+    image = torch.from_numpy(np.ascontiguousarray(texture, dtype=np.float32)).permute(2, 0, 1)
+    if image.shape[1:] != (size, size):
+        image = F.interpolate(image[None], size=(size, size), mode="bilinear", antialias=True)[0]
+    return image
+
+
+class MipmapTextures:
+    """A stack of M wrapping textures with mip levels, sampled trilinearly in one batched call.
+
+    Every texture is brought to one power-of-two size S (the largest given). Level l has size
+    ``S >> l`` and is the 2x2 box-filtered level ``l - 1``. All levels of all materials live in one
+    flat (texels, 3) buffer, so sampling is a handful of gathers regardless of M.
+
+    Args:
+        textures: M images, each (S_m, T_m, 3) float in [0, 1].
+    """
+
+    def __init__(self, textures: list[np.ndarray]) -> None:
+        if not textures:
+            raise ValueError("at least one texture is required")
+        for i, texture in enumerate(textures):
+            check_shape(texture, "S,T,3", f"textures[{i}]")
+        largest = max(max(t.shape[0], t.shape[1]) for t in textures)
+        size = 1 << max(0, math.ceil(math.log2(largest)))
+        level = torch.stack([_to_power_of_two(t, size) for t in textures])  # (M, 3, S, S)
+        levels, sizes = [level], [size]
+        while sizes[-1] > 1:
+            level = F.avg_pool2d(level, 2)
+            levels.append(level)
+            sizes.append(sizes[-1] // 2)
+        self.num_materials = len(textures)
+        self.size = size
+        self.num_levels = len(levels)
+        self._sizes = torch.tensor(sizes, dtype=torch.int64)
+        counts = torch.tensor([self.num_materials * s * s for s in sizes], dtype=torch.int64)
+        self._offsets = torch.cumsum(counts, 0) - counts
+        self._texels = torch.cat([lv.permute(0, 2, 3, 1).reshape(-1, 3) for lv in levels])
+
+    def _bilinear(
+        self, material: torch.Tensor, uv: torch.Tensor, level: torch.Tensor
+    ) -> torch.Tensor:
+        """Bilinear, wrapping lookup at one integer mip level per sample -> (N, 3)."""
+        size = self._sizes[level]
+        base = self._offsets[level] + material * size * size
+        xy = (uv - torch.floor(uv)) * size[:, None] - 0.5
+        xy0 = torch.floor(xy)
+        frac = xy - xy0
+        x0 = xy0[:, 0].long() % size
+        y0 = xy0[:, 1].long() % size
+        x1 = (x0 + 1) % size
+        y1 = (y0 + 1) % size
+        fx, fy = frac[:, 0:1], frac[:, 1:2]
+        texels = self._texels
+        top = texels[base + y0 * size + x0] * (1 - fx) + texels[base + y0 * size + x1] * fx
+        bottom = texels[base + y1 * size + x0] * (1 - fx) + texels[base + y1 * size + x1] * fx
+        return top * (1 - fy) + bottom * fy
+
+    def sample(
+        self, material: torch.Tensor, uv: torch.Tensor, footprint_texels: torch.Tensor
+    ) -> torch.Tensor:
+        """Sample N points trilinearly.
+
+        Args:
+            material: (N,) int64 material index.
+            uv: (N, 2) texture coordinates (wrapping; v = 0 is the top row).
+            footprint_texels: (N,) size of the sample's pixel on the level-0 texture, in texels;
+                it selects the mip level (log2 of it, clamped to the pyramid).
+
+        Returns:
+            (N, 3) float32 colours.
+        """
+        check_shape(uv, "N,2", "uv")
+        check_shape(material, f"{uv.shape[0]}", "material")
+        check_shape(footprint_texels, f"{uv.shape[0]}", "footprint_texels")
+        level = torch.log2(footprint_texels.clamp_min(1.0)).clamp(max=self.num_levels - 1)
+        lower = torch.floor(level).long().clamp(max=self.num_levels - 1)
+        upper = (lower + 1).clamp(max=self.num_levels - 1)
+        blend = (level - lower.to(level.dtype))[:, None]
+        uv = uv.to(torch.float32)
+        return (1 - blend) * self._bilinear(material, uv, lower) + blend * self._bilinear(
+            material, uv, upper
+        )

@@ -1,0 +1,1 @@
+"""Procedural simulator: worlds, imaging, lidar, trajectories and dataset writing."""

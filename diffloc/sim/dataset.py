@@ -1,0 +1,270 @@
+"""Simulate a whole dataset folder from a :class:`SceneConfig`.
+
+The folder layout is diffloc's dataset format (see :mod:`diffloc.io.dataset`). Everything is
+written into a temporary folder that is renamed into place only when complete, so a failed or
+interrupted run leaves nothing half-written. A folder made earlier with the same configuration
+is reused as it is.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+from diffloc import __version__
+from diffloc.checks import check_positive_int
+from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.rig import SensorRig
+from diffloc.io.atomic import atomic_directory, atomic_write_text
+from diffloc.io.calib import Calibration
+from diffloc.io.dataset import SequenceWriter, read_dataset_info
+from diffloc.io.mesh_obj import write_textured_mesh_obj
+from diffloc.io.ply import write_point_cloud
+from diffloc.progress import progress
+from diffloc.render.raycast import MeshRenderer
+from diffloc.sim.config import CameraConfig, RigConfig, SceneConfig, SequenceConfig
+from diffloc.sim.imaging import expose, shade
+from diffloc.sim.lidar import accumulate_map, simulate_station_scan, simulate_sweep
+from diffloc.sim.placement import check_free_space
+from diffloc.sim.preview import write_preview
+from diffloc.sim.scene import World, generate_world
+from diffloc.sim.trajectory import interpolate_pose, make_trajectory
+
+DATASET_FORMAT_VERSION = 1
+DEPTH_SCALE = 1000.0
+FRAMES_PER_BATCH = 4
+
+
+def camera_from_config(cfg: CameraConfig) -> PinholeCamera:
+    """The simulated camera (square pixels, principal point at the image centre)."""
+    width = check_positive_int(cfg.width, "camera.width")
+    height = check_positive_int(cfg.height, "camera.height")
+    if not 0.0 < cfg.hfov_deg < 180.0:
+        raise ValueError(f"camera.hfov_deg must be in (0, 180), got {cfg.hfov_deg}")
+    coefficients = [cfg.k1, cfg.k2, cfg.p1, cfg.p2]
+    distortion = torch.tensor(coefficients, dtype=torch.float64) if any(coefficients) else None
+    return PinholeCamera.from_fov(width, height, math.radians(cfg.hfov_deg), distortion=distortion)
+
+
+def rig_from_config(cfg: RigConfig) -> SensorRig:
+    """The body -> camera / lidar rig described by the config's URDF-style xyz and rpy."""
+    return SensorRig.from_urdf(
+        SensorRig.urdf_from_offsets(
+            {
+                "camera": (list(cfg.camera_xyz), list(cfg.camera_rpy)),
+                "lidar": (list(cfg.lidar_xyz), list(cfg.lidar_rpy)),
+            }
+        )
+    )
+
+
+def validate_scene_config(cfg: SceneConfig) -> None:
+    """Reject configurations that cannot be simulated, naming the offending key."""
+    if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int):
+        raise ValueError(f"scene.seed must be an integer, got {cfg.seed!r}")
+    if not cfg.sequences:
+        raise ValueError("scene.sequences is empty: nothing to simulate")
+    names = [s.name for s in cfg.sequences]
+    if len(set(names)) != len(names):
+        raise ValueError(f"scene.sequences has repeated names: {names}")
+    for name in names:
+        if not name or not name.replace("_", "").replace("-", "").isalnum():
+            raise ValueError(f"sequence name {name!r} must be letters, digits, '_' or '-'")
+    if cfg.map.lidar_sequence not in names:
+        raise ValueError(f"scene.map.lidar_sequence {cfg.map.lidar_sequence!r} is not in {names}")
+    check_positive_int(cfg.sensor.motion_blur_samples, "scene.sensor.motion_blur_samples")
+
+
+class DatasetSimulator:
+    """Renders the sequences, lidar sweeps and maps of one simulated world.
+
+    Args:
+        cfg: the scene configuration.
+        show_progress: show progress bars (never in CI).
+    """
+
+    def __init__(self, cfg: SceneConfig, show_progress: bool = True) -> None:
+        validate_scene_config(cfg)
+        self.cfg = cfg
+        self.show_progress = show_progress
+        self.world: World = generate_world(cfg.name, cfg.seed, cfg.layout)
+        self.camera = camera_from_config(cfg.camera)
+        self.rig = rig_from_config(cfg.rig)
+        with torch.no_grad():
+            self.T_body_camera = self.rig.T_body_sensor("camera").to(torch.float64)
+            self.T_body_lidar = self.rig.T_body_sensor("lidar").to(torch.float64)
+        self._renderers: dict[bool, MeshRenderer] = {}
+
+    def renderer(self, changed: bool) -> MeshRenderer:
+        """The renderer of the mapped (``changed=False``) or changed world, built once."""
+        if changed not in self._renderers:
+            mesh = self.world.changed_mesh if changed else self.world.mesh
+            self._renderers[changed] = MeshRenderer(mesh)
+        return self._renderers[changed]
+
+    def calibration(self) -> Calibration:
+        lidar = OmegaConf.to_container(OmegaConf.structured(self.cfg.lidar))
+        return Calibration(
+            camera=self.camera,
+            depth_scale=DEPTH_SCALE,
+            T_body_camera=self.T_body_camera,
+            T_body_lidar=self.T_body_lidar,
+            rig_urdf=self.rig.to_urdf(),
+            lidar=lidar,
+        )
+
+    def body_trajectory(self, seq: SequenceConfig) -> tuple[np.ndarray, torch.Tensor]:
+        """Timestamps (N,) and body poses T_wb (N, 4, 4) of a sequence."""
+        return make_trajectory(
+            self.world.route,
+            self.cfg.trajectory,
+            lateral_offset_m=seq.lateral_offset_m,
+            reverse=seq.reverse,
+            phase=seq.sway_phase,
+        )
+
+    def render_frames(
+        self,
+        renderer: MeshRenderer,
+        seq: SequenceConfig,
+        timestamps: np.ndarray,
+        T_wb: torch.Tensor,
+        frame_ids: np.ndarray,
+        generator: torch.Generator,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """RGB (B, 3, H, W) in [0, 1] and depth (B, 1, H, W) in metres of some frames.
+
+        Motion blur averages ``sensor.motion_blur_samples`` renders spread over the exposure
+        time ending at each frame's timestamp; depth is that of the frame's own pose.
+        """
+        sensor = self.cfg.sensor
+        samples = sensor.motion_blur_samples
+        offsets = np.linspace(-sensor.exposure_time_s, 0.0, samples) if samples > 1 else [0.0]
+        times = timestamps[frame_ids][:, None] + np.asarray(offsets)[None, :]
+        times = np.clip(times, timestamps[0], timestamps[-1]).reshape(-1)
+        T_wb_sub = interpolate_pose(timestamps, T_wb, times)
+        T_wc_sub = T_wb_sub @ self.T_body_camera
+        render = renderer.render(T_wc_sub, self.camera)
+        linear = shade(render, seq.lighting, sensor, renderer.raycaster)
+        linear = linear.reshape(len(frame_ids), samples, *linear.shape[1:]).mean(dim=1)
+        rgb = expose(linear, seq.lighting, sensor, generator)
+        depth = render.depth.reshape(len(frame_ids), samples, *render.depth.shape[1:])[:, -1]
+        return rgb, depth
+
+    def simulate_sequence(self, index: int, seq: SequenceConfig, seq_dir: Path) -> dict:
+        """Write one sequence folder; return its camera positions and (for mapping) sweeps."""
+        renderer = self.renderer(seq.changed_scene)
+        timestamps, T_wb = self.body_trajectory(seq)
+        T_wc = T_wb @ self.T_body_camera
+        check_free_space(renderer.raycaster, self.world.bounds, T_wc[:, :3, 3], what="camera")
+        generator = torch.Generator().manual_seed(self.cfg.seed * 1009 + index)
+        rng = np.random.default_rng([self.cfg.seed, index])
+        writer = SequenceWriter(seq_dir, self.calibration())
+        batches = np.array_split(
+            np.arange(len(timestamps)), math.ceil(len(timestamps) / FRAMES_PER_BATCH)
+        )
+        first_frame = None
+        for frame_ids in progress(batches, f"{seq.name}: frames", self.show_progress):
+            rgb, depth = self.render_frames(renderer, seq, timestamps, T_wb, frame_ids, generator)
+            for k, i in enumerate(frame_ids):
+                writer.add_frame(float(timestamps[i]), T_wc[i], rgb[k], depth[k, 0])
+            if first_frame is None:
+                first_frame = rgb[0]
+        sweep_times = np.arange(timestamps[0], timestamps[-1] + 1e-9, 1.0 / self.cfg.lidar.rate_hz)
+        T_wl = interpolate_pose(timestamps, T_wb, sweep_times) @ self.T_body_lidar
+        sweeps_world, origins = [], []
+        sweep_bar = progress(sweep_times, f"{seq.name}: lidar", self.show_progress)
+        for t, pose in zip(sweep_bar, T_wl, strict=True):
+            points = simulate_sweep(renderer.raycaster, pose, self.cfg.lidar, rng)
+            writer.add_sweep(float(t), pose, points)
+            rotation, translation = pose[:3, :3].float().numpy(), pose[:3, 3].float().numpy()
+            sweeps_world.append(points @ rotation.T + translation)
+            origins.append(translation)
+        writer.close()
+        return {
+            "positions": T_wc[:, :3, 3].numpy(),
+            "first_frame": first_frame,
+            "sweeps_world": sweeps_world,
+            "sweep_origins": origins,
+        }
+
+    def write_maps(self, root: Path, mapping: dict) -> np.ndarray:
+        """Accumulated lidar map and terrestrial-scanner map with normals; returns map points."""
+        cfg = self.cfg
+        points, normals = accumulate_map(
+            mapping["sweeps_world"],
+            mapping["sweep_origins"],
+            cfg.map.voxel_size_m,
+            cfg.map.normal_radius_m,
+        )
+        write_point_cloud(root / "map" / "lidar_map.ply", points, normals=normals)
+        rng = np.random.default_rng([cfg.seed, 7919])
+        raycaster = self.renderer(False).raycaster
+        stations = self.world.tls_stations
+        check_free_space(raycaster, self.world.bounds, torch.from_numpy(stations), what="scanner")
+        scans = [
+            simulate_station_scan(raycaster, station, cfg.tls, rng)
+            for station in progress(stations, "terrestrial scans", self.show_progress)
+        ]
+        tls_points, tls_normals = accumulate_map(
+            scans, list(stations), cfg.map.voxel_size_m, cfg.map.normal_radius_m
+        )
+        write_point_cloud(root / "map" / "tls_map.ply", tls_points, normals=tls_normals)
+        write_textured_mesh_obj(root / "map" / "mesh" / "scene.obj", self.world.mesh)
+        write_textured_mesh_obj(
+            root / "map" / "mesh_changed" / "scene.obj", self.world.changed_mesh
+        )
+        return points
+
+    def write(self, root: Path) -> None:
+        """Simulate every sequence and map into the (empty, temporary) folder ``root``."""
+        results = {}
+        for index, seq in enumerate(self.cfg.sequences):
+            results[seq.name] = self.simulate_sequence(index, seq, root / seq.name)
+        map_points = self.write_maps(root, results[self.cfg.map.lidar_sequence])
+        frames = [(name, r["first_frame"]) for name, r in results.items()]
+        trajectories = {name: r["positions"] for name, r in results.items()}
+        title = f"diffloc simulator: {self.cfg.name} scene, seed {self.cfg.seed}"
+        write_preview(root / "preview.png", frames, map_points, trajectories, title)
+        info = {
+            "format_version": DATASET_FORMAT_VERSION,
+            "kind": "diffloc-dataset",
+            "generator": f"diffloc {__version__}",
+            "sequences": list(results),
+            "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+            "world": self.world.metadata(),
+        }
+        atomic_write_text(root / "dataset.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
+
+
+def simulate_dataset(
+    cfg: SceneConfig, out_dir: Path, *, overwrite: bool = False, show_progress: bool = True
+) -> Path:
+    """Simulate ``cfg`` into ``out_dir`` and return it; reuse it if it already holds this config.
+
+    Raises:
+        FileExistsError: ``out_dir`` holds something else and ``overwrite`` is false.
+        ValueError: the configuration is invalid, or a camera pose leaves the free space.
+    """
+    out_dir = Path(out_dir)
+    config = OmegaConf.to_container(OmegaConf.structured(cfg))
+    if out_dir.exists():
+        try:
+            if read_dataset_info(out_dir).get("config") == config:
+                return out_dir
+        except (FileNotFoundError, ValueError):
+            pass
+        if not overwrite:
+            raise FileExistsError(
+                f"{out_dir} exists and was not made with this configuration; choose another "
+                "out_dir or pass task.overwrite=true to replace it"
+            )
+    simulator = DatasetSimulator(cfg, show_progress=show_progress)
+    with atomic_directory(out_dir, overwrite=overwrite) as tmp:
+        simulator.write(tmp)
+    return out_dir

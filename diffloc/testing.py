@@ -1,0 +1,210 @@
+"""Shared test helpers: per-dtype tolerances, a float64 gradcheck and random synthetic data.
+
+Used by the test suite and by benchmark scripts; nothing here is needed at run time.
+
+Example:
+    >>> g = torch.Generator().manual_seed(0)
+    >>> T = random_se3((2,), generator=g, dtype=torch.float64)
+    >>> assert_close(T @ torch.linalg.inv(T), torch.eye(4, dtype=torch.float64).expand(2, 4, 4))
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+from pytorch_kinematics import transforms as pk_tf
+
+__all__ = [
+    "TOLERANCES",
+    "assert_close",
+    "gradcheck",
+    "random_points",
+    "random_rotation",
+    "random_se3",
+    "tolerance",
+]
+
+# (rtol, atol) per dtype for comparing results of the same computation done two ways.
+TOLERANCES: dict[torch.dtype, tuple[float, float]] = {
+    torch.float64: (1e-9, 1e-9),
+    torch.float32: (1e-4, 1e-5),
+    torch.float16: (1e-2, 1e-2),
+    torch.bfloat16: (3e-2, 3e-2),
+}
+
+
+def tolerance(dtype: torch.dtype) -> tuple[float, float]:
+    """``(rtol, atol)`` for comparing values of ``dtype``.
+
+    Args:
+        dtype: a floating point dtype.
+
+    Returns:
+        ``(rtol, atol)``.
+
+    Raises:
+        ValueError: ``dtype`` is not a floating point type listed in :data:`TOLERANCES`.
+    """
+    if dtype not in TOLERANCES:
+        raise ValueError(f"no tolerance defined for dtype {dtype}")
+    return TOLERANCES[dtype]
+
+
+def assert_close(
+    actual: torch.Tensor,
+    expected: torch.Tensor,
+    *,
+    rtol: float | None = None,
+    atol: float | None = None,
+    msg: str | None = None,
+) -> None:
+    """``torch.testing.assert_close`` with the tolerances of :func:`tolerance` by default.
+
+    The tolerance is chosen from the lower-precision dtype of the two tensors; ``expected``
+    is cast to ``actual``'s dtype and device before comparing.
+
+    Args:
+        actual: tensor under test.
+        expected: reference tensor (broadcast to ``actual``'s shape is *not* done).
+        rtol: relative tolerance override.
+        atol: absolute tolerance override.
+        msg: extra message on failure.
+    """
+    dtypes = [t.dtype for t in (actual, expected) if t.is_floating_point()]
+    if dtypes:
+        worst = max(dtypes, key=lambda d: tolerance(d)[0])
+        default_rtol, default_atol = tolerance(worst)
+    else:
+        default_rtol, default_atol = 0.0, 0.0
+    torch.testing.assert_close(
+        actual,
+        expected.to(dtype=actual.dtype, device=actual.device),
+        rtol=default_rtol if rtol is None else rtol,
+        atol=default_atol if atol is None else atol,
+        msg=msg,
+    )
+
+
+def gradcheck(
+    fn: Callable[..., torch.Tensor | Sequence[torch.Tensor]],
+    inputs: Sequence[torch.Tensor],
+    *,
+    eps: float = 1e-6,
+    atol: float = 1e-6,
+    rtol: float = 1e-4,
+) -> bool:
+    """Float64 ``torch.autograd.gradcheck`` of ``fn`` at ``inputs``.
+
+    Floating point inputs are copied to float64 leaf tensors that require grad; other inputs
+    are passed through unchanged. Raises ``GradcheckError`` on a mismatch.
+
+    Args:
+        fn: function of the inputs returning a tensor or a tuple of tensors.
+        inputs: the point at which to check the gradients.
+        eps: finite-difference step.
+        atol: absolute tolerance.
+        rtol: relative tolerance.
+
+    Returns:
+        ``True`` when the analytic and numeric Jacobians agree.
+
+    Example:
+        >>> gradcheck(torch.sin, [torch.tensor([0.5])])
+        True
+    """
+    prepared = tuple(
+        x.detach().to(torch.float64).requires_grad_(True) if x.is_floating_point() else x
+        for x in inputs
+    )
+    return torch.autograd.gradcheck(fn, prepared, eps=eps, atol=atol, rtol=rtol)
+
+
+def random_rotation(
+    shape: Sequence[int] = (),
+    *,
+    generator: torch.Generator,
+    dtype: torch.dtype = torch.float64,
+    max_angle: float = math.pi,
+) -> torch.Tensor:
+    """Random rotation matrices (uniform on SO(3) when ``max_angle == pi``).
+
+    Args:
+        shape: leading batch shape ``(...)``.
+        generator: source of randomness (CPU generator).
+        dtype: output dtype.
+        max_angle: largest rotation angle in radians; below pi the angle is drawn uniformly
+            in ``[0, max_angle]`` around a uniformly random axis.
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
+    shape = tuple(shape)
+    if max_angle >= math.pi:
+        q = torch.randn(*shape, 4, generator=generator, dtype=torch.float64)
+        q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+        return pk_tf.quaternion_to_matrix(q).to(dtype)
+    axis = torch.randn(*shape, 3, generator=generator, dtype=torch.float64)
+    axis = axis / torch.linalg.vector_norm(axis, dim=-1, keepdim=True)
+    angle = max_angle * torch.rand(*shape, 1, generator=generator, dtype=torch.float64)
+    q = pk_tf.axis_angle_to_quaternion(axis * angle)
+    return pk_tf.quaternion_to_matrix(q).to(dtype)
+
+
+def random_se3(
+    shape: Sequence[int] = (),
+    *,
+    generator: torch.Generator,
+    dtype: torch.dtype = torch.float64,
+    max_angle: float = math.pi,
+    max_translation: float = 1.0,
+) -> torch.Tensor:
+    """Random rigid transforms.
+
+    Args:
+        shape: leading batch shape ``(...)``.
+        generator: source of randomness (CPU generator).
+        dtype: output dtype.
+        max_angle: largest rotation angle (radians), see :func:`random_rotation`.
+        max_translation: translations are uniform in ``[-max_translation, max_translation]^3``.
+
+    Returns:
+        (..., 4, 4) transforms.
+    """
+    shape = tuple(shape)
+    R = random_rotation(shape, generator=generator, dtype=torch.float64, max_angle=max_angle)
+    t = max_translation * (
+        2.0 * torch.rand(*shape, 3, generator=generator, dtype=torch.float64) - 1
+    )
+    T = torch.zeros(*shape, 4, 4, dtype=torch.float64)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T.to(dtype)
+
+
+def random_points(
+    shape: Sequence[int],
+    *,
+    generator: torch.Generator,
+    dtype: torch.dtype = torch.float64,
+    low: Sequence[float] = (-1.0, -1.0, 2.0),
+    high: Sequence[float] = (1.0, 1.0, 5.0),
+) -> torch.Tensor:
+    """Points uniform in an axis-aligned box (by default in front of an OpenCV camera).
+
+    Args:
+        shape: leading shape, e.g. ``(B, N)``.
+        generator: source of randomness (CPU generator).
+        dtype: output dtype.
+        low: (3,) lower corner.
+        high: (3,) upper corner.
+
+    Returns:
+        (*shape, 3) points.
+    """
+    lo = torch.tensor(low, dtype=torch.float64)
+    hi = torch.tensor(high, dtype=torch.float64)
+    u = torch.rand(*tuple(shape), 3, generator=generator, dtype=torch.float64)
+    return (lo + (hi - lo) * u).to(dtype)

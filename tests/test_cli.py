@@ -1,0 +1,64 @@
+"""The Hydra app: every config composes into typed objects; bad input gets clear errors."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+from omegaconf.errors import ConfigKeyError, ValidationError
+
+from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
+from tests.conftest import TINY, compose_config
+
+
+@pytest.mark.parametrize(
+    ("scene", "schema"), [("indoor", IndoorSceneConfig), ("outdoor", OutdoorSceneConfig)]
+)
+def test_every_scene_config_composes_into_its_schema(scene, schema):
+    cfg = compose_config([f"scene={scene}", "task=simulate"])
+    obj = OmegaConf.to_object(cfg.scene)
+    assert isinstance(obj, schema)
+    assert [s.name for s in obj.sequences] == [
+        "mapping",
+        "query_same",
+        "query_lane",
+        "query_reverse",
+        "changed",
+    ]
+    assert cfg.out_dir == f"data/{scene}_seed0"
+
+
+def test_unknown_scene_name_lists_the_choices():
+    with pytest.raises(ConfigCompositionException, match="indoor"):
+        compose_config(["scene=moon_base"])
+
+
+def test_non_integer_seed_is_refused():
+    with pytest.raises((ValidationError, ConfigCompositionException)):
+        OmegaConf.to_object(compose_config(["scene.seed=abc"]).scene)
+
+
+def test_misspelt_key_is_refused():
+    with pytest.raises((ConfigKeyError, ConfigCompositionException)):
+        compose_config(["scene.camera.widht=100"])
+
+
+def test_console_script_simulates_a_dataset(tmp_path):
+    out = tmp_path / "ds"
+    args = ["task=simulate", "scene=indoor", "scene.seed=2", f"out_dir={out}"]
+    args += [a for a in TINY if not a.startswith("scene.trajectory")]
+    args += ["scene.trajectory.max_frames=2", f"hydra.run.dir={tmp_path / 'run'}"]
+    env = {**os.environ, "CI": "true"}
+    done = subprocess.run(
+        [sys.executable, "-m", "diffloc.cli", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert f"dataset: {out}" in done.stdout
+    assert (out / "preview.png").exists()
+    assert len(list((out / "mapping" / "rgb").glob("*.png"))) == 2
