@@ -22,7 +22,7 @@ def test_xfeat_keypoints_and_verified_matches_on_640x480_frames(xfeat, kind):
     seq = scene.sequences[0]
     timestamps, T_wb = simulator.body_trajectory(seq)
     T_wc = T_wb @ simulator.T_body_camera
-    # Consecutive frames: 0.2 m apart indoors (0.8 m/s, 4 Hz), 2 m outdoors (4 m/s, 2 Hz).
+    # Consecutive mapping frames: 0.4 m apart indoors (0.8 m/s, 2 Hz), 2 m outdoors (4 m/s, 2 Hz).
     i = len(timestamps) // 3
     j = i + 1
     assert float((T_wc[j, :3, 3] - T_wc[i, :3, 3]).norm()) > 0.1

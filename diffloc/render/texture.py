@@ -60,14 +60,17 @@ class MipmapTextures:
         xy = (uv - torch.floor(uv)) * size[:, None] - 0.5
         xy0 = torch.floor(xy)
         frac = xy - xy0
-        x0 = xy0[:, 0].long() % size
-        y0 = xy0[:, 1].long() % size
-        x1 = (x0 + 1) % size
-        y1 = (y0 + 1) % size
+        wrap = size - 1  # sizes are powers of two, so "& (size - 1)" is "% size"
+        x0 = xy0[:, 0].long() & wrap
+        y0 = xy0[:, 1].long() & wrap
+        x1 = (x0 + 1) & wrap
+        y1 = (y0 + 1) & wrap
         fx, fy = frac[:, 0:1], frac[:, 1:2]
-        texels = self._texels
-        top = texels[base + y0 * size + x0] * (1 - fx) + texels[base + y0 * size + x1] * fx
-        bottom = texels[base + y1 * size + x0] * (1 - fx) + texels[base + y1 * size + x1] * fx
+        row0, row1 = base + y0 * size, base + y1 * size
+        index = torch.stack([row0 + x0, row0 + x1, row1 + x0, row1 + x1])  # (4, N)
+        t00, t01, t10, t11 = self._texels.index_select(0, index.reshape(-1)).view(4, -1, 3)
+        top = t00 * (1 - fx) + t01 * fx
+        bottom = t10 * (1 - fx) + t11 * fx
         return top * (1 - fy) + bottom * fy
 
     def sample(

@@ -52,9 +52,14 @@ class MapConfig:
 
 @dataclass
 class SequenceConfig:
-    """One simulated traversal: route direction, lateral offset, scene state and lighting."""
+    """One simulated traversal: route direction, lateral offset, scene state and lighting.
+
+    ``frame_rate_hz`` overrides ``trajectory.frame_rate_hz`` for this sequence (0 keeps it), so
+    queries can be sparser than the mapping run.
+    """
 
     name: str = MISSING
+    frame_rate_hz: float = 0.0
     reverse: bool = False
     lateral_offset_m: float = 0.0
     changed_scene: bool = False

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -120,9 +121,12 @@ class DatasetSimulator:
 
     def body_trajectory(self, seq: SequenceConfig) -> tuple[np.ndarray, torch.Tensor]:
         """Timestamps (N,) and body poses T_wb (N, 4, 4) of a sequence."""
+        trajectory = self.cfg.trajectory
+        if seq.frame_rate_hz > 0:
+            trajectory = replace(trajectory, frame_rate_hz=seq.frame_rate_hz)
         return make_trajectory(
             self.world.route,
-            self.cfg.trajectory,
+            trajectory,
             lateral_offset_m=seq.lateral_offset_m,
             reverse=seq.reverse,
             phase=seq.sway_phase,

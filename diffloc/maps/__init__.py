@@ -1,0 +1,1 @@
+"""Maps localised against: surfel maps and coloured point clouds (built, validated, stored)."""
