@@ -1,0 +1,1 @@
+"""Local and global image features, descriptor matching and retrieval."""
