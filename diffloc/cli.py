@@ -4,6 +4,7 @@ Examples:
     diffloc                                         # simulate the default indoor scene
     diffloc task=simulate scene=outdoor scene.seed=3 out_dir=data/courtyard
     diffloc -m scene.seed=0,1,2                     # a multirun sweep over seeds
+    diffloc task=build_map dataset=data/indoor_seed0 # surfel map + coloured point maps
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from diffloc.config import register_configs
+from diffloc.pipeline.build_map import build_maps
 from diffloc.sim.dataset import simulate_dataset
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -31,7 +33,25 @@ def run_simulate(cfg: DictConfig) -> Path:
     return out_dir
 
 
-TASKS: dict[str, Callable[[DictConfig], object]] = {"simulate": run_simulate}
+def run_build_map(cfg: DictConfig) -> dict:
+    """``task=build_map``: surfel map, coloured point maps and preview under ``dataset/map``."""
+    summary = build_maps(
+        Path(cfg.dataset),
+        OmegaConf.to_object(cfg.task),
+        OmegaConf.to_object(cfg.surfel),
+        show_progress=cfg.progress,
+    )
+    print(f"surfels: {summary['surfels']} from {summary['source']}")
+    for key in ("surfel_map", "point_map", "tls_point_map", "preview"):
+        if key in summary:
+            print(f"{key}: {summary[key]}")
+    return summary
+
+
+TASKS: dict[str, Callable[[DictConfig], object]] = {
+    "simulate": run_simulate,
+    "build_map": run_build_map,
+}
 
 
 def run(cfg: DictConfig) -> object:

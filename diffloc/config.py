@@ -12,6 +12,8 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
+from diffloc.maps.surfel import SurfelMapConfig
+from diffloc.pipeline.build_map import BuildMapConfig
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
 
 
@@ -25,11 +27,13 @@ class SimulateTaskConfig:
 
 @dataclass
 class DifflocConfig:
-    """The app's root: which task, which scene, where the dataset lives."""
+    """The app's root: which task, which scene, where the dataset lives, map settings."""
 
     task: Any = MISSING
     scene: Any = MISSING
+    surfel: SurfelMapConfig = MISSING
     out_dir: str = MISSING
+    dataset: str = MISSING
     progress: bool = True
 
 
@@ -38,5 +42,7 @@ def register_configs() -> None:
     store = ConfigStore.instance()
     store.store(name="diffloc_schema", node=DifflocConfig)
     store.store(group="task", name="schema_simulate", node=SimulateTaskConfig)
+    store.store(group="task", name="schema_build_map", node=BuildMapConfig)
+    store.store(group="surfel", name="schema_surfel", node=SurfelMapConfig)
     store.store(group="scene", name="schema_indoor", node=IndoorSceneConfig)
     store.store(group="scene", name="schema_outdoor", node=OutdoorSceneConfig)

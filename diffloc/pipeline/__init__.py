@@ -1,0 +1,1 @@
+"""Pipeline stages: dataset folders in, result files out, cached; called by ``diffloc``."""

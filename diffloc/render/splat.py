@@ -1,0 +1,1015 @@
+"""Hard (non-differentiable) splatting of surfel and point maps into pinhole cameras.
+
+Three renderers share one z-buffer:
+
+- :func:`render_surfel_index` draws oriented disks (surfels) and returns the global surfel
+  index map of seed 1 Sec. III-A, with exact per-pixel depths and the surfel normals.
+- :func:`render_points` draws square point splats (RGB-D, ids, mask) with the sizes of
+  seed 2 Sec. III-D1: a fixed size, the inverse-depth size of Eq. 2, or the multi-pass scheme
+  with a few fixed sizes merged by nearest depth.
+- :func:`neighbour_surfels` lists the distinct surfel ids within each keypoint's radius (the
+  neighbouring surfel set of seed 1).
+
+Design notes:
+
+- **Z-buffer.** A candidate (pixel, primitive) is an int64 key whose high 32 bits are the bits
+  of its float32 depth (positive floats order like their bit patterns) and whose low 32 bits
+  are the primitive index. ``scatter_reduce(..., reduce="amin")`` over the flattened pixels
+  keeps, per pixel, the nearest depth and its id in one pass; equal depths go to the lower
+  index, so renders are deterministic and independent of the input order. Cameras are
+  rendered one after the other; everything per camera is vectorised over primitives and
+  pixels (chunked to bound the memory).
+- **Surfels.** The ray through a pixel centre ``d = ((u - cx) / fx, (v - cy) / fy, 1)`` hits
+  the plane of a surfel (centre ``c``, unit normal ``n``, radius ``r``, camera frame) at
+  z-depth ``t = (n.c) / (n.d)``; the pixel is covered when ``|t d - c| <= r``. Multiplying by
+  ``(n.d)^2`` makes the test a quadratic (conic) in the pixel coordinates and ``1 / t`` an
+  affine function of them, so a chunk of same-sized candidate windows is tested with one
+  small matrix product. Candidate windows are the pixels of the analytic bounding box of the
+  projected ellipse (clipped to the image), grouped in buckets of a few window sizes. Surfels
+  are first culled against the view frustum with their bounding spheres.
+- **Points.** A point of integer size ``k`` covers the ``k x k`` pixels whose centres lie in
+  the square of side ``k`` centred on its projection (OpenGL point rasterisation). The keys of
+  each pass (size level) are scattered once into an "anchor" image (top-left pixel of each
+  splat); the squares are filled with separable sliding-window minima, evaluated for all
+  passes together from the largest size down, and the minimum merges the passes by nearest
+  depth. The cost is one scatter per point plus a few image-sized operations per pass,
+  independent of the splat area.
+- **Bad input.** Wrong shapes, ``B = 0`` -> :class:`~diffloc.checks.ShapeError`; non-finite
+  poses -> ``ValueError``. Map entries with any NaN or infinite coordinate (centre, normal,
+  radius, point) are treated as missing and *culled*; finite but invalid values (radius
+  ``<= 0``, zero normal) raise ``ValueError``. Primitives behind the camera (centre or point
+  with ``z <= MIN_DEPTH``) are culled; an empty map gives an empty render.
+- **Cameras.** ``camera`` is one :class:`PinholeCamera` (batch shape ``()``) shared by all
+  poses or a batch of ``B`` cameras of one image size. Point splats are placed at the
+  (distorted) projection, so distorted cameras work; the surfel renderer needs an ideal
+  pinhole (``distortion=None``) because it intersects pixel rays analytically.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import torch
+
+from diffloc.checks import ShapeError, check_finite, check_shape
+from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera
+from diffloc.geometry.se3 import invert
+
+__all__ = [
+    "PointRender",
+    "PointSizes",
+    "SurfelRender",
+    "neighbour_surfels",
+    "render_points",
+    "render_surfel_index",
+    "see_through_fraction",
+]
+
+_EMPTY_KEY = torch.iinfo(torch.int64).max
+_LOW32 = 0xFFFFFFFF
+_MAX_PRIMITIVES = 2**31 - 1
+_CHUNK = 1 << 18
+"""Elements per chunk of vectorised work: bounds temporaries to a few MB each."""
+_GRAZING_COS = 1e-6
+"""Surfels seen exactly edge-on (|cos| of the view angle below this) cover no pixel centre."""
+_BBOX_MARGIN_PX = 1e-2
+"""Slack added to the analytic ellipse bounding box against float32 rounding."""
+_ELLIPSE_CONDITION = 1e-3
+"""Ellipses with ``4AC - B^2 <= 1e-3 * 4AC`` (aspect ratio above ~30) use the sphere bound."""
+
+
+# ---------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True)
+class SurfelRender:
+    """Surfel index map of a batch of cameras.
+
+    Attributes:
+        ids: (B, H, W) int64 index of the visible surfel, -1 where none.
+        depth: (B, H, W) float32 z-depth (metres) of the ray-disk hit, 0 where none.
+        normals: (B, 3, H, W) float32 unit normal of the visible surfel in the *camera* frame
+            (as stored in the map, not flipped towards the camera), 0 where none.
+    """
+
+    ids: torch.Tensor
+    depth: torch.Tensor
+    normals: torch.Tensor
+
+    @property
+    def mask(self) -> torch.Tensor:
+        """(B, H, W) bool, true where a surfel is visible."""
+        return self.ids >= 0
+
+
+@dataclass(frozen=True)
+class PointRender:
+    """RGB-D render of a point map.
+
+    Attributes:
+        rgb: (B, 3, H, W) float32 colour of the visible point, 0 where none.
+        depth: (B, 1, H, W) float32 z-depth (metres), 0 where none.
+        ids: (B, H, W) int64 index of the visible point, -1 where none.
+        mask: (B, 1, H, W) bool, true where a point is visible.
+    """
+
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    ids: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass(frozen=True)
+class PointSizes:
+    """Screen-space splat sizes (side of the square, in pixels) for :func:`render_points`.
+
+    Each point first gets the inverse-depth size of seed 2 Eq. 2,
+    ``rho = clamp(rho_max / z, rho_min, rho_max)`` (``z`` in metres, so ``rho_max`` is the
+    size at 1 m and closer). It is then snapped to the nearest of the integer ``levels``
+    (ties round up); points of one level form one rendering pass and passes are merged by
+    nearest depth (seed 2 Fig. 5). ``levels=None`` uses every integer in
+    ``[round(rho_min), round(rho_max)]`` (at least 1), which renders Eq. 2 per point with the
+    size rounded to whole pixels as OpenGL does. A fixed size ``k`` is ``levels=(k,)``.
+
+    Attributes:
+        rho_min: smallest size (pixels, > 0).
+        rho_max: largest size (pixels, >= rho_min).
+        levels: optional sorted tuple of distinct positive integer sizes, the passes.
+
+    Raises:
+        ValueError: non-finite or non-positive sizes, ``rho_max < rho_min``, bad levels.
+
+    Example:
+        >>> PointSizes.inverse_depth(1.0, 4.0).pass_sizes()
+        (1, 2, 3, 4)
+        >>> PointSizes.fixed(2).pass_sizes()
+        (2,)
+    """
+
+    rho_min: float = 1.0
+    rho_max: float = 1.0
+    levels: tuple[int, ...] | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("rho_min", "rho_max"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"PointSizes.{name} must be a positive number, got {value!r}")
+        if self.rho_max < self.rho_min:
+            raise ValueError(f"PointSizes.rho_max ({self.rho_max}) < rho_min ({self.rho_min})")
+        if self.levels is not None:
+            levels = tuple(self.levels)
+            valid = all(isinstance(k, int) and not isinstance(k, bool) and k > 0 for k in levels)
+            if not levels or not valid or list(levels) != sorted(set(levels)):
+                raise ValueError(
+                    f"PointSizes.levels must be increasing positive integers, got {self.levels!r}"
+                )
+            object.__setattr__(self, "levels", levels)
+
+    @classmethod
+    def fixed(cls, size: int) -> PointSizes:
+        """Every point drawn as a ``size x size`` square (a single pass)."""
+        return cls(rho_min=float(size), rho_max=float(size), levels=(size,))
+
+    @classmethod
+    def inverse_depth(cls, rho_min: float, rho_max: float) -> PointSizes:
+        """Eq. 2 per point, rounded to whole pixels."""
+        return cls(rho_min=rho_min, rho_max=rho_max)
+
+    @classmethod
+    def multi_pass(cls, rho_min: float, rho_max: float, levels: tuple[int, ...]) -> PointSizes:
+        """Eq. 2 snapped to a few fixed sizes, one pass each, merged by nearest depth."""
+        return cls(rho_min=rho_min, rho_max=rho_max, levels=levels)
+
+    def pass_sizes(self) -> tuple[int, ...]:
+        """The integer splat sizes, one rendering pass each."""
+        if self.levels is not None:
+            return self.levels
+        low = max(1, math.floor(self.rho_min + 0.5))
+        return tuple(range(low, max(low, math.floor(self.rho_max + 0.5)) + 1))
+
+    def level_index(self, depth: torch.Tensor) -> torch.Tensor:
+        """Pass index of points at camera-frame z-depths ``depth`` (any shape, > 0).
+
+        Args:
+            depth: (...) z-depths in metres.
+
+        Returns:
+            (...) int64 indices into :meth:`pass_sizes`.
+        """
+        sizes = self.pass_sizes()
+        rho = (self.rho_max / depth).clamp(self.rho_min, self.rho_max)
+        midpoints = torch.tensor(
+            [0.5 * (a + b) for a, b in zip(sizes[:-1], sizes[1:], strict=True)],
+            dtype=rho.dtype,
+            device=rho.device,
+        )
+        return torch.bucketize(rho, midpoints, right=True)
+
+
+# ---------------------------------------------------------------------------- validation
+
+
+def _check_poses(T_wc: torch.Tensor) -> int:
+    """Validate (B, 4, 4) poses and return B."""
+    check_shape(T_wc, "B,4,4", "T_wc")
+    if T_wc.shape[0] == 0:
+        raise ShapeError("T_wc must hold at least one pose, got shape (0, 4, 4)")
+    check_finite(T_wc, "T_wc")
+    return T_wc.shape[0]
+
+
+def _check_camera(camera: PinholeCamera, batch: int) -> PinholeCamera:
+    """A float32 copy of ``camera``, which must be one camera or a batch of ``batch``."""
+    if not isinstance(camera, PinholeCamera):
+        raise TypeError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+    if tuple(camera.batch_shape) not in ((), (batch,)):
+        raise ShapeError(
+            f"camera batch shape must be () or ({batch},) to match T_wc, "
+            f"got {tuple(camera.batch_shape)}"
+        )
+    return camera.to(torch.float32)
+
+
+def _check_map_size(n: int, what: str) -> None:
+    if n > _MAX_PRIMITIVES:
+        raise ValueError(f"at most {_MAX_PRIMITIVES} {what} can be rendered, got {n}")
+
+
+@dataclass(frozen=True)
+class _View:
+    """One camera of a batch: world-to-camera transform and intrinsics."""
+
+    R_cw: torch.Tensor  # (3, 3) float32
+    t_cw: torch.Tensor  # (3, 1) float32
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    camera: PinholeCamera  # unbatched, for the distortion model
+
+    def to_camera(self, points_world_t: torch.Tensor) -> torch.Tensor:
+        """(3, n) camera-frame coordinates of (3, n) world points (coordinates as rows).
+
+        Pass ``points_world.T`` for (n, 3) points: the transposed view needs no copy.
+        """
+        return torch.addmm(self.t_cw, self.R_cw, points_world_t)
+
+
+def _views(T_wc: torch.Tensor, camera: PinholeCamera) -> Iterator[_View]:
+    """Yield the cameras of a validated batch one at a time."""
+    T_cw = invert(T_wc.to(torch.float64)).to(torch.float32)
+    batch = T_wc.shape[0]
+    params = torch.stack((camera.fx, camera.fy, camera.cx, camera.cy), dim=-1).expand(batch, 4)
+    for b, (fx, fy, cx, cy) in enumerate(params.tolist()):
+        single = camera if len(camera.batch_shape) == 0 else camera[b]
+        yield _View(T_cw[b, :3, :3], T_cw[b, :3, 3:], fx, fy, cx, cy, single)
+
+
+# ---------------------------------------------------------------------------- z-buffer keys
+
+
+def _pack_keys(depth: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+    """int64 keys ordering by float32 ``depth > 0`` first, then by ``ids`` in [0, 2^31)."""
+    bits = depth.to(torch.float32).contiguous().view(torch.int32).to(torch.int64)
+    return torch.add(ids, bits, alpha=1 << 32)
+
+
+def _unpack_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(ids, depth)`` of z-buffer keys: -1 and 0 where the key is empty."""
+    empty = keys == _EMPTY_KEY
+    ids = torch.bitwise_and(keys, _LOW32).masked_fill_(empty, -1)
+    depth_bits = torch.bitwise_right_shift(keys, 32).to(torch.int32)
+    depth = depth_bits.view(torch.float32).masked_fill_(empty, 0.0)
+    return ids, depth
+
+
+def _empty_keys(shape: tuple[int, ...], device: torch.device) -> torch.Tensor:
+    return torch.full(shape, _EMPTY_KEY, dtype=torch.int64, device=device)
+
+
+def _gather_channels_first(values: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W) rows of (N, C) ``values`` picked by (B, H, W) ``ids`` (-1 reads row 0)."""
+    channels = values.shape[1]
+    batch, height, width = ids.shape
+    offsets = torch.arange(channels, device=ids.device).view(1, channels, 1, 1)
+    flat = ids.clamp_min(0)[:, None] * channels + offsets
+    if values.numel() == 0:
+        return torch.zeros(flat.shape, dtype=values.dtype, device=values.device)
+    return values.reshape(-1).index_select(0, flat.view(-1)).view(flat.shape)
+
+
+# ---------------------------------------------------------------------------- surfels
+
+
+@dataclass(frozen=True)
+class _SurfelWindows:
+    """Visible surfels of one camera with their conics and candidate pixel boxes.
+
+    ``q(du, dv) = du (A du + B dv + D) + dv (C dv + E) <= 1`` is the ray-disk test in pixel
+    offsets ``(du, dv)`` from the projected centre ``(uc, vc)``; the inverse hit depth is
+    ``g0 + gu du + gv dv``. The candidate pixels are the box of ``extent`` pixels from
+    ``corner``, inside the image. Fields are tuples of 1-D tensors: 1-D tensors index much
+    faster than 2-D ones.
+    """
+
+    ids: torch.Tensor  # (M,) surfel index
+    coeffs: tuple[torch.Tensor, ...]  # 10 x (M,): A, B, C, D, E, g0, gu, gv, uc, vc
+    near: torch.Tensor  # (M,) bool: the disk may reach the near plane (extra depth test)
+    corner: tuple[torch.Tensor, torch.Tensor]  # 2 x (M,) int64 top-left pixel u_lo, v_lo
+    extent: tuple[torch.Tensor, torch.Tensor]  # 2 x (M,) int64 box width, height (<= 0: empty)
+
+    def _map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> _SurfelWindows:
+        """Apply ``fn`` to every (M,) tensor."""
+        return _SurfelWindows(
+            fn(self.ids),
+            tuple(fn(c) for c in self.coeffs),
+            fn(self.near),
+            (fn(self.corner[0]), fn(self.corner[1])),
+            (fn(self.extent[0]), fn(self.extent[1])),
+        )
+
+    def select(self, index: torch.Tensor) -> _SurfelWindows:
+        """The windows at (K,) ``index``."""
+        return self._map(lambda t: t.index_select(0, index))
+
+    def narrow(self, start: int, length: int) -> _SurfelWindows:
+        """The windows ``start .. start + length - 1`` (views)."""
+        return self._map(lambda t: t.narrow(0, start, length))
+
+
+def _in_frustum(
+    centers_cam: torch.Tensor, radii: torch.Tensor, view: _View, height: int, width: int
+) -> torch.Tensor:
+    """(N,) bool: centre in front of the camera, bounding sphere not outside the image frustum.
+
+    A conservative visibility test against the four side planes through the camera centre.
+    """
+    x, y, z = centers_cam
+    keep = z > MIN_DEPTH
+    # Side planes through the camera centre, e.g. u >= -0.5  <=>  fx x + (cx + 0.5) z >= 0.
+    for a, b, coord in (
+        (view.fx, view.cx + 0.5, x),
+        (-view.fx, width - 0.5 - view.cx, x),
+        (view.fy, view.cy + 0.5, y),
+        (-view.fy, height - 0.5 - view.cy, y),
+    ):
+        norm = math.hypot(a, b)
+        keep &= torch.add(radii, coord, alpha=a / norm).add_(z, alpha=b / norm) >= 0
+    return keep
+
+
+def _surfel_conics(
+    c: torch.Tensor, n: torch.Tensor, r: torch.Tensor, view: _View
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ray-disk conics of surfels in front of the camera.
+
+    The ray ``d = c / cz + (du / fx, dv / fy, 0)`` meets the plane ``n.p = k`` (``k = n.c``)
+    at ``t = k / (n.d)``, and ``|t d - c| <= r`` is ``|k e - (n_x a + n_y b) c|^2 <=
+    r^2 (n.d)^2`` with ``e = (a, b, 0)``, ``a = du / fx``, ``b = dv / fy``. Expanding with
+    ``h = cz / k`` and ``m = |c|^2 - r^2`` and dividing by ``r^2 (k / cz)^2`` gives
+    ``A = h^2 (k^2 - 2 k n_x c_x + n_x^2 m) / (r f_x)^2``,
+    ``B = 2 h^2 (n_x n_y m - k (n_y c_x + n_x c_y)) / (r^2 f_x f_y)``, ``C`` like ``A``,
+    ``D = -2 n_x h / f_x``, ``E = -2 n_y h / f_y``; ``1 / t = 1 / cz + n_x a / k + n_y b / k``.
+
+    Args:
+        c: (3, M) centres, camera frame, ``cz > 0``.
+        n: (3, M) unit normals, camera frame.
+        r: (M,) radii.
+        view: the camera.
+
+    Returns:
+        ``(coeffs, k)``: 10 (M,) rows ``A, B, C, D, E, g0, gu, gv, uc, vc`` (see
+        :class:`_SurfelWindows`) and (M,) ``k = n.c``.
+    """
+    cx_, cy_, cz = c
+    nx, ny, _ = n
+    fx, fy = view.fx, view.fy
+    k = (n * c).sum(0)
+    h = cz / k
+    t = (h / r).square_()
+    m = (c * c).sum(0).sub_(r * r)
+    kx, ky = k * nx, k * ny
+    kk = k * k
+    A = (kk - 2.0 * kx * cx_).addcmul_(nx * nx, m).mul_(t / (fx * fx))
+    C = (kk - 2.0 * ky * cy_).addcmul_(ny * ny, m).mul_(t / (fy * fy))
+    B = (nx * ny * m).sub_(ky * cx_).sub_(kx * cy_).mul_(t * (2.0 / (fx * fy)))
+    D = nx * h * (-2.0 / fx)
+    E = ny * h * (-2.0 / fy)
+    g0 = cz.reciprocal()
+    gu = nx / k / fx
+    gv = ny / k / fy
+    uc = cx_ * g0 * fx + view.cx
+    vc = cy_ * g0 * fy + view.cy
+    return (A, B, C, D, E, g0, gu, gv, uc, vc), k
+
+
+def _surfel_windows(
+    centers_cam: torch.Tensor,
+    normals_cam: torch.Tensor,
+    radii: torch.Tensor,
+    view: _View,
+    height: int,
+    width: int,
+    cull_backfaces: bool,
+) -> tuple[_SurfelWindows, torch.Tensor]:
+    """Conics and candidate boxes of the surfels that may be visible in one camera.
+
+    Args:
+        centers_cam: (3, N) surfel centres in the camera frame (coordinates as rows).
+        normals_cam: (3, N) normals in the camera frame (any non-zero length).
+        radii: (N,) radii.
+        view: the camera.
+        height: image height.
+        width: image width.
+        cull_backfaces: drop surfels whose normal points away from the camera.
+
+    Returns:
+        ``(windows, keep)``: the windows and (M,) bool, those to draw.
+    """
+    ids = _in_frustum(centers_cam, radii, view, height, width).nonzero()[:, 0]
+    c = torch.stack([row.index_select(0, ids) for row in centers_cam])
+    n = torch.stack([row.index_select(0, ids) for row in normals_cam])
+    r = radii.index_select(0, ids)
+    n = n / (n * n).sum(0).sqrt_()
+    coeffs, k = _surfel_conics(c, n, r, view)
+    total = c.sum(0) + n.sum(0) + r
+    visible = (total - total) == 0  # false for NaN / inf
+    visible &= k.square() > _GRAZING_COS**2 * (c * c).sum(0)
+    if cull_backfaces:
+        visible &= k < 0
+    near = c[2] - r <= MIN_DEPTH
+    box = _surfel_boxes(coeffs, near, r, c, view, height, width)
+    extent = box[2:] - box[:2] + 1
+    visible &= (extent > 0).all(0)
+    windows = _SurfelWindows(ids, coeffs, near, (box[0], box[1]), (extent[0], extent[1]))
+    return windows, visible
+
+
+def _ellipse_box_offsets(
+    A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, D: torch.Tensor, E: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bounding box ``(du_min, du_max, dv_min, dv_max)`` of ``q(du, dv) <= 1``.
+
+    At the extremes of ``du`` the gradient of ``q`` is along ``du`` (``dq/ddv = 0``), which
+    leaves the quadratic ``a du^2 + b du - c = 0`` with ``a = 4AC - B^2`` (> 0 for an ellipse),
+    ``b = 4CD - 2BE``, ``c = E^2 + 4C``; the same for ``dv`` with the roles swapped. Where
+    ``a`` is not positive or loses most of its digits to cancellation (very thin ellipses, a
+    relative tolerance of :data:`_ELLIPSE_CONDITION`) the offsets are NaN.
+    """
+    ac4 = 4.0 * A * C
+    a = ac4 - B * B
+    a = a.masked_fill_(a <= _ELLIPSE_CONDITION * ac4.abs(), math.nan)
+    bu = 4.0 * C * D - 2.0 * B * E
+    bv = 4.0 * A * E - 2.0 * B * D
+    root_u = (E * E + 4.0 * C).mul_(4.0 * a).addcmul_(bu, bu).sqrt_()
+    root_v = (D * D + 4.0 * A).mul_(4.0 * a).addcmul_(bv, bv).sqrt_()
+    half_inv_a = 0.5 / a
+    return (
+        (-bu - root_u).mul_(half_inv_a),
+        (root_u - bu).mul_(half_inv_a),
+        (-bv - root_v).mul_(half_inv_a),
+        (root_v - bv).mul_(half_inv_a),
+    )
+
+
+def _surfel_boxes(
+    coeffs: tuple[torch.Tensor, ...],
+    near: torch.Tensor,
+    r: torch.Tensor,
+    c: torch.Tensor,
+    view: _View,
+    height: int,
+    width: int,
+) -> torch.Tensor:
+    """(4, M) int64 inclusive pixel boxes ``u_lo, v_lo, u_hi, v_hi`` clipped to the image.
+
+    The box is the analytic bounding box of the projected ellipse, intersected with the
+    projection bound of the surfel's bounding sphere ``f r sqrt(x^2 + z^2) / (z (z - r))``
+    (the only bound for ill-conditioned ellipses). A disk reaching the camera plane projects
+    to an unbounded conic and gets the whole image. Empty boxes have ``lo > hi``.
+    """
+    u_min, u_max, v_min, v_max = _ellipse_box_offsets(*coeffs[:5])
+    cx_, cy_, cz = c
+    scale = r / (cz * (cz - r)).masked_fill_(near, 0.0)  # inf where near
+    half_u = (cx_ * cx_).addcmul_(cz, cz).sqrt_().mul_(scale).mul_(view.fx)
+    half_v = (cy_ * cy_).addcmul_(cz, cz).sqrt_().mul_(scale).mul_(view.fy)
+    uc, vc = coeffs[8], coeffs[9]
+    # fmax / fmin skip the NaN offsets of ill-conditioned or unbounded conics.
+    u_lo = torch.fmax(u_min, -half_u).add_(uc).sub_(_BBOX_MARGIN_PX).ceil_().clamp_(0, width)
+    v_lo = torch.fmax(v_min, -half_v).add_(vc).sub_(_BBOX_MARGIN_PX).ceil_().clamp_(0, height)
+    u_hi = torch.fmin(u_max, half_u).add_(uc).add_(_BBOX_MARGIN_PX).floor_().clamp_(-1, width - 1)
+    v_hi = torch.fmin(v_max, half_v).add_(vc).add_(_BBOX_MARGIN_PX).floor_().clamp_(-1, height - 1)
+    return torch.stack((u_lo, v_lo, u_hi, v_hi)).to(torch.int64)
+
+
+def _bucket_sizes(limit: int) -> list[int]:
+    """Window sizes used as buckets: 1, 2, 3, 4, 6, 8, then steps of ~40 %, last >= ``limit``."""
+    sizes = [1, 2, 3, 4, 6, 8]
+    while sizes[-1] < limit:
+        sizes.append(math.ceil(sizes[-1] * 1.4))
+    return sizes
+
+
+def _sort_into_buckets(
+    windows: _SurfelWindows, keep: torch.Tensor, height: int, width: int
+) -> tuple[_SurfelWindows, list[tuple[int, int, int, int]]]:
+    """The kept windows ordered by bucket of (width, height), and the buckets.
+
+    Returns:
+        The reordered windows and, per non-empty bucket, ``(size_u, size_v, start, count)``:
+        windows ``start .. start + count - 1`` fit a ``size_v x size_u`` pixel window.
+    """
+    sizes = _bucket_sizes(max(width, height))
+    lookup = torch.bucketize(torch.arange(max(width, height) + 1), torch.tensor(sizes))
+    lookup = lookup.to(windows.ids.device)
+    bucket_u, bucket_v = (lookup[e.clamp(0, max(width, height))] for e in windows.extent)
+    group = bucket_u * len(sizes) + bucket_v
+    group = group.masked_fill_(~keep, len(sizes) ** 2).to(torch.int32)  # dropped: sorted last
+    counts = torch.bincount(group, minlength=len(sizes) ** 2 + 1)[:-1].tolist()
+    buckets, start = [], 0
+    for g, count in enumerate(counts):
+        if count:
+            size_u, size_v = sizes[g // len(sizes)], sizes[g % len(sizes)]
+            buckets.append((min(size_u, width), min(size_v, height), start, count))
+            start += count
+    order = torch.argsort(group, stable=True)[:start]
+    return windows.select(order), buckets
+
+
+def _window_basis(size_u: int, size_v: int, device: torch.device) -> torch.Tensor:
+    """(9, 2 * size_v * size_u) monomials of the pixel offsets ``(i, j)`` of a window.
+
+    Row-major pixels; the first half of the columns evaluates the conic
+    ``(A, B, C, D, E, F) . (i^2, i j, j^2, i, j, 1)``, the second half the inverse depth
+    ``(g0, gu, gv) . (1, i, j)``, so one matrix product evaluates both for many windows.
+    """
+    j, i = torch.meshgrid(
+        torch.arange(size_v, device=device, dtype=torch.float32),
+        torch.arange(size_u, device=device, dtype=torch.float32),
+        indexing="ij",
+    )
+    i, j = i.reshape(-1), j.reshape(-1)
+    one, zero = torch.ones_like(i), torch.zeros_like(i)
+    conic = torch.stack((i * i, i * j, j * j, i, j, one, zero, zero, zero))
+    inverse_depth = torch.stack((zero, zero, zero, zero, zero, zero, one, i, j))
+    return torch.cat((conic, inverse_depth), dim=1)
+
+
+def _window_coefficients(part: _SurfelWindows, u0: torch.Tensor, v0: torch.Tensor) -> torch.Tensor:
+    """(m, 9) conic and inverse-depth coefficients in offsets from each window's corner.
+
+    Substituting ``du = i + a``, ``dv = j + b`` (``a = u0 - uc``, ``b = v0 - vc``) into
+    ``q = du (A du + B dv + D) + dv (C dv + E)`` and ``g0 + gu du + gv dv``.
+    """
+    A, B, C, D, E, g0, gu, gv, uc, vc = part.coeffs
+    a, b = u0 - uc, v0 - vc
+    qa = torch.addcmul(D, A, a).addcmul_(B, b)  # dq/ddu at (a, b) minus A a
+    qb = torch.addcmul(E, C, b)
+    rows = (
+        A,
+        B,
+        C,
+        qa + A * a,
+        qb.addcmul(B, a).addcmul_(C, b),
+        (qa * a).addcmul_(qb, b),
+        torch.addcmul(g0, gu, a).addcmul_(gv, b),
+        gu,
+        gv,
+    )
+    return torch.stack(rows).T  # a transposed view: the matrix product needs no copy
+
+
+def _rasterise_surfels(windows: _SurfelWindows, keep: torch.Tensor, keys: torch.Tensor) -> None:
+    """Ray-disk test of all candidate pixels, z-buffered into ``keys`` (H, W) in place.
+
+    Args:
+        windows: the surfel windows of one camera.
+        keep: (M,) bool, the windows to draw.
+        keys: (H, W) int64 z-buffer.
+    """
+    height, width = keys.shape
+    flat_keys = keys.view(-1)
+    windows, buckets = _sort_into_buckets(windows, keep, height, width)
+    for size_u, size_v, first, count in buckets:
+        area = size_u * size_v
+        basis = _window_basis(size_u, size_v, keys.device)
+        offsets = basis[4, :area].long() * width + basis[3, :area].long()
+        step = max(1, _CHUNK // area)
+        for start in range(first, first + count, step):
+            part = windows.narrow(start, min(step, first + count - start))
+            # Shift each window to lie inside the image; extra pixels fail the exact test.
+            u0 = part.corner[0].clamp_max(width - size_u)
+            v0 = part.corner[1].clamp_max(height - size_v)
+            values = _window_coefficients(part, u0, v0) @ basis
+            q, inv_depth = values[:, :area], values[:, area:]
+            miss = q > 1.0
+            if bool(part.near.any()):
+                miss |= (inv_depth <= 0) | (inv_depth >= 1.0 / MIN_DEPTH)
+            candidate = _pack_keys(inv_depth.reciprocal(), part.ids[:, None])
+            slots = (v0 * width + u0)[:, None] + offsets
+            candidate = candidate.masked_fill_(miss, _EMPTY_KEY).view(-1)
+            flat_keys.scatter_reduce_(0, slots.view(-1), candidate, "amin")
+
+
+def _check_surfels(centers: torch.Tensor, normals: torch.Tensor, radii: torch.Tensor) -> None:
+    check_shape(centers, "N,3", "centers")
+    check_shape(normals, "N,3", "normals")
+    check_shape(radii, "N", "radii")
+    n = centers.shape[0]
+    if normals.shape[0] != n or radii.shape[0] != n:
+        raise ShapeError(
+            f"centers, normals and radii must have the same length N, got "
+            f"{n}, {normals.shape[0]} and {radii.shape[0]}"
+        )
+    _check_map_size(n, "surfels")
+    if bool((radii <= 0).any()):
+        raise ValueError("surfel radii must be positive")
+    if bool((normals == 0).all(-1).any()):
+        raise ValueError("surfel normals must be non-zero")
+
+
+@torch.no_grad()
+def render_surfel_index(
+    centers: torch.Tensor,
+    normals: torch.Tensor,
+    radii: torch.Tensor,
+    T_wc: torch.Tensor,
+    camera: PinholeCamera,
+    *,
+    cull_backfaces: bool = False,
+) -> SurfelRender:
+    """Render the global surfel index map (seed 1 Sec. III-A) of oriented disks.
+
+    A pixel shows the nearest surfel whose disk the ray through the pixel centre hits; its
+    depth is the exact z-depth of that hit. Disks are two-sided unless ``cull_backfaces``.
+
+    Args:
+        centers: (N, 3) surfel centres, world frame (metres).
+        normals: (N, 3) surfel normals, world frame (any non-zero length; normalised here).
+        radii: (N,) disk radii in metres (> 0).
+        T_wc: (B, 4, 4) camera-to-world poses.
+        camera: one ideal pinhole camera or a batch of ``B`` (same image size).
+        cull_backfaces: also drop surfels whose normal points away from the camera.
+
+    Returns:
+        A :class:`SurfelRender` with ids (B, H, W), depth (B, H, W), normals (B, 3, H, W).
+
+    Raises:
+        ShapeError: wrong shapes, ``B = 0`` or a camera batch that does not match ``T_wc``.
+        ValueError: non-finite poses, radii ``<= 0``, zero normals, a distorted camera.
+
+    Example:
+        >>> cam = PinholeCamera.from_fov(64, 48, 1.0)
+        >>> out = render_surfel_index(
+        ...     torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[0.0, 0.0, -1.0]]),
+        ...     torch.tensor([0.1]), torch.eye(4)[None], cam)
+        >>> int(out.ids[0, 24, 32]), float(out.depth[0, 24, 32])
+        (0, 2.0)
+    """
+    batch = _check_poses(T_wc)
+    _check_surfels(centers, normals, radii)
+    camera = _check_camera(camera, batch)
+    if camera.distortion is not None:
+        raise ValueError(
+            "render_surfel_index needs an ideal pinhole camera (distortion=None); undistort "
+            "the images and keypoints first (PinholeCamera.undistort_points)"
+        )
+    height, width = camera.height, camera.width
+    centers = centers.to(torch.float32)
+    normals = normals.to(torch.float32)
+    radii = radii.to(torch.float32)
+    keys = _empty_keys((batch, height, width), centers.device)
+    for b, view in enumerate(_views(T_wc, camera)):
+        windows, keep = _surfel_windows(
+            view.to_camera(centers.T),
+            view.R_cw @ normals.T,
+            radii,
+            view,
+            height,
+            width,
+            cull_backfaces,
+        )
+        _rasterise_surfels(windows, keep, keys[b])
+    ids, depth = _unpack_keys(keys)
+    return SurfelRender(ids, depth, _camera_normals(normals, ids, T_wc))
+
+
+def _camera_normals(normals: torch.Tensor, ids: torch.Tensor, T_wc: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) unit camera-frame normals of the surfels in an id map, 0 where none."""
+    R_cw = T_wc[:, :3, :3].transpose(-1, -2).to(torch.float32)
+    world = _gather_channels_first(normals, ids)  # (B, 3, H, W)
+    cam = torch.einsum("bij,bjhw->bihw", R_cw, world)
+    x, y, z = cam.unbind(1)
+    norm = (x * x).addcmul_(y, y).addcmul_(z, z).sqrt_().clamp_min_(torch.finfo(cam.dtype).tiny)
+    return cam.div_(norm[:, None]).masked_fill_((ids < 0)[:, None], 0.0)
+
+
+# ---------------------------------------------------------------------------- points
+
+
+def _window_min(x: torch.Tensor, size: int, dim: int) -> torch.Tensor:
+    """Sliding-window minimum ``y[j] = min(x[j : j + size])`` along ``dim``.
+
+    Uses doubling (windows of 1, 2, 4, ... then two overlapping windows), so it costs
+    ``O(log size)`` elementwise minima. The output is ``size - 1`` shorter than ``x``.
+    """
+    span, y = 1, x
+    while 2 * span <= size:
+        length = y.shape[dim] - span
+        y = torch.minimum(y.narrow(dim, 0, length), y.narrow(dim, span, length))
+        span *= 2
+    length = x.shape[dim] - size + 1
+    if span == size:
+        return y.narrow(dim, 0, length)
+    return torch.minimum(y.narrow(dim, 0, length), y.narrow(dim, size - span, length))
+
+
+def _window_min_2d(x: torch.Tensor, size: int) -> torch.Tensor:
+    """``size x size`` sliding-window minimum over the last two dimensions (shrinks both)."""
+    return _window_min(_window_min(x, size, -2), size, -1)
+
+
+@dataclass(frozen=True)
+class _AnchorLayout:
+    """Padded anchor images, one per pass, for splats of sizes up to ``max_size``.
+
+    An anchor is the top-left pixel of a splat, stored at ``(v + offset, u + offset)`` with
+    ``offset = max_size``, clamped into the padded image. A splat of size ``k`` covers pixel
+    ``u`` when its anchor lies in ``[u - k + 1, u]`` (a trailing window of ``k``), so only
+    padded columns ``1 .. offset + W - 1`` are ever read: column 0 and the last column collect
+    the anchors of splats that miss the image. The same holds for rows.
+    """
+
+    sizes: tuple[int, ...]
+    height: int
+    width: int
+
+    @property
+    def offset(self) -> int:
+        return self.sizes[-1]
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        border = self.offset + 1
+        return len(self.sizes), self.height + border, self.width + border
+
+    def merge(self, anchors: torch.Tensor) -> torch.Tensor:
+        """(H, W) nearest keys over all passes of (L, Hp, Wp) anchor images.
+
+        ``min_k window_k(A_k)`` is evaluated Horner-style from the largest size down, since a
+        window of ``k`` is a window of ``k - j`` after one of ``j + 1``:
+        ``acc = min(window_{k_{i+1} - k_i + 1}(acc), A_{k_i})``, then a final window of
+        ``k_0``. Each forward window of ``s`` moves the image origin by ``s - 1``.
+        """
+        acc, origin = anchors[-1], 0
+        for level in range(len(self.sizes) - 2, -1, -1):
+            step = self.sizes[level + 1] - self.sizes[level]
+            acc, origin = _window_min_2d(acc, step + 1), origin + step
+            acc = torch.minimum(acc, anchors[level, origin:, origin:])
+        acc = _window_min_2d(acc, self.sizes[0])
+        first = self.offset - (origin + self.sizes[0] - 1)  # = 1
+        return acc[first : first + self.height, first : first + self.width]
+
+
+def _scatter_point_anchors(
+    points_world: torch.Tensor,
+    first_id: int,
+    view: _View,
+    sizes: PointSizes,
+    layout: _AnchorLayout,
+    anchors: torch.Tensor,
+) -> None:
+    """Scatter the keys of a chunk of points to the anchors of their splats (in place).
+
+    Args:
+        points_world: (n, 3) world points.
+        first_id: map index of the chunk's first point.
+        view: the camera.
+        sizes: splat sizes.
+        layout: anchor image layout.
+        anchors: (L, Hp, Wp) int64 anchor images.
+    """
+    points_cam = view.to_camera(points_world.T)
+    total = points_cam.sum(0)
+    valid = (total - total) == 0  # false for NaN / inf coordinates
+    x, y, z = points_cam
+    valid &= z > MIN_DEPTH
+    inv_z = z.reciprocal()
+    xn, yn = x.mul_(inv_z), y.mul_(inv_z)
+    if view.camera.distortion is not None:
+        xn, yn = view.camera.distort(torch.stack((xn, yn), dim=-1)).unbind(-1)
+        valid &= torch.isfinite(xn) & torch.isfinite(yn)  # the polynomial can overflow
+    num_levels, rows, cols = anchors.shape
+    shift = layout.offset
+    if num_levels == 1:
+        half, level = 0.5 * layout.sizes[0], None
+    else:
+        level = sizes.level_index(z)
+        half = torch.tensor(layout.sizes, dtype=torch.float32, device=z.device)[level] * 0.5
+    u_lo = (xn * view.fx + (view.cx + shift)).sub_(half).ceil_().clamp_(0, cols - 1)
+    v_lo = (yn * view.fy + (view.cy + shift)).sub_(half).ceil_().clamp_(0, rows - 1)
+    slots = v_lo.to(torch.int64).mul_(cols).add_(u_lo.to(torch.int64))
+    if level is not None:
+        slots.add_(level * (rows * cols))
+    slots.masked_fill_(~valid, 0)  # (0, 0) of pass 0 is never read
+    ids = torch.arange(first_id, first_id + z.shape[0], device=z.device)
+    anchors.view(-1).scatter_reduce_(0, slots, _pack_keys(z, ids), "amin")
+
+
+def _check_points(points: torch.Tensor, colors: torch.Tensor) -> None:
+    check_shape(points, "N,3", "points")
+    check_shape(colors, "N,3", "colors")
+    if colors.shape[0] != points.shape[0]:
+        raise ShapeError(
+            f"colors must have one row per point: {colors.shape[0]} != {points.shape[0]}"
+        )
+    _check_map_size(points.shape[0], "points")
+
+
+@torch.no_grad()
+def render_points(
+    points: torch.Tensor,
+    colors: torch.Tensor,
+    T_wc: torch.Tensor,
+    camera: PinholeCamera,
+    sizes: PointSizes | None = None,
+) -> PointRender:
+    """Render a coloured point cloud as square splats with a z-buffer (seed 2 Sec. III-D1).
+
+    The splat size of each point follows ``sizes`` (default: 1 pixel): fixed, per-point inverse
+    depth (Eq. 2) or the multi-pass scheme; see :class:`PointSizes`. Splats are flat: every
+    pixel of a splat gets the point's depth; the nearest splat wins (ties: lower index).
+
+    Args:
+        points: (N, 3) points, world frame (metres); rows with NaN/inf are culled.
+        colors: (N, 3) colours in [0, 1].
+        T_wc: (B, 4, 4) camera-to-world poses.
+        camera: one camera or a batch of ``B`` (same image size); distortion allowed.
+        sizes: splat sizes.
+
+    Returns:
+        A :class:`PointRender`: rgb (B, 3, H, W), depth (B, 1, H, W), ids (B, H, W),
+        mask (B, 1, H, W).
+
+    Raises:
+        ShapeError: wrong shapes, ``B = 0`` or a camera batch that does not match ``T_wc``.
+        ValueError: non-finite poses.
+
+    Example:
+        >>> cam = PinholeCamera.from_fov(64, 48, 1.0)
+        >>> out = render_points(torch.tensor([[0.0, 0.0, 2.0]]), torch.ones(1, 3),
+        ...                     torch.eye(4)[None], cam, PointSizes.fixed(3))
+        >>> int(out.mask.sum()), float(out.depth.max())
+        (9, 2.0)
+    """
+    batch = _check_poses(T_wc)
+    _check_points(points, colors)
+    camera = _check_camera(camera, batch)
+    sizes = PointSizes() if sizes is None else sizes
+    layout = _AnchorLayout(sizes.pass_sizes(), camera.height, camera.width)
+    points = points.to(torch.float32)
+    keys = []
+    for view in _views(T_wc, camera):
+        anchors = _empty_keys(layout.shape, points.device)
+        for first in range(0, points.shape[0], _CHUNK):
+            chunk = points[first : first + _CHUNK]
+            _scatter_point_anchors(chunk, first, view, sizes, layout, anchors)
+        keys.append(layout.merge(anchors))
+    ids, depth = _unpack_keys(torch.stack(keys))
+    mask = ids >= 0
+    rgb = _gather_channels_first(colors.to(torch.float32), ids).masked_fill_(~mask[:, None], 0.0)
+    return PointRender(rgb, depth[:, None], ids, mask[:, None])
+
+
+def see_through_fraction(
+    depth: torch.Tensor, occluder_depth: float, region: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Fraction of pixels where a render sees past an occluder (seed 2 Fig. 4).
+
+    A pixel "sees through" when it has no depth (0) or a depth beyond ``occluder_depth``.
+
+    Args:
+        depth: (B, 1, H, W) or (B, H, W) rendered z-depth, 0 where empty.
+        occluder_depth: largest depth (metres) of the occluding surface.
+        region: optional (H, W) or (B, H, W) bool mask of the pixels where the occluder is
+            expected (default: all pixels).
+
+    Returns:
+        (B,) float32 fractions in [0, 1].
+
+    Example:
+        >>> see_through_fraction(torch.tensor([[[1.0, 0.0], [5.0, 1.0]]]), 2.0)
+        tensor([0.5000])
+    """
+    if depth.dim() == 4:
+        check_shape(depth, "B,1,H,W", "depth")
+        depth = depth[:, 0]
+    check_shape(depth, "B,H,W", "depth")
+    through = (depth == 0) | (depth > occluder_depth)
+    if region is None:
+        region = torch.ones_like(through)
+    region = region.expand_as(through)
+    counts = region.flatten(1).sum(-1).clamp_min(1)
+    return (through & region).flatten(1).sum(-1).float() / counts
+
+
+# ---------------------------------------------------------------------------- neighbours
+
+
+def _distinct_rows(values: torch.Tensor) -> torch.Tensor:
+    """(R, M) sorted distinct non-negative values of each row of (R, L), -1 padded."""
+    ordered = values.sort(dim=1).values
+    keep = ordered >= 0
+    keep[:, 1:] &= ordered[:, 1:] != ordered[:, :-1]
+    width = int(keep.sum(1).max()) if keep.numel() else 0
+    position = (keep.cumsum(1) - 1).masked_fill_(~keep, width)
+    out = torch.full((values.shape[0], width + 1), -1, dtype=values.dtype, device=values.device)
+    return out.scatter_(1, position, ordered.masked_fill(~keep, -1))[:, :width]
+
+
+def neighbour_surfels(
+    ids: torch.Tensor, keypoints: torch.Tensor, radius_px: torch.Tensor | float
+) -> torch.Tensor:
+    """Distinct surfel ids within each keypoint's radius (seed 1's neighbouring surfel set).
+
+    A pixel belongs to a keypoint when its centre is within ``radius_px`` (Euclidean) of the
+    keypoint; -1 entries of the id map are ignored. For OpenCV keypoints whose ``size`` is a
+    diameter, pass ``size / 2``.
+
+    Args:
+        ids: (H, W) or (B, H, W) int64 surfel index map (-1 where none).
+        keypoints: (K, 2) or (B, K, 2) pixel coordinates ``(u, v)``, batched like ``ids``.
+        radius_px: scalar, (K,) or (B, K) radii in pixels (>= 0).
+
+    Returns:
+        (K, M) or (B, K, M) int64: each row the sorted distinct ids, padded with -1; ``M`` is
+        the largest set size (0 when all sets are empty).
+
+    Raises:
+        ShapeError: shapes that do not match.
+        ValueError: non-finite keypoints or negative / non-finite radii.
+
+    Example:
+        >>> ids = torch.tensor([[0, 1, -1], [2, 2, 3]])
+        >>> neighbour_surfels(ids, torch.tensor([[0.0, 0.0]]), 1.0)
+        tensor([[0, 1, 2]])
+    """
+    unbatched = ids.dim() == 2
+    if unbatched:
+        ids, keypoints = ids[None], keypoints[None]
+    check_shape(ids, "B,H,W", "ids")
+    check_shape(keypoints, "B,K,2", "keypoints")
+    if keypoints.shape[0] != ids.shape[0]:
+        raise ShapeError(
+            f"keypoints batch {keypoints.shape[0]} does not match ids batch {ids.shape[0]}"
+        )
+    check_finite(keypoints, "keypoints")
+    batch, height, width = ids.shape
+    count = keypoints.shape[1]
+    radius = torch.as_tensor(radius_px, dtype=torch.float32, device=keypoints.device)
+    try:
+        radius = radius.expand(batch, count) if radius.dim() < 2 else radius
+    except RuntimeError as exc:
+        raise ShapeError(f"radius_px of shape {tuple(radius.shape)} does not match K") from exc
+    if radius.shape != (batch, count):
+        raise ShapeError(f"radius_px must be scalar, (K,) or (B, K), got {tuple(radius.shape)}")
+    if not bool((torch.isfinite(radius) & (radius >= 0)).all()):
+        raise ValueError("radius_px must be finite and non-negative")
+    result = _neighbours_flat(ids, keypoints.to(torch.float32), radius)
+    result = result.view(batch, count, result.shape[-1])
+    return result[0] if unbatched else result
+
+
+def _neighbours_flat(
+    ids: torch.Tensor, keypoints: torch.Tensor, radius: torch.Tensor
+) -> torch.Tensor:
+    """(B * K, M) neighbour sets; see :func:`neighbour_surfels`."""
+    batch, height, width = ids.shape
+    reach = math.floor(float(radius.max())) + 1 if radius.numel() else 0
+    offsets = torch.arange(-reach, reach + 1, device=ids.device)
+    ov, ou = torch.meshgrid(offsets, offsets, indexing="ij")
+    ou, ov = ou.reshape(1, -1), ov.reshape(1, -1)
+    cam = torch.arange(batch, device=ids.device).repeat_interleave(keypoints.shape[1])[:, None]
+    kp, rad = keypoints.reshape(-1, 2), radius.reshape(-1, 1)
+    flat_ids = ids.reshape(-1)
+    step = max(1, _CHUNK // ou.numel())
+    rows = []
+    for start in range(0, kp.shape[0], step):
+        part = slice(start, start + step)
+        u, v = kp[part, :1], kp[part, 1:]
+        # Nearest pixel centre, kept near the image so that far keypoints cannot overflow.
+        pu = torch.floor(u + 0.5).clamp(-reach - 1, width + reach).long() + ou
+        pv = torch.floor(v + 0.5).clamp(-reach - 1, height + reach).long() + ov
+        inside = (pu - u).square() + (pv - v).square() <= rad[part].square()
+        inside &= (pu >= 0) & (pu < width) & (pv >= 0) & (pv < height)
+        slot = (cam[part] * height + pv.clamp(0, height - 1)) * width + pu.clamp(0, width - 1)
+        found = flat_ids.index_select(0, slot.view(-1)).view(slot.shape)
+        rows.append(_distinct_rows(found.masked_fill_(~inside, -1)))
+    widest = max((r.shape[1] for r in rows), default=0)
+    padded = [torch.nn.functional.pad(r, (0, widest - r.shape[1]), value=-1) for r in rows]
+    if not padded:
+        return torch.empty(0, 0, dtype=torch.int64, device=ids.device)
+    return torch.cat(padded)

@@ -1,0 +1,560 @@
+"""Hard splatting: surfel index maps, point splats (Eq. 2, multi-pass), neighbour surfel sets.
+
+Fast paths are compared against slow, obviously-correct references written here: a dense
+float64 ray-disk intersection of every pixel with every surfel, and a per-point loop that
+paints squares into a z-buffer.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from diffloc.checks import ShapeError
+from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera
+from diffloc.geometry.se3 import invert, se3_exp, transform_points
+from diffloc.render.splat import (
+    PointSizes,
+    neighbour_surfels,
+    render_points,
+    render_surfel_index,
+    see_through_fraction,
+)
+from diffloc.testing import assert_close
+
+# ---------------------------------------------------------------------------- references
+
+
+def reference_surfels(centers, normals, radii, T_wc, camera):
+    """Dense float64 ray-disk z-buffer: (ids, depth, margin) each (B, H, W).
+
+    ``margin`` is how far (relative to the radius) the winning hit is from the disk rim and
+    from the runner-up depth: pixels with a tiny margin may legitimately differ in float32.
+    """
+    c_w, n_w, r = centers.double(), normals.double(), radii.double()
+    n_w = n_w / n_w.norm(dim=-1, keepdim=True)
+    cam = camera.to(torch.float64)
+    uv = cam.pixel_grid().reshape(-1, 2)
+    batch = T_wc.shape[0]
+    fx, fy = cam.fx.expand(batch), cam.fy.expand(batch)
+    cx, cy = cam.cx.expand(batch), cam.cy.expand(batch)
+    ids, depths, margins = [], [], []
+    for b in range(batch):
+        T_cw = invert(T_wc[b].double())
+        c = transform_points(T_cw, c_w)  # (N, 3)
+        n = n_w @ T_cw[:3, :3].T
+        d = torch.stack(
+            ((uv[:, 0] - cx[b]) / fx[b], (uv[:, 1] - cy[b]) / fy[b], torch.ones(len(uv))), -1
+        )  # (P, 3)
+        t = (n * c).sum(-1)[None] / (d @ n.T)  # (P, N)
+        hit = t[..., None] * d[:, None] - c[None]
+        rim = hit.norm(dim=-1) / r - 1.0
+        ok = (rim <= 0) & (t > MIN_DEPTH) & (c[:, 2] > MIN_DEPTH)[None]
+        t = torch.where(ok, t, math.inf)
+        best, winner = t.min(-1)
+        second = t.topk(min(2, t.shape[1]), dim=-1, largest=False).values[:, -1]
+        gap = torch.where(second > best, (second - best) / best, math.inf).nan_to_num(math.inf)
+        rim_margin = torch.where(ok, math.inf, rim.abs()).min(-1).values
+        rim_margin = torch.minimum(rim_margin, rim.abs().gather(1, winner[:, None])[:, 0])
+        margin = torch.minimum(rim_margin, gap)
+        found = torch.isfinite(best)
+        ids.append(torch.where(found, winner, -1).view(cam.height, cam.width))
+        depths.append(torch.where(found, best, 0.0).view(cam.height, cam.width))
+        margins.append(margin.view(cam.height, cam.width))
+    return torch.stack(ids), torch.stack(depths), torch.stack(margins)
+
+
+def reference_points(points, colors, T_wc, camera, sizes):
+    """Per-point loop painting squares into a z-buffer: (ids, depth), each (B, H, W)."""
+    batch, h, w = T_wc.shape[0], camera.height, camera.width
+    levels = sizes.pass_sizes()
+    ids = torch.full((batch, h, w), -1)
+    depth = torch.full((batch, h, w), math.inf)
+    for b in range(batch):
+        cam = camera if len(camera.batch_shape) == 0 else camera[b]
+        p_c = transform_points(invert(T_wc[b].double()), points.double())
+        uv, valid = cam.to(torch.float64).project(p_c)
+        for i in range(points.shape[0]):
+            z = float(p_c[i, 2])
+            if not (valid[i] and torch.isfinite(points[i]).all()):
+                continue
+            rho = min(max(sizes.rho_max / z, sizes.rho_min), sizes.rho_max)
+            side = min(levels, key=lambda k, rho=rho: (abs(k - rho), -k))
+            u0 = math.ceil(float(uv[i, 0]) - side / 2)
+            v0 = math.ceil(float(uv[i, 1]) - side / 2)
+            for v in range(max(v0, 0), min(v0 + side, h)):
+                for u in range(max(u0, 0), min(u0 + side, w)):
+                    z32 = float(torch.tensor(z, dtype=torch.float32))
+                    if (z32, i) < (float(depth[b, v, u]), int(ids[b, v, u])):
+                        depth[b, v, u], ids[b, v, u] = z32, i
+    return ids, torch.where(ids >= 0, depth, 0.0)
+
+
+def look_at(eye, target, down=(0.0, 1.0, 0.0)):
+    """(4, 4) float64 OpenCV camera-to-world pose at ``eye`` looking at ``target``."""
+    eye, target = torch.tensor(eye, dtype=torch.float64), torch.tensor(target, dtype=torch.float64)
+    z = target - eye
+    z = z / z.norm()
+    x = torch.linalg.cross(torch.tensor(down, dtype=torch.float64), z)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
+    return T
+
+
+@pytest.fixture
+def camera():
+    return PinholeCamera.from_fov(64, 48, math.radians(60.0))
+
+
+def identity(batch=1):
+    return torch.eye(4).expand(batch, 4, 4).clone()
+
+
+# ---------------------------------------------------------------------------- surfels
+
+
+def test_head_on_disk_exact_depth_and_footprint(camera):
+    centers = torch.tensor([[0.031, -0.017, 2.0]])
+    normals = torch.tensor([[0.0, 0.0, -1.0]])
+    radii = torch.tensor([0.21])
+    out = render_surfel_index(centers, normals, radii, identity(), camera)
+    ref_ids, ref_depth, margin = reference_surfels(centers, normals, radii, identity(), camera)
+    assert margin.abs().min() > 1e-3  # no pixel centre close to the rim
+    assert torch.equal(out.ids, ref_ids)
+    assert int(out.mask.sum()) > 100
+    assert torch.equal(out.depth[out.mask], torch.full_like(out.depth[out.mask], 2.0))
+    assert torch.equal(out.depth[~out.mask], torch.zeros_like(out.depth[~out.mask]))
+    assert out.ids.dtype == torch.int64 and out.depth.dtype == torch.float32
+    assert out.normals.shape == (1, 3, 48, 64)
+    assert torch.equal(out.normals[0, :, 24, 32], torch.tensor([0.0, 0.0, -1.0]))
+    assert torch.equal(out.normals[0, :, 0, 0], torch.zeros(3))
+
+
+def test_fronto_parallel_plane_constant_depth(camera):
+    grid = torch.stack(torch.meshgrid(torch.arange(-20, 21), torch.arange(-15, 16), indexing="ij"))
+    xy = grid.reshape(2, -1).T.float() * 0.1
+    centers = torch.cat((xy, torch.full((len(xy), 1), 3.0)), dim=-1)
+    normals = torch.tensor([[0.0, 0.0, -1.0]]).expand_as(centers)
+    radii = torch.full((len(xy),), 0.08)  # overlapping disks, no gaps
+    out = render_surfel_index(centers, normals, radii, identity(), camera)
+    assert bool(out.mask.all())
+    assert torch.equal(out.depth, torch.full_like(out.depth, 3.0))
+
+
+def test_tilted_disk_ray_plane_depths(camera):
+    tilt = math.radians(50.0)
+    centers = torch.tensor([[-0.07, 0.05, 1.5]])
+    normals = torch.tensor([[math.sin(tilt), 0.2, -math.cos(tilt)]])
+    radii = torch.tensor([0.3])
+    out = render_surfel_index(centers, normals, radii, identity(), camera)
+    ref_ids, ref_depth, margin = reference_surfels(centers, normals, radii, identity(), camera)
+    safe = margin.abs() > 1e-4
+    assert torch.equal(out.ids[safe], ref_ids[safe])
+    assert int(out.mask.sum()) > 100
+    assert_close(out.depth, ref_depth.float())
+    assert out.depth[out.mask].std() > 0.05  # depth really varies over the tilted disk
+
+
+def test_random_surfels_match_dense_reference_batched():
+    g = torch.Generator().manual_seed(3)
+    n = 60
+    centers = torch.rand(n, 3, generator=g) * torch.tensor([2.0, 2.0, 2.0]) - 1.0
+    normals = torch.randn(n, 3, generator=g)
+    radii = 0.05 + 0.25 * torch.rand(n, generator=g)
+    T_wc = torch.stack(
+        (look_at((0.3, -0.2, -3.0), (0.0, 0.0, 0.0)), look_at((2.5, 0.5, -1.5), (0.0, 0.1, 0.0)))
+    ).float()
+    camera = PinholeCamera(
+        fx=torch.tensor([40.0, 55.0]),
+        fy=torch.tensor([42.0, 50.0]),
+        cx=torch.tensor([23.5, 20.0]),
+        cy=torch.tensor([17.5, 19.0]),
+        width=48,
+        height=36,
+    )
+    out = render_surfel_index(centers, normals, radii, T_wc, camera)
+    ref_ids, ref_depth, margin = reference_surfels(centers, normals, radii, T_wc, camera)
+    safe = margin.abs() > 1e-4
+    assert safe.float().mean() > 0.97
+    assert torch.equal(out.ids[safe], ref_ids[safe])
+    assert_close(out.depth[safe], ref_depth[safe].float())
+    assert 0.2 < float(out.mask.float().mean()) < 0.95
+    for b in range(2):  # a batch renders like its cameras one at a time
+        single = render_surfel_index(centers, normals, radii, T_wc[b : b + 1], camera[b])
+        assert torch.equal(single.ids[0], out.ids[b])
+
+
+def test_disk_crossing_the_camera_plane(camera):
+    # A floor-like disk 10 cm below the camera, reaching behind it, over a far wall.
+    centers = torch.tensor([[0.0, 0.1, 0.05], [0.0, 0.0, 2.0]])
+    normals = torch.tensor([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+    radii = torch.tensor([0.4, 3.0])
+    out = render_surfel_index(centers, normals, radii, identity(), camera)
+    ref_ids, ref_depth, margin = reference_surfels(centers, normals, radii, identity(), camera)
+    safe = margin.abs() > 1e-4
+    assert torch.equal(out.ids[safe], ref_ids[safe])
+    assert 0.1 < float((out.ids == 0).float().mean()) < 0.9
+    assert_close(out.depth[safe], ref_depth[safe].float())
+
+
+def test_nearest_surfel_wins_in_any_order(camera):
+    centers = torch.tensor([[0.0, 0.0, 3.0], [0.05, 0.0, 2.0], [0.0, 0.04, 2.5]])
+    normals = torch.tensor([[0.0, 0.0, -1.0]]).expand(3, 3)
+    radii = torch.tensor([0.5, 0.2, 0.3])
+    out = render_surfel_index(centers, normals, radii, identity(), camera)
+    assert int(out.ids[0, 24, 32]) == 1
+    for perm in ([2, 0, 1], [1, 2, 0], [2, 1, 0]):
+        perm = torch.tensor(perm)
+        other = render_surfel_index(centers[perm], normals[perm], radii[perm], identity(), camera)
+        remapped = torch.where(other.ids >= 0, perm[other.ids.clamp_min(0)], -1)
+        assert torch.equal(remapped, out.ids)
+        assert torch.equal(other.depth, out.depth)
+
+
+def test_backface_culling_and_camera_frame_normals(camera):
+    centers = torch.tensor([[0.0, 0.0, 2.0]])
+    away = torch.tensor([[0.0, 0.0, 1.0]])
+    radii = torch.tensor([0.3])
+    assert int(render_surfel_index(centers, away, radii, identity(), camera).mask.sum()) > 0
+    culled = render_surfel_index(centers, away, radii, identity(), camera, cull_backfaces=True)
+    assert int(culled.mask.sum()) == 0
+    # Rotate the camera about its z axis: the world normal (1, 0, 0) appears rotated.
+    T_wc = se3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, math.pi / 2]))[None]
+    tilted = torch.tensor([[0.6, 0.0, -0.8]])
+    out = render_surfel_index(transform_points(T_wc[0], centers), tilted, radii, T_wc, camera)
+    assert_close(out.normals[0, :, 24, 32], (tilted @ T_wc[0, :3, :3])[0])
+
+
+def test_surfel_bad_inputs(camera):
+    c, n, r = torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[0.0, 0.0, -1.0]]), torch.tensor([0.1])
+    with pytest.raises(ValueError, match="radii"):
+        render_surfel_index(c, n, torch.tensor([0.0]), identity(), camera)
+    with pytest.raises(ValueError, match="normals"):
+        render_surfel_index(c, torch.zeros(1, 3), r, identity(), camera)
+    with pytest.raises(ShapeError):
+        render_surfel_index(c, n, r, torch.zeros(0, 4, 4), camera)
+    with pytest.raises(ShapeError):
+        render_surfel_index(c, n, r, torch.eye(4), camera)
+    with pytest.raises(ShapeError):
+        render_surfel_index(c[:, :2], n, r, identity(), camera)
+    with pytest.raises(ShapeError):
+        render_surfel_index(c, n, torch.tensor([0.1, 0.2]), identity(), camera)
+    with pytest.raises(ShapeError):
+        batch3 = PinholeCamera.from_fov(64, 48, torch.full((3,), 1.0))
+        render_surfel_index(c, n, r, identity(2), batch3)
+    with pytest.raises(ValueError, match="T_wc"):
+        render_surfel_index(c, n, r, torch.full((1, 4, 4), math.nan), camera)
+    distorted = PinholeCamera.from_fov(64, 48, 1.0, distortion=torch.tensor([0.1, 0, 0, 0]))
+    with pytest.raises(ValueError, match="pinhole"):
+        render_surfel_index(c, n, r, identity(), distorted)
+
+
+def test_surfel_missing_values_and_empty_map_are_culled(camera):
+    c = torch.tensor([[0.0, 0.0, 2.0], [math.nan, 0.0, 1.0], [0.0, math.inf, 1.0]])
+    n = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, math.nan, -1.0]])
+    r = torch.tensor([0.1, 0.5, math.inf])
+    out = render_surfel_index(c, n, r, identity(), camera)
+    clean = render_surfel_index(c[:1], n[:1], r[:1], identity(), camera)
+    assert torch.equal(out.ids, clean.ids) and torch.equal(out.depth, clean.depth)
+    behind = render_surfel_index(-c[:1], n[:1], r[:1], identity(), camera)
+    assert int(behind.mask.sum()) == 0
+    empty = render_surfel_index(
+        torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0), identity(2), camera
+    )
+    assert torch.equal(empty.ids, torch.full((2, 48, 64), -1))
+    assert torch.equal(empty.depth, torch.zeros(2, 48, 64))
+    assert torch.equal(empty.normals, torch.zeros(2, 3, 48, 64))
+
+
+# ---------------------------------------------------------------------------- points
+
+
+def test_point_square_splat_pixels(camera):
+    out = render_points(
+        torch.tensor([[0.0, 0.0, 2.0]]),
+        torch.tensor([[0.2, 0.4, 0.6]]),
+        identity(),
+        camera,
+        PointSizes.fixed(3),
+    )
+    # cx = 31.5, cy = 23.5: a 3x3 square centred there covers u in 30..32 and v in 22..24.
+    expected = torch.zeros(48, 64, dtype=torch.bool)
+    expected[22:25, 30:33] = True
+    assert torch.equal(out.mask[0, 0], expected)
+    assert torch.equal(out.depth[0, 0][expected], torch.full((9,), 2.0))
+    assert_close(out.rgb[0, :, 23, 31], torch.tensor([0.2, 0.4, 0.6]))
+    assert torch.equal(out.rgb[0, :, 0, 0], torch.zeros(3))
+    assert out.rgb.shape == (1, 3, 48, 64) and out.depth.shape == (1, 1, 48, 64)
+    assert out.ids.shape == (1, 48, 64) and out.mask.shape == (1, 1, 48, 64)
+
+
+def test_point_zbuffer_nearer_wins_regardless_of_order(camera):
+    points = torch.tensor([[0.0, 0.0, 4.0], [0.01, 0.0, 2.0]])
+    colors = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    for order in ([0, 1], [1, 0]):
+        out = render_points(points[order], colors[order], identity(), camera, PointSizes.fixed(5))
+        assert float(out.depth[0, 0, 23, 31]) == 2.0
+        assert_close(out.rgb[0, :, 23, 31], torch.tensor([0.0, 1.0, 0.0]))
+
+
+def test_inverse_depth_sizes_near_points_bigger(camera):
+    sizes = PointSizes.inverse_depth(1.0, 6.0)
+    near = render_points(
+        torch.tensor([[0.0, 0.0, 0.8]]), torch.ones(1, 3), identity(), camera, sizes
+    )
+    mid = render_points(
+        torch.tensor([[0.0, 0.0, 2.0]]), torch.ones(1, 3), identity(), camera, sizes
+    )
+    far = render_points(
+        torch.tensor([[0.0, 0.0, 9.0]]), torch.ones(1, 3), identity(), camera, sizes
+    )
+    assert int(near.mask.sum()) == 36  # rho = clamp(6 / 0.8) = 6
+    assert int(mid.mask.sum()) == 9  # rho = 3
+    assert int(far.mask.sum()) == 1  # rho = clamp(0.67, 1, 6) = 1
+
+
+@pytest.mark.parametrize(
+    "sizes",
+    [
+        PointSizes.fixed(1),
+        PointSizes.fixed(4),
+        PointSizes.inverse_depth(1.0, 7.0),
+        PointSizes.inverse_depth(0.3, 2.6),
+        PointSizes.multi_pass(1.0, 8.0, (2, 5, 8)),
+    ],
+)
+def test_points_match_slow_reference(sizes):
+    g = torch.Generator().manual_seed(7)
+    points = torch.rand(150, 3, generator=g) * torch.tensor([3.0, 2.0, 6.0]) - torch.tensor(
+        [1.5, 1.0, 1.0]
+    )
+    colors = torch.rand(150, 3, generator=g)
+    T_wc = torch.stack((torch.eye(4, dtype=torch.float64), look_at((1.0, 0.0, -0.5), (0, 0, 3.0))))
+    camera = PinholeCamera(
+        fx=torch.tensor([30.0, 36.0]),
+        fy=30.0,
+        cx=torch.tensor([19.5, 17.0]),
+        cy=14.5,
+        width=40,
+        height=30,
+    )
+    out = render_points(points, colors, T_wc.float(), camera, sizes)
+    ref_ids, ref_depth = reference_points(points, colors, T_wc.float(), camera, sizes)
+    assert torch.equal(out.ids, ref_ids)
+    assert_close(out.depth[:, 0], ref_depth.float())
+    assert_close(
+        out.rgb, torch.where(out.mask, colors[ref_ids.clamp_min(0)].permute(0, 3, 1, 2), 0.0)
+    )
+
+
+def test_points_with_distortion_match_reference():
+    distortion = torch.tensor([-0.2, 0.05, 0.001, -0.002])
+    camera = PinholeCamera.from_fov(40, 30, 1.2, distortion=distortion)
+    points = torch.rand(80, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    points[:, 2] += 3.0
+    sizes = PointSizes.inverse_depth(1.0, 6.0)
+    out = render_points(points, torch.rand(80, 3), identity(), camera, sizes)
+    ref_ids, _ = reference_points(points, None, identity(), camera, sizes)
+    assert torch.equal(out.ids, ref_ids)
+
+
+def test_multi_pass_with_one_level_equals_fixed_size(camera):
+    points = torch.rand(300, 3, generator=torch.Generator().manual_seed(2)) * 2 - 1
+    points[:, 2] += 2.5
+    colors = torch.rand(300, 3)
+    fixed = render_points(points, colors, identity(), camera, PointSizes(3.0, 3.0))
+    single = render_points(points, colors, identity(), camera, PointSizes.multi_pass(1, 9, (3,)))
+    assert torch.equal(fixed.ids, single.ids)
+    assert torch.equal(fixed.depth, single.depth)
+
+
+def test_multi_pass_merges_passes_by_nearest_depth(camera):
+    points = torch.rand(400, 3, generator=torch.Generator().manual_seed(4)) * 2 - 1
+    points[:, 2] = 0.5 + 4.0 * points[:, 2].abs()
+    colors = torch.rand(400, 3)
+    sizes = PointSizes.multi_pass(1.0, 6.0, (1, 3, 6))
+    merged = render_points(points, colors, identity(), camera, sizes)
+    # Render each pass alone with its fixed size, then keep the nearest depth per pixel.
+    level = sizes.level_index(points[:, 2])
+    depth = torch.full((1, 48, 64), math.inf)
+    ids = torch.full((1, 48, 64), -1)
+    for index, size in enumerate(sizes.pass_sizes()):
+        members = (level == index).nonzero()[:, 0]
+        one = render_points(
+            points[members], colors[members], identity(), camera, PointSizes.fixed(size)
+        )
+        d = torch.where(one.mask[:, 0], one.depth[:, 0], math.inf)
+        better = d < depth
+        depth = torch.where(better, d, depth)
+        ids = torch.where(better, members[one.ids.clamp_min(0)], ids)
+    assert torch.equal(merged.ids, ids)
+    assert len(set(sizes.level_index(points[:, 2]).tolist())) == 3
+
+
+def see_through_scene():
+    """A wall of points 1 m away (2 cm spacing) and a background wall at 6 m."""
+    grid = torch.stack(torch.meshgrid(torch.arange(-40, 41), torch.arange(-30, 31), indexing="ij"))
+    wall = grid.reshape(2, -1).T.float() * 0.02
+    wall = torch.cat((wall, torch.ones(len(wall), 1)), dim=-1)
+    background = torch.rand(20000, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    background = background * torch.tensor([6.0, 5.0, 0.0]) + torch.tensor([0.0, 0.0, 6.0])
+    return torch.cat((wall, background))
+
+
+def test_inverse_depth_sizes_reduce_see_through():
+    camera = PinholeCamera.from_fov(160, 120, math.radians(60.0))
+    points = see_through_scene()
+    colors = torch.rand(len(points), 3)
+    fixed = render_points(points, colors, identity(), camera, PointSizes.fixed(1))
+    adaptive = render_points(points, colors, identity(), camera, PointSizes.inverse_depth(1.0, 4.0))
+    # The wall spans |x| <= 0.8 m at 1 m, i.e. the central pixels of this 60 deg view.
+    region = torch.zeros(120, 160, dtype=torch.bool)
+    region[20:100, 20:140] = True
+    fixed_frac = float(see_through_fraction(fixed.depth, 1.5, region)[0])
+    adaptive_frac = float(see_through_fraction(adaptive.depth, 1.5, region)[0])
+    assert fixed_frac > 0.3
+    assert adaptive_frac < 0.01
+    assert adaptive_frac < fixed_frac
+
+
+def test_see_through_fraction_values():
+    depth = torch.tensor([[[1.0, 0.0], [5.0, 1.0]]])
+    assert_close(see_through_fraction(depth, 2.0), torch.tensor([0.5]))
+    region = torch.tensor([[True, False], [False, True]])
+    assert_close(see_through_fraction(depth[:, None], 2.0, region), torch.tensor([0.0]))
+
+
+def test_points_bad_values_are_culled_and_empty_map(camera):
+    good = torch.tensor([[0.0, 0.0, 2.0]])
+    bad = torch.tensor(
+        [
+            [math.nan, 0.0, 1.0],
+            [0.0, math.inf, 1.0],
+            [0.0, 0.0, math.inf],
+            [0.0, 0.0, -1.0],
+            [0.0, 0.0, 0.0],
+        ]
+    )
+    sizes = PointSizes.inverse_depth(1.0, 4.0)
+    clean = render_points(good, torch.ones(1, 3), identity(), camera, sizes)
+    mixed = render_points(torch.cat((bad, good)), torch.ones(6, 3), identity(), camera, sizes)
+    assert torch.equal(torch.where(mixed.ids >= 0, mixed.ids - 5, -1), clean.ids)
+    empty = render_points(torch.zeros(0, 3), torch.zeros(0, 3), identity(2), camera, sizes)
+    assert torch.equal(empty.ids, torch.full((2, 48, 64), -1))
+    assert not bool(empty.mask.any())
+    assert torch.equal(empty.rgb, torch.zeros(2, 3, 48, 64))
+
+
+def test_points_bad_shapes(camera):
+    with pytest.raises(ShapeError):
+        render_points(torch.zeros(3, 3), torch.zeros(2, 3), identity(), camera)
+    with pytest.raises(ShapeError):
+        render_points(torch.zeros(3, 2), torch.zeros(3, 3), identity(), camera)
+    with pytest.raises(ShapeError):
+        render_points(torch.zeros(3, 3), torch.zeros(3, 3), torch.zeros(0, 4, 4), camera)
+    with pytest.raises(ValueError, match="T_wc"):
+        render_points(torch.zeros(3, 3), torch.zeros(3, 3), torch.full((1, 4, 4), math.inf), camera)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"rho_min": 0.0},
+        {"rho_min": 2.0, "rho_max": 1.0},
+        {"rho_max": math.nan},
+        {"levels": ()},
+        {"levels": (3, 2)},
+        {"levels": (1.5,)},
+        {"levels": (0, 1)},
+    ],
+)
+def test_point_sizes_validation(kwargs):
+    with pytest.raises(ValueError, match="PointSizes"):
+        PointSizes(**kwargs)
+
+
+def test_point_sizes_passes():
+    assert PointSizes().pass_sizes() == (1,)
+    assert PointSizes.inverse_depth(0.2, 4.4).pass_sizes() == (1, 2, 3, 4)
+    assert PointSizes.inverse_depth(1.5, 3.5).pass_sizes() == (2, 3, 4)
+    sizes = PointSizes.multi_pass(1.0, 10.0, (1, 4, 10))  # midpoints 2.5 and 7
+    z = torch.tensor([0.5, 1.0, 1.25, 2.0, 4.0, 5.0, 100.0])  # rho = 10, 10, 8, 5, 2.5, 2, 1
+    assert sizes.level_index(z).tolist() == [2, 2, 2, 1, 1, 0, 0]
+
+
+# ---------------------------------------------------------------------------- neighbours
+
+
+def brute_force_neighbours(ids, keypoint, radius):
+    h, w = ids.shape
+    found = set()
+    for v in range(h):
+        for u in range(w):
+            if (u - keypoint[0]) ** 2 + (v - keypoint[1]) ** 2 <= radius**2 and ids[v, u] >= 0:
+                found.add(int(ids[v, u]))
+    return sorted(found)
+
+
+def test_neighbour_surfels_constructed_map():
+    ids = torch.full((12, 16), -1)
+    ids[2:5, 3:7] = 4
+    ids[3, 8] = 9
+    ids[6:9, 2:4] = 1
+    ids[10, 15] = 2
+    keypoints = torch.tensor([[5.0, 3.0], [3.2, 7.4], [15.0, 10.0], [12.0, 1.0], [40.0, 3.0]])
+    radii = torch.tensor([3.0, 1.5, 0.0, 2.0, 5.0])
+    out = neighbour_surfels(ids, keypoints, radii)
+    assert out.dtype == torch.int64 and out.shape == (5, 2)
+    assert out.tolist() == [[4, 9], [1, -1], [2, -1], [-1, -1], [-1, -1]]
+    for k in range(5):
+        row = [int(x) for x in out[k] if x >= 0]
+        assert row == brute_force_neighbours(ids, keypoints[k].tolist(), float(radii[k]))
+
+
+def test_neighbour_surfels_random_batched_against_brute_force():
+    g = torch.Generator().manual_seed(5)
+    ids = torch.randint(-3, 20, (2, 20, 24), generator=g).clamp_min(-1)
+    keypoints = torch.rand(2, 7, 2, generator=g) * torch.tensor([24.0, 20.0])
+    radii = torch.rand(2, 7, generator=g) * 4
+    out = neighbour_surfels(ids, keypoints, radii)
+    assert out.shape[:2] == (2, 7)
+    for b in range(2):
+        for k in range(7):
+            row = [int(x) for x in out[b, k] if x >= 0]
+            assert row == brute_force_neighbours(
+                ids[b], keypoints[b, k].tolist(), float(radii[b, k])
+            )
+    scalar = neighbour_surfels(ids, keypoints, 2.0)
+    per_point = neighbour_surfels(ids, keypoints, torch.full((7,), 2.0))
+    assert torch.equal(scalar, per_point)
+
+
+def test_neighbour_surfels_edge_cases():
+    ids = torch.zeros(4, 5, dtype=torch.int64)
+    assert neighbour_surfels(ids, torch.zeros(0, 2), 2.0).shape == (0, 0)
+    assert neighbour_surfels(torch.full((4, 5), -1), torch.ones(3, 2), 2.0).shape == (3, 0)
+    with pytest.raises(ValueError, match="radius"):
+        neighbour_surfels(ids, torch.ones(1, 2), -1.0)
+    with pytest.raises(ValueError, match="keypoints"):
+        neighbour_surfels(ids, torch.full((1, 2), math.nan), 1.0)
+    with pytest.raises(ShapeError):
+        neighbour_surfels(ids, torch.ones(1, 3), 1.0)
+    with pytest.raises(ShapeError):
+        neighbour_surfels(ids, torch.ones(2, 2), torch.ones(3))
+    with pytest.raises(ShapeError):
+        neighbour_surfels(ids[None].expand(2, 4, 5), torch.ones(3, 1, 2), 1.0)
+
+
+def test_surfel_index_to_neighbours_round_trip(camera):
+    """The index map feeds the neighbour sets: a keypoint on a disk sees that disk."""
+    centers = torch.tensor([[-0.3, 0.0, 2.0], [0.3, 0.0, 2.0]])
+    normals = torch.tensor([[0.0, 0.0, -1.0]]).expand(2, 3)
+    out = render_surfel_index(centers, normals, torch.tensor([0.3, 0.3]), identity(), camera)
+    u_left = float(camera.fx * -0.3 / 2.0 + camera.cx)
+    keypoints = torch.tensor([[u_left, 23.5], [31.5, 23.5]])
+    sets = neighbour_surfels(out.ids[0], keypoints, torch.tensor([2.0, 6.0]))
+    assert sets.tolist() == [[0, -1], [0, 1]]
