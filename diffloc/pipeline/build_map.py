@@ -105,10 +105,12 @@ def render_views(
     return torch.cat(ids), torch.cat(depth)
 
 
-def _load_images(seq: SequenceData, scale: float, show_progress: bool) -> torch.Tensor:
-    """(V, 3, h, w) float32 images resized by ``scale`` (area averaging)."""
+def _load_images(
+    seq: SequenceData, frames: np.ndarray, scale: float, show_progress: bool
+) -> torch.Tensor:
+    """(V, 3, h, w) float32 images of ``frames`` resized by ``scale`` (area averaging)."""
     images = []
-    for i in progress(range(len(seq)), f"{seq.name}: images", show_progress):
+    for i in progress(frames.tolist(), f"{seq.name}: images", show_progress):
         image = seq.load_rgb(i)[None]
         if scale != 1.0:
             image = F.interpolate(image, scale_factor=scale, mode="area")
@@ -225,8 +227,12 @@ def build_maps(
 
     camera = seq.camera.to(torch.float32)
     small = camera.scaled(cfg.image_scale) if cfg.image_scale != 1.0 else camera
-    images = _load_images(seq, cfg.image_scale, show_progress)
-    ids, depth = render_views(surfels, seq.T_wc, small, cfg.render_batch, show_progress)
+    colour = [key for key in cfg.point_maps if key in existing]
+    frames = np.linspace(0, len(seq) - 1, max(cfg.preview_frames, 1)).round().astype(int)
+    # Colouring needs every view (images and occlusion depth); the preview only a few.
+    views = np.arange(len(seq)) if colour else frames
+    images = _load_images(seq, views, cfg.image_scale, show_progress)
+    ids, depth = render_views(surfels, seq.T_wc[views], small, cfg.render_batch, show_progress)
     summary = {
         "config": config,
         "source": source,
@@ -235,23 +241,22 @@ def build_maps(
         "surfel_map": str(out / "surfel_map.ply"),
         "surfel_coverage": float((ids >= 0).float().mean()),
     }
-    for key in cfg.point_maps:
+    for key in colour:
         name = "point_map" if key == "lidar_map" else f"{key.removesuffix('_map')}_point_map"
-        if key in existing:
-            point_map, total = _colour_cloud(
-                existing[key], images, seq.T_wc, small, depth, cfg, show_progress
-            )
-            point_map.save(out / f"{name}.ply")
-            summary[name] = str(out / f"{name}.ply")
-            summary[f"{name}_points"] = len(point_map)
-            summary[f"{name}_coloured_fraction"] = len(point_map) / max(total, 1)
-    frames = np.linspace(0, len(seq) - 1, max(cfg.preview_frames, 1)).round().astype(int)
+        point_map, total = _colour_cloud(
+            existing[key], images, seq.T_wc, small, depth, cfg, show_progress
+        )
+        point_map.save(out / f"{name}.ply")
+        summary[name] = str(out / f"{name}.ply")
+        summary[f"{name}_points"] = len(point_map)
+        summary[f"{name}_coloured_fraction"] = len(point_map) / max(total, 1)
+    shown = np.searchsorted(views, frames)
     preview = out / "surfel_preview.png"
     _write_preview(
         preview,
-        images[frames],
-        ids[frames],
-        depth[frames],
+        images[shown],
+        ids[shown],
+        depth[shown],
         f"{root.name}: {len(surfels)} surfels from {source}",
     )
     summary["preview"] = str(preview)
