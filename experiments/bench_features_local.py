@@ -28,8 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
-import time
 from pathlib import Path
 
 import cv2
@@ -38,6 +36,7 @@ import skimage.data
 import torch
 from scipy.ndimage import map_coordinates
 
+from diffloc.benchmark import median_ms
 from diffloc.features.local import Features, OrbConfig, SiftConfig, XFeatConfig, make_extractor
 from diffloc.features.matching import (
     LighterGlueConfig,
@@ -50,17 +49,6 @@ from diffloc.features.matching import (
 RATIO = 0.8
 TOP_K = 1000
 INLIER_PX = 2.0
-
-
-def median_ms(function, repeats: int) -> float:
-    """Median wall time of ``function()`` in milliseconds after one warm-up call."""
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append((time.perf_counter() - start) * 1e3)
-    return round(statistics.median(times), 2)
 
 
 def to_chw(rgb: np.ndarray) -> torch.Tensor:

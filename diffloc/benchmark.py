@@ -1,0 +1,45 @@
+"""Timing and memory helpers shared by the benchmark scripts in ``experiments/``."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+__all__ = ["median_ms", "peak_added_mb"]
+
+
+def median_ms(function: Callable[[], object], repeats: int) -> float:
+    """Median wall time of ``function()`` in milliseconds after one warm-up call.
+
+    Example:
+        >>> median_ms(lambda: sum(range(1000)), repeats=5) >= 0
+        True
+    """
+    function()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        times.append((time.perf_counter() - start) * 1e3)
+    return round(statistics.median(times), 3)
+
+
+def _status_kb(field: str) -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise RuntimeError(f"{field} not in /proc/self/status")
+
+
+def peak_added_mb(function: Callable[[], object]) -> float:
+    """Peak resident memory added while ``function()`` runs, in MB (Linux only).
+
+    Resets the process's peak (``VmHWM``) through ``/proc/self/clear_refs`` first, so the
+    figure is the memory this call added on top of what was resident before it.
+    """
+    Path("/proc/self/clear_refs").write_text("5")
+    before = _status_kb("VmRSS")
+    function()
+    return round((_status_kb("VmHWM") - before) / 1024, 1)
