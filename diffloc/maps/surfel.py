@@ -34,6 +34,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from diffloc.checks import ShapeError, check_finite, check_shape
+from diffloc.geometry.voxel import voxel_average
 from diffloc.io.ply import read_point_cloud, write_point_cloud
 from diffloc.maps._storage import (
     colors_from_ply,
@@ -372,22 +373,8 @@ def _voxel_average(
         ``"centers"`` (M, 3) point means, ``"counts"`` (M,) points per cell and the (M, C)
         mean of every attribute, sorted by cell.
     """
-    cells = np.floor(points / voxel_size_m).astype(np.int64)
-    cells -= cells.min(axis=0)
-    dims = cells.max(axis=0) + 1
-    if float(np.prod(dims.astype(np.float64))) < 2.0**62:
-        keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
-        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    else:
-        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-
-    def mean(values: np.ndarray) -> np.ndarray:
-        sums = [np.bincount(inverse, values[:, c], len(counts)) for c in range(values.shape[1])]
-        return np.stack(sums, axis=1) / counts[:, None]
-
-    averaged = {name: mean(values) for name, values in attributes.items()}
-    return {"centers": mean(points), "counts": counts, **averaged}
+    centers, counts, *means = voxel_average(points, voxel_size_m, *attributes.values())
+    return {"centers": centers, "counts": counts, **dict(zip(attributes, means, strict=True))}
 
 
 def _subset(arrays: dict[str, np.ndarray], index: np.ndarray) -> dict[str, np.ndarray]:

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from diffloc.checks import check_finite, check_positive_int, check_shape
+from diffloc.geometry.voxel import voxel_average
 from diffloc.o3d import open3d
 from diffloc.render.raycast import MeshRaycaster
 
@@ -348,28 +349,8 @@ def voxel_downsample(
             raise ValueError(
                 f"attribute {i} has {len(attribute)} rows but there are {len(points)} points"
             )
-    cells = np.floor(points / voxel_size_m).astype(np.int64)
-    cells -= cells.min(axis=0)
-    dims = cells.max(axis=0) + 1
-    if float(np.prod(dims.astype(np.float64))) < 2.0**62:
-        keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
-        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    else:
-        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-
-    def cell_mean(values: np.ndarray) -> np.ndarray:
-        values = np.asarray(values, dtype=np.float64).reshape(len(points), -1)
-        sums = np.stack(
-            [
-                np.bincount(inverse, weights=values[:, c], minlength=len(counts))
-                for c in range(values.shape[1])
-            ],
-            axis=1,
-        )
-        return sums / counts[:, None]
-
-    return (cell_mean(points), *(cell_mean(a) for a in attributes))
+    centers, _, *means = voxel_average(points, voxel_size_m, *attributes)
+    return (centers, *means)
 
 
 def _per_point_origins(
