@@ -1,0 +1,105 @@
+"""DatabaseBuilder on the tiny simulated indoor scene (seed 1 Sec. III-A)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffloc.database.builder import BuilderConfig, DatabaseBuilder
+from diffloc.database.database import VisualDatabase
+from diffloc.features.local import XFeatConfig, make_extractor
+from diffloc.geometry.se3 import invert, transform_points
+from diffloc.io.dataset import read_sequence
+from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
+from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+
+FINE = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
+EXTRACTOR = XFeatConfig(max_keypoints=512)
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("database") / "indoor"
+    shutil.copytree(tiny_indoor_dataset, root)
+    build_maps(root, BuildMapConfig(point_maps=[]), FINE, show_progress=False)
+    return root
+
+
+@pytest.fixture(scope="module")
+def surfels(scene: Path) -> SurfelMap:
+    return SurfelMap.load(scene / "map" / "surfel_map.ply")
+
+
+def build(scene: Path, surfels: SurfelMap, names: tuple[str, ...]) -> VisualDatabase:
+    builder = DatabaseBuilder(BuilderConfig(), surfels, make_extractor(EXTRACTOR))
+    for name in names:
+        db = builder.build(read_sequence(scene, name), show_progress=False)
+    return db
+
+
+@pytest.fixture(scope="module")
+def database(scene: Path, surfels: SurfelMap) -> VisualDatabase:
+    return build(scene, surfels, ("mapping",))
+
+
+def test_map_points_lie_on_the_true_surface(scene: Path, database: VisualDatabase):
+    seq = read_sequence(scene, "mapping")
+    stats = database.stats()
+    assert stats["keyframes"] >= 3 and stats["map_points"] > 100
+    assert stats["mean_observations_per_point"] > 1.0
+    obs = database.observations()
+    first = torch.full((database.num_points,), database.num_keyframes).scatter_reduce(
+        0, obs[:, 2], obs[:, 0], reduce="amin"
+    )
+    errors = []
+    for k in range(database.num_keyframes):
+        frame = int(torch.nonzero((seq.T_wc == database.T_wc[k]).all(-1).all(-1))[0])
+        points = torch.nonzero(first == k).flatten()
+        camera = database.camera(k)
+        uv, valid = camera.project_world(database.point_positions[points], database.T_wc[k])
+        z = transform_points(invert(database.T_wc[k]), database.point_positions[points])[:, 2]
+        truth = seq.load_depth(frame).double().reshape(camera.height, camera.width)
+        u = uv[:, 0].round().long().clamp(0, camera.width - 1)
+        v = uv[:, 1].round().long().clamp(0, camera.height - 1)
+        depth = truth[v, u]
+        ok = valid & (depth > 0)
+        errors.append((z - depth)[ok].abs())
+    errors = torch.cat(errors)
+    assert len(errors) > 50
+    assert float(errors.median()) < 0.02 + 0.01  # surfel radius plus a small tolerance
+
+
+def test_every_map_point_is_anchored_to_a_surfel(database: VisualDatabase, surfels: SurfelMap):
+    assert (database.point_surfels >= 0).all()
+    centres = surfels.centers[database.point_surfels].double()
+    assert torch.equal(database.point_positions, centres)
+    assert (database.observation_counts() >= 1).all()
+
+
+def test_repeated_build_gives_the_same_database(
+    scene: Path, surfels: SurfelMap, database: VisualDatabase, tmp_path: Path
+):
+    again = build(scene, surfels, ("mapping",))
+    for name, value in vars(database).items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(value, getattr(again, name)), name
+    again.save(tmp_path / "db")
+    loaded = VisualDatabase.load(tmp_path / "db")
+    assert loaded.stats() == database.stats()
+
+
+def test_update_with_a_second_sequence_matches_existing_points(
+    scene: Path, surfels: SurfelMap, database: VisualDatabase
+):
+    both = build(scene, surfels, ("mapping", "query_same"))
+    before = database.num_keyframes
+    assert both.num_keyframes > before
+    obs = both.observations()
+    new_keyframe_obs = obs[obs[:, 0] >= before]
+    # Points first created by the mapping keyframes and re-observed by query_same keyframes.
+    old_points = torch.unique(obs[obs[:, 0] < before, 2])
+    matched_old = torch.isin(new_keyframe_obs[:, 2], old_points)
+    assert int(matched_old.sum()) > 20
