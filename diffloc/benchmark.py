@@ -10,14 +10,15 @@ from pathlib import Path
 __all__ = ["median_ms", "peak_added_mb"]
 
 
-def median_ms(function: Callable[[], object], repeats: int) -> float:
-    """Median wall time of ``function()`` in milliseconds after one warm-up call.
+def median_ms(function: Callable[[], object], repeats: int, warm_up: bool = True) -> float:
+    """Median wall time of ``function()`` in milliseconds, after one warm-up call if asked.
 
     Example:
         >>> median_ms(lambda: sum(range(1000)), repeats=5) >= 0
         True
     """
-    function()
+    if warm_up:
+        function()
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
