@@ -1,0 +1,1 @@
+"""Relocalization: minimal and non-minimal PnP solvers, RANSAC and pose refinement."""

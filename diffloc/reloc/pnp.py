@@ -1,0 +1,790 @@
+"""Perspective-n-Point: LO-RANSAC around Lambda Twist P3P, EPnP and Levenberg-Marquardt.
+
+Conventions:
+
+- Results are camera-to-world poses ``T_wc`` (ARCHITECTURE.md); internally the solvers work on
+  the world-to-camera rotation and translation ``(R_cw, t_cw)``, the transform that projects.
+- Keypoints are pixels of a :class:`~diffloc.geometry.camera.PinholeCamera`. They are
+  undistorted once, and every error below (RANSAC threshold, refinement cost, the returned
+  ``reprojection_errors``) is measured in *undistorted* pixels: ``fx (X/Z - x_n)``,
+  ``fy (Y/Z - y_n)`` with ``x_n`` the undistorted normalised keypoint. Without distortion these
+  are the ordinary pixel errors; with distortion they differ by the local scale of the
+  distortion map (a few percent at most for usual lenses).
+- All optimised geometry is float64. Every random draw uses the ``torch.Generator`` given.
+
+RANSAC (seed 1, Sec. III-C: "PnP with RANSAC to find a rough camera pose") draws minimal
+samples in batches and solves Lambda Twist P3P for all of them at once. Candidate poses are
+first scored on a fixed random subset of ``bailout_points`` correspondences; only those whose
+subset inlier count is within three binomial standard deviations of the best one seen are
+scored on all correspondences (a batched form of the bail-out test of Capel, BMVC 2005).
+Scoring projects all points under all candidates with one GEMM and uses MSAC (truncated
+squared error). The number of samples adapts to the best inlier ratio ``w``:
+``k = log(1 - confidence) / log(1 - w^3)``, clamped to ``[min_iterations, max_iterations]``;
+the first batch has ``min_iterations`` samples and each later one the samples still needed (at
+most ``batch_size``). A new best model is locally optimised (LO-RANSAC, Chum et al. 2003) when
+sampling goes on after its batch: Gauss-Newton steps on its inliers, each re-scored and kept
+only if the MSAC cost drops (so the inlier set is re-estimated after every step), until the
+inlier count is stable. The best model is finally refined the same way until a step is below
+1e-5 (m, rad); Gauss-Newton converges quadratically here, so the pose is then within ~1e-9 of
+the least-squares optimum on its inliers.
+
+The non-minimal :func:`solve_pnp` (EPnP + Levenberg-Marquardt) and :func:`refine_pnp` (LM)
+are batched over problems and take per-correspondence weights.
+
+Example:
+    >>> import math
+    >>> from diffloc.geometry.camera import PinholeCamera
+    >>> cam = PinholeCamera.from_fov(640, 480, math.pi / 2, dtype=torch.float64)
+    >>> g = torch.Generator().manual_seed(0)
+    >>> X = torch.rand(100, 3, generator=g, dtype=torch.float64) * 4 - 2
+    >>> X[:, 2] += 6.0
+    >>> uv, _ = cam.project(X)
+    >>> result = solve_pnp_ransac(X, uv, cam, PnPRansacConfig(), generator=g)
+    >>> result.success, torch.allclose(result.T_wc, torch.eye(4, dtype=torch.float64))
+    (True, True)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import torch
+
+from diffloc.checks import ShapeError, check_finite, check_shape
+from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera
+from diffloc.geometry.se3 import invert
+from diffloc.reloc.epnp import epnp_flat
+from diffloc.reloc.p3p import p3p_flat
+
+__all__ = [
+    "PnPRansacConfig",
+    "PnPResult",
+    "refine_pnp",
+    "solve_pnp",
+    "solve_pnp_ransac",
+]
+
+_SAMPLE_SIZE = 3
+_BAILOUT_SIGMAS = 3.0  # keep candidates within this many binomial std of the best subset count
+_LM_INITIAL_DAMPING = 1e-4  # relative to the diagonal of J^T J (Marquardt scaling)
+_LM_STEP_TOL = 1e-10  # stop once every twist component of a step is below this (m, rad)
+_REFINE_STEP_TOL = 1e-5  # Gauss-Newton on inliers stops after a step this small (m, rad)
+_P3P_REFINE_ITERATIONS = 0  # Newton steps on the P3P depths inside RANSAC (models are refined)
+
+
+@dataclass(frozen=True)
+class PnPRansacConfig:
+    """Settings of :func:`solve_pnp_ransac`.
+
+    Attributes:
+        threshold_px: inlier threshold on the (undistorted) reprojection error in pixels. The
+            default 4 px is ~4 sigma for 1 px keypoint noise (a 2-D inlier is lost with
+            probability exp(-8) ~ 3e-4); for a 95 % chi-square gate use
+            ``sqrt(5.991) * sigma``.
+        confidence: probability of drawing at least one all-inlier sample; sets the adaptive
+            number of samples.
+        min_iterations: fewest minimal samples drawn; also the size of the first batch.
+        max_iterations: most minimal samples drawn.
+        batch_size: most minimal samples solved and scored together. After the first batch,
+            each batch draws the samples still needed by the adaptive criterion (at most
+            ``batch_size``); a torch operation costs about as much for one hypothesis as for
+            hundreds, so few large batches are fastest.
+        min_inliers: a pose with fewer inliers is reported with ``success = False``.
+        lo_rounds: most local-optimisation steps (Gauss-Newton on the inliers + re-score)
+            per new best model; 0 disables LO.
+        refine_iterations: most Gauss-Newton steps of the final refinement on the inliers of
+            the best model (re-scored after each); 0 disables it.
+        bailout_points: size of the random subset every candidate is scored on first; 0 (or
+            fewer than twice as many correspondences) scores all candidates on all points.
+        num_threads: torch intra-op threads while solving (the caller's setting is restored
+            afterwards); ``None`` leaves torch's setting alone. The tensors are small, so one
+            thread is fastest: more only add synchronisation, which costs tens of times the
+            work itself when another process holds a core.
+
+    Raises:
+        ValueError: an out-of-range setting.
+    """
+
+    threshold_px: float = 4.0
+    confidence: float = 0.9999
+    min_iterations: int = 100
+    max_iterations: int = 10_000
+    batch_size: int = 512
+    min_inliers: int = 12
+    lo_rounds: int = 4
+    refine_iterations: int = 20
+    bailout_points: int = 64
+    num_threads: int | None = 1
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.threshold_px) and self.threshold_px > 0):
+            raise ValueError(f"threshold_px must be positive, got {self.threshold_px}")
+        if not 0.0 < self.confidence < 1.0:
+            raise ValueError(f"confidence must be in (0, 1), got {self.confidence}")
+        if self.batch_size < 1 or self.max_iterations < 1:
+            raise ValueError("batch_size and max_iterations must be positive")
+        if not 0 <= self.min_iterations <= self.max_iterations:
+            raise ValueError("min_iterations must be in [0, max_iterations]")
+        if self.min_inliers < 4:
+            raise ValueError(f"min_inliers must be at least 4, got {self.min_inliers}")
+        if min(self.lo_rounds, self.refine_iterations, self.bailout_points) < 0:
+            raise ValueError("lo_rounds, refine_iterations and bailout_points must be >= 0")
+        if self.num_threads is not None and self.num_threads < 1:
+            raise ValueError(f"num_threads must be None or positive, got {self.num_threads}")
+
+
+@dataclass(frozen=True)
+class PnPResult:
+    """Output of :func:`solve_pnp_ransac`.
+
+    Attributes:
+        T_wc: (4, 4) float64 camera-to-world pose of the best model (identity if no model
+            was found; meaningless unless ``success``).
+        inliers: (N,) bool, reprojection error below the threshold under ``T_wc``.
+        num_inliers: ``int(inliers.sum())``.
+        iterations: number of minimal samples drawn.
+        success: a model with at least ``min_inliers`` inliers was found.
+        reprojection_errors: (N,) float64 undistorted-pixel errors under ``T_wc``; ``inf``
+            for points behind the camera (all ``inf`` when no model was found).
+    """
+
+    T_wc: torch.Tensor
+    inliers: torch.Tensor
+    num_inliers: int
+    iterations: int
+    success: bool
+    reprojection_errors: torch.Tensor
+
+
+@dataclass(frozen=True)
+class _PointSet:
+    """Correspondences laid out for the scoring GEMM: (3, n) points and (2, n) ``f * xy``."""
+
+    points_t: torch.Tensor
+    uv_t: torch.Tensor
+
+
+@dataclass(frozen=True)
+class _Residuals:
+    """Least-squares data of B problems in row layout: points (B, 3, N), keypoints (B, 2, N).
+
+    ``focal2`` (B, 2, 1) holds ``(fx^2, fy^2)``: pixel residuals are ``f * (proj - xy)``, so
+    squared focals weight the normalised residuals and Jacobians.
+    """
+
+    points_t: torch.Tensor
+    xy_t: torch.Tensor
+    focal2: torch.Tensor
+
+    @staticmethod
+    def from_points(
+        points_world: torch.Tensor, xy: torch.Tensor, focal: torch.Tensor
+    ) -> _Residuals:
+        """From (B, N, 3) points, (B, N, 2) keypoints and (B, 1, 2) or (1, 2) focals."""
+        focal2 = (focal * focal).reshape(-1, 2, 1)
+        return _Residuals(
+            points_world.transpose(-1, -2).contiguous(), xy.transpose(-1, -2).contiguous(), focal2
+        )
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """One PnP problem in the form the solvers use (all float64)."""
+
+    points_world: torch.Tensor  # (N, 3)
+    bearings: torch.Tensor  # (N, 3) unit rays of the undistorted keypoints
+    scale: torch.Tensor  # (3, 1) fx, fy, 1
+    full: _PointSet
+    subset: _PointSet | None  # the bail-out subset
+    residuals: _Residuals  # B = 1 layout for Gauss-Newton
+
+
+@dataclass(frozen=True)
+class _Model:
+    """A RANSAC model and its score."""
+
+    R: torch.Tensor  # (3, 3) R_cw
+    t: torch.Tensor  # (3,) t_cw
+    err2: torch.Tensor  # (1, N) squared pixel errors
+    cost: float  # MSAC cost
+    num_inliers: int
+
+
+# ---------------------------------------------------------------------------- inputs
+
+
+def _check_correspondences(points_world: torch.Tensor, keypoints: torch.Tensor) -> None:
+    check_shape(points_world, "*,N,3", "points_world")
+    check_shape(keypoints, "*,N,2", "keypoints")
+    if points_world.shape[:-1] != keypoints.shape[:-1]:
+        raise ShapeError(
+            f"points_world (..., N, 3) and keypoints (..., N, 2) must agree in (..., N), got "
+            f"{tuple(points_world.shape)} and {tuple(keypoints.shape)}"
+        )
+    check_finite(points_world, "points_world")
+    check_finite(keypoints, "keypoints")
+
+
+def _normalise_keypoints(
+    keypoints: torch.Tensor, camera: PinholeCamera
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Undistorted normalised coordinates (..., N, 2) and focal lengths (..., 1, 2)."""
+    cam = camera
+    if camera.dtype != torch.float64 or camera.device != keypoints.device:
+        cam = camera.to(dtype=torch.float64, device=keypoints.device)
+    focal = torch.stack((cam.fx, cam.fy), dim=-1)[..., None, :]
+    centre = torch.stack((cam.cx, cam.cy), dim=-1)[..., None, :]
+    xy = cam.undistort_normalized((keypoints.to(torch.float64) - centre) / focal)
+    return xy, focal
+
+
+def _point_set(points_world: torch.Tensor, xy: torch.Tensor, focal: torch.Tensor) -> _PointSet:
+    return _PointSet(points_world.t().contiguous(), (xy * focal).t().contiguous())
+
+
+def _make_problem(
+    points_world: torch.Tensor,
+    keypoints: torch.Tensor,
+    camera: PinholeCamera,
+    bailout_points: int,
+    generator: torch.Generator,
+) -> _Problem:
+    xy, focal = _normalise_keypoints(keypoints, camera)
+    X = points_world.to(dtype=torch.float64, device=keypoints.device)
+    rays = torch.cat((xy, torch.ones_like(xy[:, :1])), dim=-1)
+    n = X.shape[0]
+    subset = None
+    if 0 < bailout_points and 2 * bailout_points <= n:
+        pick = torch.randperm(n, generator=generator)[:bailout_points].to(X.device)
+        subset = _point_set(X[pick], xy[pick], focal)
+    full = _point_set(X, xy, focal)
+    return _Problem(
+        points_world=X,
+        bearings=rays / torch.linalg.vector_norm(rays, dim=-1, keepdim=True),
+        scale=torch.cat((focal[0], focal.new_ones(1))).reshape(3, 1),
+        full=full,
+        subset=subset,
+        residuals=_Residuals(
+            full.points_t[None], xy.t().contiguous()[None], focal.square()[..., None]
+        ),
+    )
+
+
+# ---------------------------------------------------------------------------- scoring
+
+
+def _squared_errors(
+    R: torch.Tensor, t: torch.Tensor, points: _PointSet, scale: torch.Tensor
+) -> torch.Tensor:
+    """Squared pixel errors (M, n) of n points under M poses (M, 3, 3), (M, 3); inf if behind.
+
+    One GEMM projects every point under every pose: the rows of ``R`` scaled by
+    ``(fx, fy, 1)`` are stacked into a (3M, 3) matrix multiplied with the (3, n) points.
+    """
+    M = R.shape[0]
+    Rs = (R * scale).reshape(3 * M, 3)
+    ts = (t[..., None] * scale).reshape(3 * M, 1)
+    xyz = torch.addmm(ts, Rs, points.points_t).view(M, 3, -1)
+    z = xyz[:, 2]
+    err = xyz[:, :2] / z[:, None] - points.uv_t
+    err2 = err.square_().sum(1)
+    return err2.masked_fill_(z <= MIN_DEPTH, math.inf)
+
+
+def _msac(err2: torch.Tensor, threshold2: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """MSAC cost (M,) (lower is better) and inlier counts (M,) from squared errors (M, n)."""
+    return err2.clamp(max=threshold2).sum(-1), (err2 < threshold2).sum(-1)
+
+
+def _bailout_keep(counts: torch.Tensor, subset_size: int, best_ratio: float) -> torch.Tensor | None:
+    """Mask of candidates worth a full score, from their subset inlier counts (M,).
+
+    The reference is the larger of the best subset count and the count the best model so
+    far would have; candidates more than ``_BAILOUT_SIGMAS`` binomial standard deviations
+    below it are dropped. ``None`` when every candidate is kept.
+    """
+    ref = max(float(counts.max()), best_ratio * subset_size)
+    p = min(ref / subset_size, 1.0)
+    bound = ref - _BAILOUT_SIGMAS * math.sqrt(subset_size * p * (1.0 - p))
+    keep = counts >= bound
+    return None if bool(keep.all()) else keep
+
+
+def _required_samples(inlier_ratio: float, confidence: float) -> float:
+    """Samples needed to draw an all-inlier minimal set with probability ``confidence``."""
+    p_good = inlier_ratio**_SAMPLE_SIZE
+    if p_good >= 1.0:
+        return 0.0
+    if p_good <= 0.0:
+        return math.inf
+    return math.log(1.0 - confidence) / math.log1p(-p_good)
+
+
+def _sample_triples(n: int, count: int, generator: torch.Generator) -> torch.Tensor:
+    """(count, 3) uniformly random index triples of distinct elements of range(n)."""
+    u = torch.rand(count, 3, generator=generator, dtype=torch.float64)
+    idx = (u * torch.tensor([n, n - 1, n - 2], dtype=torch.float64)).long()
+    i0, i1, i2 = idx.unbind(-1)
+    i1 = i1 + (i1 >= i0)
+    lo, hi = torch.minimum(i0, i1), torch.maximum(i0, i1)
+    i2 = i2 + (i2 >= lo)
+    i2 = i2 + (i2 >= hi)
+    return torch.stack((i0, i1, i2), dim=-1)
+
+
+# ---------------------------------------------------------------------------- refinement
+
+
+def _project(
+    R: torch.Tensor, t: torch.Tensor, data: _Residuals
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Normalised projections (B, 2, N), inverse depths (B, N) and front mask (B, N)."""
+    pc = torch.baddbmm(t[..., None], R, data.points_t)
+    z = pc[:, 2]
+    iz = z.clamp(min=MIN_DEPTH).reciprocal()
+    return pc[:, :2] * iz[:, None], iz, z > MIN_DEPTH
+
+
+def _cost(
+    R: torch.Tensor, t: torch.Tensor, data: _Residuals, weights: torch.Tensor
+) -> torch.Tensor:
+    """Weighted squared pixel error (B,); points behind the camera get weight 0."""
+    proj, _, front = _project(R, t, data)
+    r = proj - data.xy_t
+    return ((r * r * data.focal2).sum(1) * (weights * front)).sum(-1)
+
+
+def _normal_equations(
+    R: torch.Tensor, t: torch.Tensor, data: _Residuals, weights: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``J^T W J`` (B, 6, 6) and ``J^T W r`` (B, 6, 1) of the pixel residuals for a left
+    twist ``[v, w]`` of T_cw; points behind the camera get weight 0.
+
+    The Jacobian is built as (B, 6, 2N) rows (parameter-major), so both products are single
+    GEMMs on contiguous data.
+    """
+    proj, iz, front = _project(R, t, data)
+    x, y = proj.unbind(1)
+    xy_ = x * y
+    zero = torch.zeros_like(x)
+    rows = (iz, zero, zero, iz, -x * iz, -y * iz, -xy_, -1.0 - y * y, 1.0 + x * x, xy_, -y, x)
+    B, N = x.shape
+    J = torch.stack(rows, dim=1).view(B, 6, 2 * N)  # [d(x, y)/d param_k] for k = 0..5
+    w = ((weights * front)[:, None] * data.focal2).view(B, 1, 2 * N)
+    Jw = J * w
+    return Jw @ J.transpose(-1, -2), Jw @ (proj - data.xy_t).view(B, 2 * N, 1)
+
+
+def _step(H: torch.Tensor, g: torch.Tensor, damping: torch.Tensor | None) -> torch.Tensor:
+    """Solve ``(H + D) delta = -g`` for (B, 6) steps (Levenberg-Marquardt when damped).
+
+    ``D = damping diag(H) + 1e-12 max(diag(H)) + 1e-300``: the relative and absolute floors
+    keep rank-deficient systems (too few or degenerate inliers) solvable, with a zero step
+    for directions the data do not constrain.
+    """
+    diag = torch.diagonal(H, dim1=-2, dim2=-1)
+    floor = 1e-12 * diag.amax(-1, keepdim=True) + 1e-300
+    diag = floor if damping is None else damping[:, None] * diag + floor
+    return torch.linalg.solve(H + torch.diag_embed(diag.expand(-1, 6)), g)[..., 0].neg_()
+
+
+def _retract(
+    R: torch.Tensor, t: torch.Tensor, delta: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Apply a step ``[v, w]`` (B, 6): ``R <- Cay(w) R``, ``t <- Cay(w) t + v``.
+
+    ``Cay(w) = ((1 - |c|^2) I + 2 hat(c) + 2 c c^T) / (1 + |c|^2)`` with ``c = w / 2`` is the
+    Cayley map: an exact rotation that agrees with ``exp(hat(w))`` to second order, i.e. a
+    retraction whose first-order term is the left twist the Jacobian is taken for.
+    """
+    c = 0.5 * delta[:, 3:]
+    eye = _eye3(R.dtype, R.device)
+    n2 = (c * c).sum(-1)[:, None, None]
+    C = torch.linalg.cross(eye[None], c[:, None, :], dim=-1)  # hat(c)
+    dR = (2.0 * (C + c[:, :, None] * c[:, None, :]) + (1.0 - n2) * eye) / (1.0 + n2)
+    return dR @ R, torch.baddbmm(delta[:, :3, None], dR, t[..., None])[..., 0]
+
+
+@functools.lru_cache(maxsize=8)
+def _eye3(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """A cached 3x3 identity (never modified in place)."""
+    return torch.eye(3, dtype=dtype, device=device)
+
+
+def _lm(
+    R: torch.Tensor,
+    t: torch.Tensor,
+    data: _Residuals,
+    weights: torch.Tensor,
+    iterations: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Levenberg-Marquardt on the weighted squared pixel error, batched over B problems.
+
+    Args:
+        R: (B, 3, 3) initial R_cw.
+        t: (B, 3) initial t_cw.
+        data: the B problems.
+        weights: (B, N) non-negative weights.
+        iterations: most iterations; stops once every step is below ``_LM_STEP_TOL``.
+
+    Returns:
+        Refined ``(R, t)`` (see :func:`_retract` for the update).
+    """
+    cost = _cost(R, t, data, weights)
+    damping = torch.full_like(cost, _LM_INITIAL_DAMPING)
+    for _ in range(iterations):
+        H, g = _normal_equations(R, t, data, weights)
+        delta = _step(H, g, damping)
+        R_new, t_new = _retract(R, t, delta)
+        if float(delta.abs().max()) < _LM_STEP_TOL:
+            return R_new, t_new
+        cost_new = _cost(R_new, t_new, data, weights)
+        accept = cost_new < cost
+        R = torch.where(accept[:, None, None], R_new, R)
+        t = torch.where(accept[:, None], t_new, t)
+        cost = torch.where(accept, cost_new, cost)
+        damping = torch.where(accept, damping * 0.1, damping * 10.0)
+    return R, t
+
+
+# ---------------------------------------------------------------------------- RANSAC
+
+
+def _model(R: torch.Tensor, t: torch.Tensor, err2: torch.Tensor, threshold2: float) -> _Model:
+    cost, count = _msac(err2, threshold2)
+    return _Model(R, t, err2, float(cost), int(count))
+
+
+def _optimise(
+    model: _Model,
+    problem: _Problem,
+    threshold2: float,
+    steps: int,
+    step_tol: float,
+    until_stable: bool = False,
+) -> _Model:
+    """Gauss-Newton on the current inliers of ``model``, re-scoring after every step.
+
+    A step is kept only if it lowers the MSAC cost (so the inlier set may change between
+    steps, as in LO-RANSAC); iteration stops at the first step that does not, once every
+    twist component of a step is below ``step_tol``, or (``until_stable``) once a step leaves
+    the number of inliers unchanged.
+    """
+    data = problem.residuals
+    for _ in range(steps):
+        weights = (model.err2 < threshold2).to(data.points_t.dtype)
+        H, g = _normal_equations(model.R[None], model.t[None], data, weights)
+        delta = _step(H, g, None)
+        R, t = _retract(model.R[None], model.t[None], delta)
+        err2 = _squared_errors(R, t, problem.full, problem.scale)
+        candidate = _model(R[0], t[0], err2, threshold2)
+        if not candidate.cost < model.cost:
+            break
+        stable = candidate.num_inliers == model.num_inliers
+        model = candidate
+        if (until_stable and stable) or float(delta.abs().max()) < step_tol:
+            break
+    return model
+
+
+def _best_of_batch(
+    R: torch.Tensor, t: torch.Tensor, problem: _Problem, threshold2: float, best_ratio: float
+) -> _Model | None:
+    """Best candidate (MSAC) of a batch of poses (M, 3, 3), (M, 3), with the bail-out test."""
+    if problem.subset is not None:
+        err2 = _squared_errors(R, t, problem.subset, problem.scale)
+        counts = (err2 < threshold2).sum(-1)
+        keep = _bailout_keep(counts, problem.subset.uv_t.shape[1], best_ratio)
+        if keep is not None:
+            if not bool(keep.any()):
+                return None
+            R, t = R[keep], t[keep]
+    err2 = _squared_errors(R, t, problem.full, problem.scale)
+    j = int(_msac(err2, threshold2)[0].argmin())
+    return _model(R[j], t[j], err2[j : j + 1], threshold2)
+
+
+def _target_samples(model: _Model | None, n: int, config: PnPRansacConfig) -> int:
+    """Samples to draw in total given the best model so far (adaptive termination)."""
+    ratio = 0.0 if model is None else model.num_inliers / n
+    needed = math.ceil(_required_samples(ratio, config.confidence))
+    return min(config.max_iterations, max(config.min_iterations, needed))
+
+
+def _ransac(
+    problem: _Problem, config: PnPRansacConfig, generator: torch.Generator
+) -> tuple[_Model | None, int]:
+    """Best model after adaptive batched sampling; returns (best, samples drawn).
+
+    A new best model is locally optimised only if sampling goes on after its batch (the
+    better inlier ratio then shortens the search); the last one is left to the final
+    refinement, which does the same.
+    """
+    n = problem.points_world.shape[0]
+    threshold2 = config.threshold_px**2
+    best: _Model | None = None
+    drawn = 0
+    target = max(config.min_iterations, 1)
+    while drawn < target:
+        count = min(config.batch_size, target - drawn)
+        idx = _sample_triples(n, count, generator)
+        drawn += count
+        R, t, valid = p3p_flat(
+            problem.bearings[idx], problem.points_world[idx], _P3P_REFINE_ITERATIONS
+        )
+        if bool(valid.any()):
+            ratio = 0.0 if best is None else best.num_inliers / n
+            candidate = _best_of_batch(R[valid], t[valid], problem, threshold2, ratio)
+        else:
+            candidate = None
+        if candidate is None or (best is not None and candidate.cost >= best.cost):
+            target = _target_samples(best, n, config)
+            continue
+        best = candidate
+        target = _target_samples(best, n, config)
+        if drawn < target and config.lo_rounds > 0:
+            best = _optimise(
+                best, problem, threshold2, config.lo_rounds, _REFINE_STEP_TOL, until_stable=True
+            )
+            target = _target_samples(best, n, config)
+    return best, drawn
+
+
+def solve_pnp_ransac(
+    points_world: torch.Tensor,
+    keypoints: torch.Tensor,
+    camera: PinholeCamera,
+    config: PnPRansacConfig,
+    generator: torch.Generator,
+) -> PnPResult:
+    """Robust camera pose from 2D-3D matches with outliers (LO-RANSAC + P3P + LM).
+
+    Fewer correspondences than ``max(4, config.min_inliers)`` give ``success = False`` (not
+    an exception): "could not localise" is a normal outcome.
+
+    Args:
+        points_world: (N, 3) world points.
+        keypoints: (N, 2) matching pixel coordinates (distorted, as detected).
+        camera: one camera (batch shape ``()``); its distortion is removed first.
+        config: RANSAC settings.
+        generator: the source of all randomness (same seed, same result).
+
+    Returns:
+        The :class:`PnPResult` (``T_wc`` float64).
+
+    Raises:
+        ShapeError: shapes other than (N, 3) / (N, 2) or different N.
+        ValueError: NaN or infinite inputs, or a batched camera.
+
+    Example:
+        >>> cam = PinholeCamera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+        >>> X = torch.tensor([[0.0, 0, 4], [1, 0, 5], [0, 1, 6], [1, 1, 4], [-1, 0, 7]])
+        >>> r = solve_pnp_ransac(X, cam.project(X)[0], cam, PnPRansacConfig(min_inliers=4),
+        ...                      torch.Generator().manual_seed(0))
+        >>> r.success, r.num_inliers
+        (True, 5)
+    """
+    check_shape(points_world, "N,3", "points_world")
+    check_shape(keypoints, "N,2", "keypoints")
+    _check_correspondences(points_world, keypoints)
+    if camera.batch_shape != torch.Size([]):
+        raise ValueError(
+            f"solve_pnp_ransac takes one camera, got batch {tuple(camera.batch_shape)}"
+        )
+    with _intra_op_threads(config.num_threads):
+        return _solve_pnp_ransac(points_world, keypoints, camera, config, generator)
+
+
+@contextlib.contextmanager
+def _intra_op_threads(count: int | None) -> Iterator[None]:
+    """Run the body with ``count`` torch intra-op threads (``None``: unchanged)."""
+    previous = torch.get_num_threads()
+    if count is None or count == previous:
+        yield
+        return
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _solve_pnp_ransac(
+    points_world: torch.Tensor,
+    keypoints: torch.Tensor,
+    camera: PinholeCamera,
+    config: PnPRansacConfig,
+    generator: torch.Generator,
+) -> PnPResult:
+    """:func:`solve_pnp_ransac` after the input checks."""
+    n = points_world.shape[0]
+    problem = _make_problem(points_world, keypoints, camera, config.bailout_points, generator)
+    threshold2 = config.threshold_px**2
+    best, drawn = None, 0
+    if n >= max(4, config.min_inliers):
+        best, drawn = _ransac(problem, config, generator)
+    if best is None:
+        return PnPResult(
+            T_wc=torch.eye(4, dtype=torch.float64, device=problem.bearings.device),
+            inliers=torch.zeros(n, dtype=torch.bool, device=problem.bearings.device),
+            num_inliers=0,
+            iterations=drawn,
+            success=False,
+            reprojection_errors=torch.full(
+                (n,), math.inf, dtype=torch.float64, device=problem.bearings.device
+            ),
+        )
+    if config.refine_iterations > 0:
+        best = _optimise(best, problem, threshold2, config.refine_iterations, _REFINE_STEP_TOL)
+    err2 = best.err2[0]
+    inliers = err2 < threshold2
+    T_cw = torch.eye(4, dtype=torch.float64, device=best.R.device)
+    T_cw[:3, :3] = best.R
+    T_cw[:3, 3] = best.t
+    return PnPResult(
+        T_wc=invert(T_cw),
+        inliers=inliers,
+        num_inliers=best.num_inliers,
+        iterations=drawn,
+        success=best.num_inliers >= config.min_inliers,
+        reprojection_errors=err2.sqrt(),
+    )
+
+
+# ---------------------------------------------------------------------------- non-minimal
+
+
+def _batched_inputs(
+    points_world: torch.Tensor,
+    keypoints: torch.Tensor,
+    camera: PinholeCamera,
+    weights: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Flat float64 (B, N, 3) points, (B, N, 2) xy, (B, 1, 2) focal, (B, N) weights."""
+    _check_correspondences(points_world, keypoints)
+    batch, n = keypoints.shape[:-2], keypoints.shape[-2]
+    if weights is None:
+        weights = torch.ones(keypoints.shape[:-1], dtype=torch.float64, device=keypoints.device)
+    if weights.shape != keypoints.shape[:-1]:
+        raise ShapeError(
+            f"weights must have shape {tuple(keypoints.shape[:-1])}, got {tuple(weights.shape)}"
+        )
+    check_finite(weights, "weights")
+    if bool((weights < 0).any()):
+        raise ValueError("weights must be non-negative")
+    try:
+        shape = torch.broadcast_shapes(batch, camera.batch_shape)
+    except RuntimeError as exc:
+        raise ShapeError(
+            f"camera batch {tuple(camera.batch_shape)} does not broadcast with {tuple(batch)}"
+        ) from exc
+    if shape != batch:
+        raise ShapeError(
+            f"camera batch {tuple(camera.batch_shape)} must broadcast to {tuple(batch)}"
+        )
+    xy, focal = _normalise_keypoints(keypoints, camera)
+    X = points_world.to(dtype=torch.float64, device=keypoints.device).reshape(-1, n, 3)
+    focal = focal.expand(*batch, 1, 2).reshape(-1, 1, 2)
+    w = weights.to(dtype=torch.float64, device=keypoints.device).reshape(-1, n)
+    return X, xy.expand(*batch, n, 2).reshape(-1, n, 2), focal, w
+
+
+def _to_T_wc(R: torch.Tensor, t: torch.Tensor, batch: torch.Size) -> torch.Tensor:
+    T_cw = torch.zeros(R.shape[0], 4, 4, dtype=R.dtype, device=R.device)
+    T_cw[:, :3, :3] = R
+    T_cw[:, :3, 3] = t
+    T_cw[:, 3, 3] = 1.0
+    return invert(T_cw).reshape(*batch, 4, 4)
+
+
+def refine_pnp(
+    T_wc: torch.Tensor,
+    points_world: torch.Tensor,
+    keypoints: torch.Tensor,
+    camera: PinholeCamera,
+    weights: torch.Tensor | None = None,
+    iterations: int = 20,
+) -> torch.Tensor:
+    """Levenberg-Marquardt on the weighted squared (undistorted) pixel reprojection error.
+
+    Args:
+        T_wc: (..., 4, 4) initial camera-to-world poses.
+        points_world: (..., N, 3) world points.
+        keypoints: (..., N, 2) pixels.
+        camera: camera(s) with batch shape broadcasting to ``(...)``.
+        weights: optional (..., N) non-negative weights (e.g. an inlier mask as float).
+        iterations: most LM iterations (stops earlier once the step vanishes).
+
+    Returns:
+        (..., 4, 4) refined float64 ``T_wc``.
+
+    Raises:
+        ShapeError: inconsistent shapes.
+        ValueError: non-finite inputs or negative weights.
+
+    Example:
+        >>> cam = PinholeCamera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+        >>> X = torch.tensor([[0.0, 0, 4], [1, 0, 5], [0, 1, 6], [1, 1, 4]], dtype=torch.float64)
+        >>> T0 = torch.eye(4, dtype=torch.float64)
+        >>> T0[0, 3] = 0.05
+        >>> T = refine_pnp(T0, X, cam.project(X)[0], cam)
+        >>> torch.allclose(T, torch.eye(4, dtype=torch.float64), atol=1e-9)
+        True
+    """
+    check_shape(T_wc, "*,4,4", "T_wc")
+    check_finite(T_wc, "T_wc")
+    if T_wc.shape[:-2] != keypoints.shape[:-2]:
+        raise ShapeError(
+            f"T_wc batch {tuple(T_wc.shape[:-2])} must equal the keypoint batch "
+            f"{tuple(keypoints.shape[:-2])}"
+        )
+    X, xy, focal, w = _batched_inputs(points_world, keypoints, camera, weights)
+    T_cw = invert(T_wc.to(dtype=torch.float64, device=X.device).reshape(-1, 4, 4))
+    data = _Residuals.from_points(X, xy, focal)
+    R, t = _lm(T_cw[:, :3, :3], T_cw[:, :3, 3], data, w, iterations)
+    return _to_T_wc(R, t, T_wc.shape[:-2])
+
+
+def solve_pnp(
+    points_world: torch.Tensor,
+    keypoints: torch.Tensor,
+    camera: PinholeCamera,
+    weights: torch.Tensor | None = None,
+    refine_iterations: int = 20,
+) -> torch.Tensor:
+    """Camera pose from N >= 4 outlier-free correspondences: EPnP, then LM (batched).
+
+    Args:
+        points_world: (..., N, 3) world points.
+        keypoints: (..., N, 2) pixels.
+        camera: camera(s) with batch shape broadcasting to ``(...)``.
+        weights: optional (..., N) non-negative weights, e.g. an inlier mask as float.
+        refine_iterations: LM iterations after EPnP (0: plain EPnP).
+
+    Returns:
+        (..., 4, 4) float64 camera-to-world poses ``T_wc``.
+
+    Raises:
+        ShapeError: inconsistent shapes.
+        ValueError: fewer than 4 points, non-finite inputs or negative weights.
+
+    Example:
+        >>> cam = PinholeCamera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+        >>> X = torch.tensor([[0.0, 0, 4], [1, 0, 5], [0, 1, 6], [1, 1, 4], [-1, 0, 7]]).double()
+        >>> T_wc = solve_pnp(X, cam.project(X)[0], cam)
+        >>> torch.allclose(T_wc, torch.eye(4, dtype=torch.float64), atol=1e-9)
+        True
+    """
+    check_shape(keypoints, "*,N,2", "keypoints")
+    if keypoints.shape[-2] < 4:
+        raise ValueError(f"solve_pnp needs at least 4 correspondences, got {keypoints.shape[-2]}")
+    X, xy, focal, w = _batched_inputs(points_world, keypoints, camera, weights)
+    T_cw = epnp_flat(X, xy, w)
+    R, t = T_cw[:, :3, :3], T_cw[:, :3, 3]
+    if refine_iterations > 0:
+        R, t = _lm(R, t, _Residuals.from_points(X, xy, focal), w, refine_iterations)
+    return _to_T_wc(R, t, keypoints.shape[:-2])

@@ -1,0 +1,285 @@
+"""Benchmark PnP RANSAC against poselib, pycolmap and OpenCV; the last stdout line is JSON.
+
+Usage:
+    python experiments/bench_pnp.py [--trials 50] [--points 1000] [--threads 2]
+        [--out experiments/results/bench_pnp.json]
+
+Every method sees identical synthetic problems: ``--points`` world points in front of a
+640x480 pinhole camera (fx = fy = 500, principal point at the centre) at depths uniform in
+2-20 m, seen from a random camera pose (uniform rotation, position in [-10, 10]^3 m);
+keypoints are the projections plus 1 px Gaussian noise, and a fraction (0.25 / 0.5 / 0.75) of
+them is replaced by outliers uniform in the image. All methods run with the same RANSAC
+settings: 4 px threshold, confidence 0.9999, 100 to 10000 minimal samples, no multiplier on
+the adaptive number of samples (poselib's and COLMAP's defaults triple it), then their own
+non-linear refinement on the inliers. ``poselib_default`` is poselib with its default RANSAC
+options (except the 4 px threshold) for reference.
+
+Methods and thread counts:
+    ``ours``: :func:`diffloc.reloc.pnp.solve_pnp_ransac` with its default config, which runs
+    torch with one intra-op thread (like poselib, single-threaded C++); ``ours_mt``: the same
+    with ``num_threads=None`` under ``--threads`` torch threads;
+    ``poselib``: ``poselib.estimate_absolute_pose`` (LO-RANSAC, Lambda Twist P3P, Cauchy
+    bundle adjustment); ``pycolmap``: ``pycolmap.estimate_and_refine_absolute_pose`` (one
+    RANSAC thread); ``opencv``: ``cv2.solvePnPRansac(SOLVEPNP_P3P)`` then
+    ``cv2.solvePnPRefineLM`` on the inliers (``cv2.setNumThreads(1)``).
+
+Keys (``{method}_{metric}_{outlier ratio}``): ``success`` is the fraction of trials with
+rotation error < 5 deg and camera-centre error < 0.5 m (a wrong RANSAC model misses both by
+far; correct ones are within millimetres); ``rot_err_deg`` and ``trans_err_m`` are medians of
+the rotation error and camera-centre error (m) over all trials; ``ms`` is the median wall
+time of one call in milliseconds. ``ours_vs_poselib_ms_{r}`` is the time ratio.
+``load_average_1min`` records how busy the (shared) machine was at the start.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import poselib
+import pycolmap
+import torch
+
+from diffloc.geometry.camera import PinholeCamera
+from diffloc.io.atomic import atomic_write_text
+from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
+
+WIDTH, HEIGHT, FOCAL = 640, 480, 500.0
+CX, CY = (WIDTH - 1) / 2.0, (HEIGHT - 1) / 2.0
+NOISE_PX = 1.0
+THRESHOLD_PX = 4.0
+CONFIDENCE = 0.9999
+MIN_SAMPLES, MAX_SAMPLES = 100, 10_000
+SUCCESS_ROT_DEG, SUCCESS_TRANS_M = 5.0, 0.5
+RATIOS = (0.25, 0.5, 0.75)
+K = np.array([[FOCAL, 0.0, CX], [0.0, FOCAL, CY], [0.0, 0.0, 1.0]])
+
+Problem = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # X (N,3), uv (N,2), R_cw, t_cw
+Solver = Callable[[np.ndarray, np.ndarray, int], tuple[np.ndarray, np.ndarray]]
+
+
+def make_problem(rng: np.random.Generator, n: int, outlier_ratio: float) -> Problem:
+    """World points, noisy keypoints with outliers, and the true world-to-camera pose."""
+    uv = rng.uniform((-0.5, -0.5), (WIDTH - 0.5, HEIGHT - 0.5), size=(n, 2))
+    depth = rng.uniform(2.0, 20.0, size=n)
+    points_cam = np.column_stack(((uv - (CX, CY)) / FOCAL * depth[:, None], depth))
+    q = rng.normal(size=4)
+    R_cw = quaternion_matrix(q / np.linalg.norm(q))
+    t_cw = rng.uniform(-10.0, 10.0, size=3)
+    points_world = (points_cam - t_cw) @ R_cw  # R^T (X_c - t)
+    keypoints = uv + rng.normal(scale=NOISE_PX, size=(n, 2))
+    outlier = rng.random(n) < outlier_ratio
+    keypoints[outlier] = rng.uniform((-0.5, -0.5), (WIDTH - 0.5, HEIGHT - 0.5), (outlier.sum(), 2))
+    return points_world, keypoints, R_cw, t_cw
+
+
+def quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def pose_errors(R: np.ndarray, t: np.ndarray, R_true: np.ndarray, t_true: np.ndarray):
+    """Rotation error (deg) and camera-centre error (m) of a world-to-camera pose."""
+    cos = np.clip((np.trace(R.T @ R_true) - 1.0) / 2.0, -1.0, 1.0)
+    centre, centre_true = -R.T @ t, -R_true.T @ t_true
+    return math.degrees(math.acos(cos)), float(np.linalg.norm(centre - centre_true))
+
+
+def make_ours(threads: int | None) -> Solver:
+    """Our solver; ``threads=None``: the default config (one intra-op thread inside)."""
+    camera = PinholeCamera(
+        fx=torch.tensor(FOCAL, dtype=torch.float64),
+        fy=torch.tensor(FOCAL, dtype=torch.float64),
+        cx=torch.tensor(CX, dtype=torch.float64),
+        cy=torch.tensor(CY, dtype=torch.float64),
+        width=WIDTH,
+        height=HEIGHT,
+    )
+    config = PnPRansacConfig(
+        threshold_px=THRESHOLD_PX,
+        confidence=CONFIDENCE,
+        min_iterations=MIN_SAMPLES,
+        max_iterations=MAX_SAMPLES,
+    )
+    if threads is not None:
+        config = dataclasses.replace(config, num_threads=None)
+
+    def solve(X: np.ndarray, uv: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        if threads is not None:
+            torch.set_num_threads(threads)
+        generator = torch.Generator().manual_seed(seed)
+        result = solve_pnp_ransac(
+            torch.from_numpy(X), torch.from_numpy(uv), camera, config, generator
+        )
+        T_cw = torch.linalg.inv(result.T_wc).numpy()
+        return T_cw[:3, :3], T_cw[:3, 3]
+
+    return solve
+
+
+def make_poselib(defaults: bool) -> Solver:
+    camera = {
+        "model": "PINHOLE",
+        "width": WIDTH,
+        "height": HEIGHT,
+        "params": [FOCAL, FOCAL, CX, CY],
+    }
+    options = {"max_reproj_error": THRESHOLD_PX}
+    if not defaults:
+        options |= {
+            "success_prob": CONFIDENCE,
+            "min_iterations": MIN_SAMPLES,
+            "max_iterations": MAX_SAMPLES,
+            "dyn_num_trials_mult": 1.0,
+        }
+
+    def solve(X: np.ndarray, uv: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        pose, _ = poselib.estimate_absolute_pose(uv, X, camera, options | {"seed": seed}, {})
+        return pose.R, pose.t
+
+    return solve
+
+
+def make_pycolmap() -> Solver:
+    camera = pycolmap.Camera(
+        model="PINHOLE", width=WIDTH, height=HEIGHT, params=[FOCAL, FOCAL, CX, CY]
+    )
+    options = pycolmap.AbsolutePoseEstimationOptions()
+    options.ransac.max_error = THRESHOLD_PX
+    options.ransac.confidence = CONFIDENCE
+    options.ransac.min_num_trials = MIN_SAMPLES
+    options.ransac.max_num_trials = MAX_SAMPLES
+    options.ransac.dyn_num_trials_multiplier = 1.0
+    options.ransac.num_threads = 1
+
+    def solve(X: np.ndarray, uv: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        options.ransac.random_seed = seed
+        result = pycolmap.estimate_and_refine_absolute_pose(uv, X, camera, options)
+        if result is None:
+            return np.eye(3), np.full(3, 1e9)
+        pose = result["cam_from_world"]
+        return pose.rotation.matrix(), np.asarray(pose.translation)
+
+    return solve
+
+
+def solve_opencv(X: np.ndarray, uv: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    cv2.setRNGSeed(seed)
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        X,
+        uv,
+        K,
+        None,
+        iterationsCount=MAX_SAMPLES,
+        reprojectionError=THRESHOLD_PX,
+        confidence=CONFIDENCE,
+        flags=cv2.SOLVEPNP_P3P,
+    )
+    if not ok or inliers is None or len(inliers) < 4:
+        return np.eye(3), np.full(3, 1e9)
+    idx = inliers[:, 0]
+    rvec, tvec = cv2.solvePnPRefineLM(X[idx], uv[idx], K, None, rvec, tvec)
+    return cv2.Rodrigues(rvec)[0], tvec[:, 0]
+
+
+def run(methods: dict[str, Solver], trials: int, points: int) -> dict[str, float]:
+    """Errors and timings of every method on the same problems, per outlier ratio."""
+    rng = np.random.default_rng(0)
+    result: dict[str, float] = {}
+    for ratio in RATIOS:
+        stats = {name: {"rot": [], "trans": [], "ms": []} for name in methods}
+        for trial in range(trials):
+            X, uv, R_true, t_true = make_problem(rng, points, ratio)
+            names = list(methods)
+            rotation = trial % len(names)  # vary the order against drifting machine load
+            for name in names[rotation:] + names[:rotation]:
+                start = time.perf_counter()
+                R, t = methods[name](X, uv, trial)
+                stats[name]["ms"].append(1e3 * (time.perf_counter() - start))
+                rot, trans = pose_errors(R, t, R_true, t_true)
+                stats[name]["rot"].append(rot)
+                stats[name]["trans"].append(trans)
+        for name, s in stats.items():
+            ok = [
+                r < SUCCESS_ROT_DEG and d < SUCCESS_TRANS_M
+                for r, d in zip(s["rot"], s["trans"], strict=True)
+            ]
+            result[f"{name}_success_{ratio}"] = round(sum(ok) / trials, 4)
+            result[f"{name}_rot_err_deg_{ratio}"] = round(statistics.median(s["rot"]), 5)
+            result[f"{name}_trans_err_m_{ratio}"] = round(statistics.median(s["trans"]), 6)
+            result[f"{name}_ms_{ratio}"] = round(statistics.median(s["ms"]), 3)
+        result[f"ours_vs_poselib_ms_{ratio}"] = round(
+            result[f"ours_ms_{ratio}"] / result[f"poselib_ms_{ratio}"], 3
+        )
+    return result
+
+
+def markdown_table(result: dict[str, float], methods: list[str]) -> str:
+    lines = [
+        "| method | outliers | success | median rot (deg) | median centre (m) | median ms |",
+        "|---|---|---|---|---|---|",
+    ]
+    for ratio in RATIOS:
+        for name in methods:
+            lines.append(
+                f"| {name} | {ratio} | {result[f'{name}_success_{ratio}']:.2f} "
+                f"| {result[f'{name}_rot_err_deg_{ratio}']:.4f} "
+                f"| {result[f'{name}_trans_err_m_{ratio}']:.4f} "
+                f"| {result[f'{name}_ms_{ratio}']:.2f} |"
+            )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--trials", type=int, default=50)
+    parser.add_argument("--points", type=int, default=1000)
+    parser.add_argument("--threads", type=int, default=2, help="torch threads of 'ours_mt'")
+    parser.add_argument("--out", type=Path, default=Path("experiments/results/bench_pnp.json"))
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    methods: dict[str, Solver] = {
+        "ours": make_ours(None),
+        "ours_mt": make_ours(args.threads),
+        "poselib": make_poselib(defaults=False),
+        "poselib_default": make_poselib(defaults=True),
+        "pycolmap": make_pycolmap(),
+        "opencv": solve_opencv,
+    }
+    warm = make_problem(np.random.default_rng(1), args.points, 0.5)
+    for solve in methods.values():
+        solve(warm[0], warm[1], 0)
+    result: dict[str, float] = {
+        "trials": args.trials,
+        "points": args.points,
+        "ours_threads": 1,
+        "ours_mt_threads": args.threads,
+        "poselib_threads": 1,
+        "pycolmap_threads": 1,
+        "opencv_threads": cv2.getNumThreads(),
+        "load_average_1min": round(os.getloadavg()[0], 2),
+    }
+    result |= run(methods, args.trials, args.points)
+    print(markdown_table(result, list(methods)))
+    atomic_write_text(args.out, json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
