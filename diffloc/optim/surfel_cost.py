@@ -1,0 +1,554 @@
+"""Surfel reprojection constraints between keyframes (seed 1 Sec. III-B, Eq. 1-4).
+
+A map point observed at keypoint ``p_a`` of keyframe ``alpha`` is anchored to a surfel with
+centre ``x_S`` and unit normal ``n_S``, i.e. to the plane ``n_S^T x + d_S = 0`` with
+``d_S = -n_S^T x_S``. Lifting the keypoint onto that plane (Eq. 1) gives::
+
+    x_W = R_a * m_a / rho_a + t_a,    m_a = ((u - cx) / fx, (v - cy) / fy, 1)   (unit plane)
+    rho_a = -(n_S^T R_a m_a) / (n_S^T t_a + d_S)                                  (Eq. 2)
+
+with ``T_wc = [R_a | t_a]`` the camera-to-world pose of ``alpha`` and ``rho_a`` the inverse
+depth (``z``, not range) of the point in ``alpha``. The residual of a second observer
+``beta`` with keypoint ``p_b`` is the reprojection error (Eq. 3), whitened by the keypoint's
+standard deviation ``sigma`` (pixels)::
+
+    e = (project(R_b^T (x_W - t_b)) - p_b) / sigma
+
+Eq. 4 sums ``||e||^2`` over every surfel and every pair ``(alpha, beta)`` where ``alpha`` is
+the first keyframe observing the map point and ``beta`` any other observer. ``x_W`` is a
+function of the pose of ``alpha``, so the only variables are keyframe poses, optimised by
+:func:`diffloc.optim.lm.levenberg_marquardt` with autodiff Jacobians. Afterwards every map
+point is re-placed by Eq. 1 from its first observer (:func:`replace_map_points`).
+
+Degenerate lifts (a ray parallel to the plane, the plane behind the camera, or the camera on
+the plane) and points behind ``beta`` are reported as invalid; their outputs are finite
+(never NaN) and their residuals zero.
+
+Example:
+    >>> kp = torch.tensor([[319.5, 239.5]], dtype=torch.float64)
+    >>> f, cx, cy = (torch.tensor([v], dtype=torch.float64) for v in (500.0, 319.5, 239.5))
+    >>> centers = torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64)
+    >>> normals = torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64)
+    >>> T = torch.eye(4, dtype=torch.float64)[None]
+    >>> lift_to_surfel(kp, T, f, f, cx, cy, centers, normals)[0]
+    tensor([[0., 0., 2.]], dtype=torch.float64)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from diffloc.checks import ShapeError, check_finite, check_shape
+from diffloc.database.database import VisualDatabase
+from diffloc.geometry.camera import MIN_DEPTH
+from diffloc.optim.lm import LMConfig, LMResult, levenberg_marquardt
+from diffloc.optim.motion_cost import CHI2_2DOF_95
+from diffloc.optim.robust import RobustKernel
+
+__all__ = [
+    "SurfelOptimConfig",
+    "SurfelPairs",
+    "SurfelReprojectionCost",
+    "first_observers",
+    "lift_to_surfel",
+    "optimize_keyframe_poses",
+    "pairs_from_database",
+    "replace_map_points",
+    "surfel_inverse_depth",
+]
+
+MIN_COS = 1e-9
+"""Smallest ``|cos|`` of the angle between a ray and a surfel normal for a valid lift."""
+
+
+def _pair_count(name: str, x: torch.Tensor, spec: str) -> int:
+    """Check ``x`` against ``spec`` (e.g. ``"*,M,3"``) and return its pair count ``M``."""
+    check_shape(x, spec, name)
+    trailing = len(spec.split(",")) - spec.split(",").index("M")
+    return x.shape[-trailing]
+
+
+def _check_same_count(**counts: int) -> int:
+    values = set(counts.values())
+    if len(values) != 1:
+        raise ShapeError(f"inputs must hold the same number of pairs M, got {counts}")
+    return values.pop()
+
+
+def surfel_inverse_depth(
+    rays_cam: torch.Tensor, T_wc: torch.Tensor, centers: torch.Tensor, normals: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverse depth of rays hitting surfel planes (seed 1 Eq. 2).
+
+    ``rho = -(n^T R m) / (n^T t + d)`` with ``d = -n^T x_S``: the plane point on the ray
+    ``t + s R m`` has ``s = 1 / rho`` (its ``z`` in the camera when ``m_z = 1``).
+
+    Args:
+        rays_cam: (..., M, 3) rays ``m`` in the camera frame (on the unit plane ``z = 1``).
+        T_wc: (..., M, 4, 4) camera-to-world poses.
+        centers: (..., M, 3) surfel centres ``x_S``, world frame.
+        normals: (..., M, 3) surfel normals ``n_S`` (any length), world frame.
+
+    Returns:
+        ``(rho, valid)``: (..., M) inverse depths (1 where invalid) and (..., M) bool, true
+        where the plane is hit in front of the camera (``0 < 1 / rho < inf``, the ray not
+        within ``MIN_COS`` of parallel to the plane).
+
+    Example:
+        >>> m = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+        >>> n = torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64)
+        >>> surfel_inverse_depth(m, torch.eye(4, dtype=torch.float64)[None], -4 * n, n)[0]
+        tensor([0.2500], dtype=torch.float64)
+    """
+    rays_world = (T_wc[..., :3, :3] @ rays_cam[..., None])[..., 0]
+    n_dot_ray = (normals * rays_world).sum(-1)
+    distance = (normals * (T_wc[..., :3, 3] - centers)).sum(-1)  # n^T t + d
+    scale = torch.linalg.vector_norm(normals, dim=-1) * torch.linalg.vector_norm(rays_cam, dim=-1)
+    hits = (n_dot_ray.abs() > MIN_COS * scale) & (distance != 0)
+    rho = -n_dot_ray / torch.where(hits, distance, 1.0)
+    valid = hits & (rho > 0) & (rho < 1.0 / MIN_DEPTH)
+    return torch.where(valid, rho, 1.0), valid
+
+
+def lift_to_surfel(
+    keypoints: torch.Tensor,
+    T_wc: torch.Tensor,
+    fx: torch.Tensor,
+    fy: torch.Tensor,
+    cx: torch.Tensor,
+    cy: torch.Tensor,
+    centers: torch.Tensor,
+    normals: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lift keypoints onto their surfel planes (seed 1 Eq. 1 with the inverse depth of Eq. 2).
+
+    ``x_W = R m / rho + t``, ``m = ((u - cx) / fx, (v - cy) / fy, 1)``: the intersection of
+    the keypoint's viewing ray with the plane through ``centers`` orthogonal to ``normals``.
+    Differentiable in every floating input; leading dimensions ``(...)`` broadcast.
+
+    Args:
+        keypoints: (..., M, 2) pixel coordinates ``(u, v)`` (ideal pinhole).
+        T_wc: (..., M, 4, 4) camera-to-world poses of the observing cameras.
+        fx: (..., M) focal lengths along u, pixels.
+        fy: (..., M) focal lengths along v.
+        cx: (..., M) principal points u.
+        cy: (..., M) principal points v.
+        centers: (..., M, 3) surfel centres, world frame.
+        normals: (..., M, 3) surfel normals, world frame (any non-zero length).
+
+    Returns:
+        ``(points_world, valid)``: (..., M, 3) plane points and (..., M) bool, false where the
+        ray misses the plane in front of the camera (see :func:`surfel_inverse_depth`);
+        ``points_world`` is then finite but meaningless (the point at depth 1).
+
+    Raises:
+        ShapeError: shapes that do not match or do not hold the same number of pairs.
+
+    Example:
+        >>> one = torch.ones(1, dtype=torch.float64)
+        >>> kp = torch.tensor([[1.0, 0.0]], dtype=torch.float64)  # x = 1 on the unit plane
+        >>> n = torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64)
+        >>> T = torch.eye(4, dtype=torch.float64)[None]
+        >>> lift_to_surfel(kp, T, one, one, 0 * one, 0 * one, -3 * n, n)[0]
+        tensor([[3., 0., 3.]], dtype=torch.float64)
+    """
+    _check_same_count(
+        keypoints=_pair_count("keypoints", keypoints, "*,M,2"),
+        T_wc=_pair_count("T_wc", T_wc, "*,M,4,4"),
+        fx=_pair_count("fx", fx, "*,M"),
+        fy=_pair_count("fy", fy, "*,M"),
+        cx=_pair_count("cx", cx, "*,M"),
+        cy=_pair_count("cy", cy, "*,M"),
+        centers=_pair_count("centers", centers, "*,M,3"),
+        normals=_pair_count("normals", normals, "*,M,3"),
+    )
+    x = (keypoints[..., 0] - cx) / fx
+    y = (keypoints[..., 1] - cy) / fy
+    rays_cam = torch.stack((x, y, torch.ones_like(x)), dim=-1)
+    rho, valid = surfel_inverse_depth(rays_cam, T_wc, centers, normals)
+    rays_world = (T_wc[..., :3, :3] @ rays_cam[..., None])[..., 0]
+    return rays_world / rho[..., None] + T_wc[..., :3, 3], valid
+
+
+def _project(
+    points_world: torch.Tensor, T_wc: torch.Tensor, intrinsics: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pinhole projection ``(..., M, 2)`` and ``z > MIN_DEPTH`` mask of world points."""
+    points_cam = (
+        T_wc[..., :3, :3].transpose(-1, -2) @ (points_world - T_wc[..., :3, 3])[..., None]
+    )[..., 0]
+    z = points_cam[..., 2]
+    in_front = z > MIN_DEPTH
+    xy = points_cam[..., :2] / torch.where(in_front, z, 1.0)[..., None]
+    return xy * intrinsics[..., :2] + intrinsics[..., 2:], in_front
+
+
+@dataclass
+class SurfelPairs:
+    """Observation pairs ``(alpha, beta)`` of map points anchored to surfels (Eq. 4 terms).
+
+    Attributes:
+        points: (M,) int64 map point of each pair.
+        alpha: (M,) int64 first keyframe observing the point.
+        beta: (M,) int64 another keyframe observing it.
+        keypoints_alpha: (M, 2) float64 keypoint of the point in ``alpha``, pixels.
+        keypoints_beta: (M, 2) float64 keypoint in ``beta``.
+        centers: (M, 3) float64 centre of the point's surfel, world frame.
+        normals: (M, 3) float64 normal of the point's surfel.
+        intrinsics_alpha: (M, 4) float64 ``fx, fy, cx, cy`` of ``alpha``.
+        intrinsics_beta: (M, 4) float64 ``fx, fy, cx, cy`` of ``beta``.
+    """
+
+    points: torch.Tensor
+    alpha: torch.Tensor
+    beta: torch.Tensor
+    keypoints_alpha: torch.Tensor
+    keypoints_beta: torch.Tensor
+    centers: torch.Tensor
+    normals: torch.Tensor
+    intrinsics_alpha: torch.Tensor
+    intrinsics_beta: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+class SurfelReprojectionCost(nn.Module):
+    """Whitened surfel reprojection residuals (seed 1 Eq. 3) of ``M`` keyframe pairs.
+
+    The per-pair data are buffers (``module.to()`` moves them); the poses are the inputs.
+
+    Args:
+        keypoints_alpha: (M, 2) keypoints in the first observer ``alpha``, pixels.
+        keypoints_beta: (M, 2) keypoints of the same map points in ``beta``.
+        centers: (M, 3) surfel centres, world frame.
+        normals: (M, 3) surfel normals, world frame.
+        intrinsics_alpha: (M, 4) ``fx, fy, cx, cy`` of ``alpha``.
+        intrinsics_beta: (M, 4) ``fx, fy, cx, cy`` of ``beta``.
+        sigma: (M,) keypoint standard deviations in ``beta``, pixels (positive); default 1.
+
+    Raises:
+        ShapeError: shapes that do not match or hold different numbers of pairs.
+        ValueError: non-finite inputs or non-positive sigmas.
+
+    Example:
+        >>> K = torch.tensor([[500.0, 500.0, 319.5, 239.5]], dtype=torch.float64)
+        >>> kp = torch.tensor([[319.5, 239.5]], dtype=torch.float64)
+        >>> n = torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64)
+        >>> cost = SurfelReprojectionCost(kp, kp + 1.0, -2 * n, n, K, K)
+        >>> T = torch.eye(4, dtype=torch.float64)[None]
+        >>> cost(T, T)
+        tensor([[-1., -1.]], dtype=torch.float64)
+    """
+
+    keypoints_alpha: torch.Tensor
+    keypoints_beta: torch.Tensor
+    centers: torch.Tensor
+    normals: torch.Tensor
+    intrinsics_alpha: torch.Tensor
+    intrinsics_beta: torch.Tensor
+    sigma: torch.Tensor
+
+    def __init__(
+        self,
+        keypoints_alpha: torch.Tensor,
+        keypoints_beta: torch.Tensor,
+        centers: torch.Tensor,
+        normals: torch.Tensor,
+        intrinsics_alpha: torch.Tensor,
+        intrinsics_beta: torch.Tensor,
+        sigma: torch.Tensor | None = None,
+    ) -> None:
+        super().__init__()
+        inputs = {
+            "keypoints_alpha": (keypoints_alpha, "M,2"),
+            "keypoints_beta": (keypoints_beta, "M,2"),
+            "centers": (centers, "M,3"),
+            "normals": (normals, "M,3"),
+            "intrinsics_alpha": (intrinsics_alpha, "M,4"),
+            "intrinsics_beta": (intrinsics_beta, "M,4"),
+        }
+        if sigma is None:
+            sigma = torch.ones_like(keypoints_alpha[..., 0])
+        inputs["sigma"] = (sigma, "M")
+        _check_same_count(**{k: _pair_count(k, x, s) for k, (x, s) in inputs.items()})
+        for name, (x, _) in inputs.items():
+            check_finite(x, name)
+            self.register_buffer(name, x)
+        if not bool((sigma > 0).all()):
+            raise ValueError("sigma must be positive")
+
+    @classmethod
+    def from_pairs(
+        cls, pairs: SurfelPairs, sigma: torch.Tensor | None = None
+    ) -> SurfelReprojectionCost:
+        """The cost of :class:`SurfelPairs` (e.g. from :func:`pairs_from_database`).
+
+        Args:
+            pairs: the ``M`` pairs.
+            sigma: (M,) keypoint standard deviations in pixels; default 1.
+
+        Returns:
+            A :class:`SurfelReprojectionCost`.
+        """
+        return cls(
+            pairs.keypoints_alpha,
+            pairs.keypoints_beta,
+            pairs.centers,
+            pairs.normals,
+            pairs.intrinsics_alpha,
+            pairs.intrinsics_beta,
+            sigma,
+        )
+
+    def residuals_and_valid(
+        self, T_alpha: torch.Tensor, T_beta: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Whitened residuals and their validity.
+
+        Args:
+            T_alpha: (..., M, 4, 4) camera-to-world poses of the first observers.
+            T_beta: (..., M, 4, 4) camera-to-world poses of the other observers.
+
+        Returns:
+            ``(residuals, valid)``: (..., M, 2), zero where invalid, and (..., M) bool, true
+            where the lift in ``alpha`` is valid and the point is in front of ``beta``.
+        """
+        M = self.sigma.shape[0]
+        _check_same_count(
+            pairs=M,
+            T_alpha=_pair_count("T_alpha", T_alpha, "*,M,4,4"),
+            T_beta=_pair_count("T_beta", T_beta, "*,M,4,4"),
+        )
+        K = self.intrinsics_alpha
+        points_world, lifted = lift_to_surfel(
+            self.keypoints_alpha, T_alpha, *K.unbind(-1), self.centers, self.normals
+        )
+        uv, in_front = _project(points_world, T_beta, self.intrinsics_beta)
+        valid = lifted & in_front
+        residuals = (uv - self.keypoints_beta) / self.sigma[..., None]
+        return torch.where(valid[..., None], residuals, 0.0), valid
+
+    def forward(self, T_alpha: torch.Tensor, T_beta: torch.Tensor) -> torch.Tensor:
+        """Whitened residuals ``(project(T_beta^-1 x_W(T_alpha)) - p_beta) / sigma``.
+
+        Args:
+            T_alpha: (..., M, 4, 4) camera-to-world poses of the first observers.
+            T_beta: (..., M, 4, 4) camera-to-world poses of the other observers.
+
+        Returns:
+            (..., M, 2) residuals, zero for invalid pairs (see :meth:`residuals_and_valid`).
+        """
+        return self.residuals_and_valid(T_alpha, T_beta)[0]
+
+
+@dataclass(frozen=True)
+class SurfelOptimConfig:
+    """Settings of :func:`optimize_keyframe_poses`.
+
+    Attributes:
+        fix_first_keyframe: hold keyframe 0 constant. The surfel planes anchor the world
+            frame and the metric scale, so with enough non-parallel planes all poses are
+            observable and ``False`` (every pose free) is also well posed.
+        sigma_px: keypoint standard deviation in pixels (whitening).
+        kernel: robust kernel on the whitened residuals (Huber, ``sqrt(5.991)``).
+        lm: Levenberg-Marquardt settings.
+
+    Example:
+        >>> SurfelOptimConfig().kernel.name
+        'huber'
+    """
+
+    fix_first_keyframe: bool = True
+    sigma_px: float = 1.0
+    kernel: RobustKernel = field(
+        default_factory=lambda: RobustKernel("huber", math.sqrt(CHI2_2DOF_95))
+    )
+    lm: LMConfig = field(default_factory=lambda: LMConfig(max_iterations=100))
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.sigma_px) and self.sigma_px > 0):
+            raise ValueError(f"sigma_px must be positive, got {self.sigma_px}")
+
+
+def _check_surfels(
+    db: VisualDatabase, surfel_centers: torch.Tensor, surfel_normals: torch.Tensor
+) -> None:
+    check_shape(surfel_centers, "S,3", "surfel_centers")
+    check_shape(surfel_normals, f"{surfel_centers.shape[0]},3", "surfel_normals")
+    check_finite(surfel_centers, "surfel_centers")
+    check_finite(surfel_normals, "surfel_normals")
+    if bool((db.point_surfels >= surfel_centers.shape[0]).any()):
+        raise ValueError(
+            f"database map points reference surfels beyond the {surfel_centers.shape[0]} given"
+        )
+
+
+def first_observers(db: VisualDatabase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Observations sorted by map point then keyframe, and which ones are first.
+
+    Keyframes are numbered in insertion order, so the first observer of a map point is the
+    observing keyframe of lowest index.
+
+    Args:
+        db: the visual database.
+
+    Returns:
+        ``(observations, first_row, is_first)``: (O, 3) int64 rows ``(keyframe, keypoint,
+        point)`` sorted by ``(point, keyframe)``, (O,) int64 row of each observation's first
+        observation of the same point, and (O,) bool, true on first observations.
+
+    Example:
+        >>> first_observers(VisualDatabase(2))[0].shape
+        torch.Size([0, 3])
+    """
+    observations = db.observations()
+    key = observations[:, 2] * max(db.num_keyframes, 1) + observations[:, 0]
+    observations = observations[torch.argsort(key)]
+    _, counts = torch.unique_consecutive(observations[:, 2], return_counts=True)
+    starts = torch.cumsum(counts, 0) - counts
+    first_row = torch.repeat_interleave(starts, counts)
+    return observations, first_row, first_row == torch.arange(len(first_row))
+
+
+def pairs_from_database(
+    db: VisualDatabase, surfel_centers: torch.Tensor, surfel_normals: torch.Tensor
+) -> SurfelPairs:
+    """All Eq. 4 pairs: for each surfel-anchored map point, its first observer and each other.
+
+    Map points without a surfel (``point_surfels == -1``) give no pairs.
+
+    Args:
+        db: the visual database (keypoints, observations, ``point_surfels``, intrinsics).
+        surfel_centers: (S, 3) surfel centres of the map, world frame.
+        surfel_normals: (S, 3) surfel normals.
+
+    Returns:
+        :class:`SurfelPairs` sorted by map point then ``beta``.
+
+    Raises:
+        ShapeError: wrong surfel shapes.
+        ValueError: non-finite surfels, or point surfel ids beyond ``S``.
+
+    Example:
+        >>> s = torch.zeros(1, 3, dtype=torch.float64)
+        >>> len(pairs_from_database(VisualDatabase(2), s, s))
+        0
+    """
+    _check_surfels(db, surfel_centers, surfel_normals)
+    observations, first_row, is_first = first_observers(db)
+    surfels = db.point_surfels[observations[:, 2]]
+    use = ~is_first & (surfels >= 0)
+    alpha_obs, beta_obs = observations[first_row[use]], observations[use]
+    surfels = surfels[use]
+    f64 = torch.float64
+    return SurfelPairs(
+        points=beta_obs[:, 2],
+        alpha=alpha_obs[:, 0],
+        beta=beta_obs[:, 0],
+        keypoints_alpha=db.keypoints[alpha_obs[:, 1]].to(f64),
+        keypoints_beta=db.keypoints[beta_obs[:, 1]].to(f64),
+        centers=surfel_centers[surfels].to(f64),
+        normals=surfel_normals[surfels].to(f64),
+        intrinsics_alpha=db.intrinsics[alpha_obs[:, 0]].to(f64),
+        intrinsics_beta=db.intrinsics[beta_obs[:, 0]].to(f64),
+    )
+
+
+def optimize_keyframe_poses(
+    db: VisualDatabase,
+    surfel_centers: torch.Tensor,
+    surfel_normals: torch.Tensor,
+    config: SurfelOptimConfig | None = None,
+) -> tuple[torch.Tensor, LMResult]:
+    """Optimise the keyframe poses of a database by surfel reprojection (seed 1 Eq. 4).
+
+    Pairs whose lift or reprojection is invalid at the initial poses are masked out. The
+    database is not modified: assign the returned poses to ``db.T_wc`` and call
+    :func:`replace_map_points` to finish seed 1's optimisation step.
+
+    Args:
+        db: the visual database; ``db.T_wc`` gives the initial poses.
+        surfel_centers: (S, 3) surfel centres, world frame.
+        surfel_normals: (S, 3) surfel normals.
+        config: settings (default :class:`SurfelOptimConfig`).
+
+    Returns:
+        ``(T_wc, result)``: (K, 4, 4) float64 optimised poses and the :class:`LMResult`.
+
+    Raises:
+        ShapeError: wrong surfel shapes.
+        ValueError: no valid pair (nothing to optimise), or bad surfels.
+
+    Example:
+        >>> s = torch.zeros(1, 3, dtype=torch.float64)
+        >>> optimize_keyframe_poses(VisualDatabase(2), s, s)
+        Traceback (most recent call last):
+        ...
+        ValueError: the database has no valid surfel pairs to optimise
+    """
+    config = config or SurfelOptimConfig()
+    pairs = pairs_from_database(db, surfel_centers, surfel_normals)
+    sigma = torch.full((len(pairs),), config.sigma_px, dtype=torch.float64)
+    cost = SurfelReprojectionCost.from_pairs(pairs, sigma)
+    T0 = db.T_wc.to(torch.float64)
+    valid = cost.residuals_and_valid(T0[pairs.alpha], T0[pairs.beta])[1]
+    if not bool(valid.any()):
+        raise ValueError("the database has no valid surfel pairs to optimise")
+    result = levenberg_marquardt(
+        T0,
+        lambda T_a, T_b, extra: cost(T_a, T_b),
+        pairs.alpha,
+        pairs.beta,
+        mask=valid,
+        fixed=[0] if config.fix_first_keyframe else None,
+        kernel=config.kernel,
+        config=config.lm,
+    )
+    return result.T_wc, result
+
+
+def replace_map_points(
+    db: VisualDatabase, surfel_centers: torch.Tensor, surfel_normals: torch.Tensor
+) -> torch.Tensor:
+    """Re-place map points on their surfel planes from their first observer (seed 1 Eq. 1).
+
+    Points without observations or surfel, or whose lift is invalid, keep their position.
+
+    Args:
+        db: the visual database (poses ``db.T_wc``, keypoints, observations).
+        surfel_centers: (S, 3) surfel centres, world frame.
+        surfel_normals: (S, 3) surfel normals.
+
+    Returns:
+        (P, 3) float64 new map point positions (the database is not modified).
+
+    Raises:
+        ShapeError: wrong surfel shapes.
+        ValueError: non-finite surfels, or point surfel ids beyond ``S``.
+
+    Example:
+        >>> s = torch.zeros(1, 3, dtype=torch.float64)
+        >>> replace_map_points(VisualDatabase(2), s, s).shape
+        torch.Size([0, 3])
+    """
+    _check_surfels(db, surfel_centers, surfel_normals)
+    observations, _, is_first = first_observers(db)
+    first = observations[is_first]
+    surfels = db.point_surfels[first[:, 2]]
+    first, surfels = first[surfels >= 0], surfels[surfels >= 0]
+    f64 = torch.float64
+    points_world, valid = lift_to_surfel(
+        db.keypoints[first[:, 1]].to(f64),
+        db.T_wc[first[:, 0]].to(f64),
+        *db.intrinsics[first[:, 0]].to(f64).unbind(-1),
+        surfel_centers[surfels].to(f64),
+        surfel_normals[surfels].to(f64),
+    )
+    positions = db.point_positions.to(f64).clone()
+    positions[first[valid, 2]] = points_world[valid]
+    return positions
