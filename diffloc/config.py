@@ -6,7 +6,7 @@ a misspelt key is an error rather than silently ignored.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -14,6 +14,7 @@ from omegaconf import MISSING
 
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.pipeline.build_map import BuildMapConfig
+from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
 
 
@@ -26,6 +27,13 @@ class SimulateTaskConfig:
 
 
 @dataclass
+class DatabaseTaskConfig:
+    """``task=build_db`` / ``task=optimize_db``: the settings live in the root ``db`` node."""
+
+    name: str = "build_db"
+
+
+@dataclass
 class DifflocConfig:
     """The app's root: which task, which scene, where the dataset lives, map settings."""
 
@@ -34,6 +42,7 @@ class DifflocConfig:
     surfel: SurfelMapConfig = MISSING
     out_dir: str = MISSING
     dataset: str = MISSING
+    db: DatabaseConfig = field(default_factory=DatabaseConfig)
     progress: bool = True
 
 
@@ -43,6 +52,7 @@ def register_configs() -> None:
     store.store(name="diffloc_schema", node=DifflocConfig)
     store.store(group="task", name="schema_simulate", node=SimulateTaskConfig)
     store.store(group="task", name="schema_build_map", node=BuildMapConfig)
+    store.store(group="task", name="schema_database", node=DatabaseTaskConfig)
     store.store(group="surfel", name="schema_surfel", node=SurfelMapConfig)
     store.store(group="scene", name="schema_indoor", node=IndoorSceneConfig)
     store.store(group="scene", name="schema_outdoor", node=OutdoorSceneConfig)

@@ -48,7 +48,7 @@ from diffloc.render.splat import SurfelRender, neighbour_surfels, render_surfel_
 __all__ = ["BuilderConfig", "DatabaseBuilder"]
 
 
-@dataclass(frozen=True)
+@dataclass
 class BuilderConfig:
     """Thresholds of the database builder.
 

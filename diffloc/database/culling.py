@@ -24,7 +24,7 @@ from diffloc.database.database import VisualDatabase
 __all__ = ["CullingConfig", "cull_redundant_keyframes", "cull_unconfirmed_points"]
 
 
-@dataclass(frozen=True)
+@dataclass
 class CullingConfig:
     """Thresholds of the two culling rules (seed 1 Sec. III-A).
 

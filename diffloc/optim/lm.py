@@ -100,7 +100,7 @@ _ROUNDOFF_EPS = 16.0
 """Cost changes below this many machine epsilons of the cost are rounding noise."""
 
 
-@dataclass(frozen=True)
+@dataclass
 class LMConfig:
     """Settings of :func:`levenberg_marquardt` and :func:`levenberg_marquardt_single_pose`.
 

@@ -116,7 +116,7 @@ KERNEL_NAMES = ("trivial", *_SCALED_KERNELS)
 """Names accepted by :class:`RobustKernel`."""
 
 
-@dataclass(frozen=True)
+@dataclass
 class RobustKernel:
     """Configuration of a robust kernel.
 

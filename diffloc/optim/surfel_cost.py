@@ -346,7 +346,7 @@ class SurfelReprojectionCost(nn.Module):
         return self.residuals_and_valid(T_alpha, T_beta)[0]
 
 
-@dataclass(frozen=True)
+@dataclass
 class SurfelOptimConfig:
     """Settings of :func:`optimize_keyframe_poses`.
 

@@ -1,0 +1,73 @@
+"""The database stages on the tiny scene: build (with and without pose noise) and optimise."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffloc.cli import run
+from diffloc.database.database import VisualDatabase
+from diffloc.io.dataset import read_sequence
+from diffloc.maps.surfel import SurfelMapConfig
+from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.pipeline.database_stage import (
+    database_dir,
+    keyframe_position_rmse,
+    perturb_positions,
+)
+from tests.conftest import TINY, compose_config
+
+FINE = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
+
+
+@pytest.fixture(scope="module")
+def mapped(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("db") / "indoor"
+    shutil.copytree(tiny_indoor_dataset, root)
+    build_maps(root, BuildMapConfig(point_maps=[], preview_frames=1), FINE, show_progress=False)
+    return root
+
+
+def _run(task: str, root: Path, *overrides: str) -> dict:
+    return run(compose_config(TINY + [f"task={task}", f"dataset={root}", *overrides]))
+
+
+def test_perturb_positions_moves_positions_only_by_the_requested_sigma():
+    T = torch.eye(4, dtype=torch.float64).repeat(20000, 1, 1)
+    noisy = perturb_positions(T, 0.2, torch.Generator().manual_seed(0))
+    assert torch.equal(noisy[:, :3, :3], T[:, :3, :3])
+    assert abs(float(noisy[:, :3, 3].std()) - 0.2) < 0.01
+    assert keyframe_position_rmse(T, T) == 0.0
+    with pytest.raises(ValueError, match="noise_sigma"):
+        perturb_positions(T, -1.0, torch.Generator())
+
+
+def test_build_db_without_noise_keeps_the_true_poses(mapped: Path):
+    summary = _run("build_db", mapped)
+    assert summary["keyframes"] >= 2 and summary["map_points"] > 20
+    assert summary["kf_pos_rmse_m"] == 0.0
+    db = VisualDatabase.load(summary["database"])
+    truth = read_sequence(mapped, "mapping").T_wc[summary["keyframe_frames"]]
+    assert torch.equal(db.T_wc, truth)
+
+
+def test_build_then_optimize_with_noisy_poses(mapped: Path):
+    built = _run("build_db", mapped, "db.noise_sigma=0.05")
+    assert built["kf_pos_rmse_m"] > 0.01
+    optimized = _run("optimize_db", mapped, "db.noise_sigma=0.05")
+    assert optimized["kf_pos_rmse_before_m"] == pytest.approx(built["kf_pos_rmse_m"])
+    assert torch.isfinite(torch.tensor(optimized["kf_pos_rmse_after_m"]))
+    out = database_dir(mapped, 0.05)
+    assert json.loads((out / "optimize_db.json").read_text()) == optimized
+    assert VisualDatabase.load(out / "optimized").num_keyframes == built["keyframes"]
+
+
+def test_missing_inputs_are_clear_errors(tmp_path: Path, mapped: Path):
+    with pytest.raises(FileNotFoundError, match="build_map"):
+        _run("build_db", tmp_path)
+    with pytest.raises(FileNotFoundError, match="build_db"):
+        _run("optimize_db", mapped, "db.noise_sigma=0.3")
