@@ -12,12 +12,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 from pytorch_kinematics import transforms as pk_tf
 
+from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.se3 import hat, invert, transform_points
+from diffloc.optim.lm import BlockLinearization
+
 __all__ = [
     "TOLERANCES",
+    "TransferBlocks",
     "assert_close",
     "gradcheck",
     "random_points",
@@ -208,3 +214,42 @@ def random_points(
     hi = torch.tensor(high, dtype=torch.float64)
     u = torch.rand(*tuple(shape), 3, generator=generator, dtype=torch.float64)
     return (lo + (hi - lo) * u).to(dtype)
+
+
+@dataclass
+class TransferBlocks:
+    """Two-pose reprojection blocks for LM tests and benchmarks (seed 1 Eq. 3-like).
+
+    Block ``m`` is a point ``points_a[m]`` fixed in camera a, observed at ``keypoints_b[m]``
+    in camera b: ``r = project(T_b^-1 T_a X_a) - p_b``. Poses update on the right
+    (``T <- T exp(delta)``), as in :mod:`diffloc.optim.lm`.
+
+    Attributes:
+        camera: the camera of both views.
+        points_a: (M, 3) points in camera a.
+        keypoints_b: (M, 2) observations in camera b.
+    """
+
+    camera: PinholeCamera
+    points_a: torch.Tensor
+    keypoints_b: torch.Tensor
+
+    def residual_fn(
+        self, T_a: torch.Tensor, T_b: torch.Tensor | None, extra: torch.Tensor | None
+    ) -> torch.Tensor:
+        """(..., M, 2) residuals for (..., M, 4, 4) poses ``T_a``, ``T_b``."""
+        points_b = transform_points(invert(T_b) @ T_a, self.points_a[:, None, :])[..., 0, :]
+        return self.camera.project(points_b)[0] - self.keypoints_b
+
+    def jacobian_fn(
+        self, T_a: torch.Tensor, T_b: torch.Tensor | None, extra: torch.Tensor | None
+    ) -> BlockLinearization:
+        """Residuals with analytic (..., M, 2, 6) Jacobians w.r.t. both poses."""
+        X_a = self.points_a
+        points_b = transform_points(invert(T_b) @ T_a, X_a[:, None, :])[..., 0, :]
+        j_point = self.camera.project_jacobian_point(points_b[..., None, :])[..., 0, :, :]
+        eye = torch.eye(3, dtype=X_a.dtype).expand(*X_a.shape[:-1], 3, 3)
+        rotation = T_b[..., :3, :3].transpose(-1, -2) @ T_a[..., :3, :3]
+        jac_a = j_point @ rotation @ torch.cat((eye, -hat(X_a)), dim=-1)
+        jac_b = -self.camera.project_jacobian_pose(points_b[..., None, :])[..., 0, :, :]
+        return BlockLinearization(self.residual_fn(T_a, T_b, extra), jac_a, jac_b)

@@ -43,10 +43,10 @@ import torch
 
 from diffloc.benchmark import median_ms
 from diffloc.geometry.camera import PinholeCamera
-from diffloc.geometry.se3 import hat, invert, se3_exp, se3_log, transform_points
-from diffloc.optim.lm import BlockLinearization, LMConfig, LMResult, levenberg_marquardt
+from diffloc.geometry.se3 import invert, se3_exp, se3_log, transform_points
+from diffloc.optim.lm import LMConfig, LMResult, levenberg_marquardt
 from diffloc.optim.motion_cost import MotionRefineConfig, refine_pose
-from diffloc.testing import random_rotation, random_se3
+from diffloc.testing import TransferBlocks, random_rotation, random_se3
 
 F64 = torch.float64
 CAM = PinholeCamera.from_fov(640, 480, math.radians(70), dtype=F64)
@@ -151,32 +151,15 @@ class TransferProblem:
         step = 0.01 * torch.randn(num_poses, 6, generator=generator, dtype=F64)
         self.T_init = T_true @ se3_exp(step)
         self.T_init[0] = T_true[0]
-
-    def residual_fn(
-        self, T_a: torch.Tensor, T_b: torch.Tensor | None, extra: torch.Tensor | None
-    ) -> torch.Tensor:
-        points_b = transform_points(invert(T_b) @ T_a, self.points_a[:, None, :])[..., 0, :]
-        return CAM.project(points_b)[0] - self.keypoints_b
-
-    def jacobian_fn(
-        self, T_a: torch.Tensor, T_b: torch.Tensor | None, extra: torch.Tensor | None
-    ) -> BlockLinearization:
-        X_a = self.points_a
-        points_b = transform_points(invert(T_b) @ T_a, X_a[:, None, :])[..., 0, :]
-        j_point = CAM.project_jacobian_point(points_b[..., None, :])[..., 0, :, :]
-        eye = torch.eye(3, dtype=F64).expand(*X_a.shape[:-1], 3, 3)
-        rotation = T_b[..., :3, :3].transpose(-1, -2) @ T_a[..., :3, :3]
-        jac_a = j_point @ rotation @ torch.cat((eye, -hat(X_a)), dim=-1)
-        jac_b = -CAM.project_jacobian_pose(points_b[..., None, :])[..., 0, :, :]
-        return BlockLinearization(self.residual_fn(T_a, T_b, extra), jac_a, jac_b)
+        self.blocks = TransferBlocks(CAM, self.points_a, self.keypoints_b)
 
     def solve(self, solver: str) -> LMResult:
         return levenberg_marquardt(
             self.T_init,
-            self.residual_fn,
+            self.blocks.residual_fn,
             self.index_a,
             self.index_b,
-            jacobian_fn=self.jacobian_fn,
+            jacobian_fn=self.blocks.jacobian_fn,
             fixed=[0],
             config=LMConfig(max_iterations=10, solver=solver),
         )

@@ -11,10 +11,9 @@ import torch
 
 from diffloc.checks import ShapeError
 from diffloc.geometry.camera import PinholeCamera
-from diffloc.geometry.se3 import hat, invert, se3_exp, se3_log, transform_points
+from diffloc.geometry.se3 import invert, se3_exp, se3_log, transform_points
 from diffloc.optim import lm
 from diffloc.optim.lm import (
-    BlockLinearization,
     LMConfig,
     autodiff_linearize,
     levenberg_marquardt,
@@ -22,7 +21,7 @@ from diffloc.optim.lm import (
     solve_spd,
 )
 from diffloc.optim.robust import RobustKernel
-from diffloc.testing import assert_close, random_points, random_rotation
+from diffloc.testing import TransferBlocks, assert_close, random_points, random_rotation
 
 # torch's forward-mode AD loads its decompositions with the deprecated torch.jit.script.
 pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated")
@@ -57,24 +56,10 @@ class Transfer:
     points_a: torch.Tensor  # (M, 3) in camera a
     keypoints_b: torch.Tensor  # (M, 2)
 
-    def residual_fn(
-        self, T_a: torch.Tensor, T_b: torch.Tensor | None, extra: torch.Tensor | None
-    ) -> torch.Tensor:
-        points_world = transform_points(T_a, self.points_a[:, None, :])
-        points_b = transform_points(invert(T_b), points_world)[..., 0, :]
-        return CAM.project(points_b)[0] - self.keypoints_b
-
-    def jacobian_fn(
-        self, T_a: torch.Tensor, T_b: torch.Tensor | None, extra: torch.Tensor | None
-    ) -> BlockLinearization:
-        X_a = self.points_a
-        points_b = transform_points(invert(T_b) @ T_a, X_a[:, None, :])[..., 0, :]
-        j_point = CAM.project_jacobian_point(points_b[..., None, :])[..., 0, :, :]
-        eye = torch.eye(3, dtype=F64).expand(*X_a.shape[:-1], 3, 3)
-        d_a = T_b[..., :3, :3].transpose(-1, -2) @ T_a[..., :3, :3]
-        jac_a = j_point @ d_a @ torch.cat((eye, -hat(X_a)), dim=-1)
-        jac_b = -CAM.project_jacobian_pose(points_b[..., None, :])[..., 0, :, :]
-        return BlockLinearization(self.residual_fn(T_a, T_b, extra), jac_a, jac_b)
+    def __post_init__(self) -> None:
+        blocks = TransferBlocks(CAM, self.points_a, self.keypoints_b)
+        self.residual_fn = blocks.residual_fn
+        self.jacobian_fn = blocks.jacobian_fn
 
 
 def make_transfer(
