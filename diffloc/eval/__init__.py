@@ -1,0 +1,1 @@
+"""Evaluation: pose-error metrics (recall, mATE, precision-recall), Markdown tables, plots."""
