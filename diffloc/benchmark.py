@@ -7,7 +7,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["median_ms", "peak_added_mb"]
+__all__ = ["median_ms", "peak_added_mb", "peak_rss_mb"]
 
 
 def median_ms(function: Callable[[], object], repeats: int, warm_up: bool = True) -> float:
@@ -32,6 +32,11 @@ def _status_kb(field: str) -> int:
         if line.startswith(field + ":"):
             return int(line.split()[1])
     raise RuntimeError(f"{field} not in /proc/self/status")
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (``VmHWM``), in MB (Linux only)."""
+    return round(_status_kb("VmHWM") / 1024, 1)
 
 
 def peak_added_mb(function: Callable[[], object]) -> float:

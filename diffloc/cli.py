@@ -7,19 +7,28 @@ Examples:
     diffloc task=build_map dataset=data/indoor_seed0 # surfel map + coloured point maps
     diffloc task=build_db db.noise_sigma=0.2         # visual database with noisy poses
     diffloc task=optimize_db db.noise_sigma=0.2      # surfel reprojection optimisation
+    diffloc task=relocalize reloc.method.points=F    # relocalise the query sequences
+    diffloc task=main                               # all of the above, each stage cached
 """
 
 from __future__ import annotations
 
+import json
+import time
 from collections.abc import Callable
+from dataclasses import asdict
 from pathlib import Path
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
+from diffloc.benchmark import peak_rss_mb
 from diffloc.config import register_configs
+from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.build_map import build_maps
-from diffloc.pipeline.database_stage import build_database, optimize_database
+from diffloc.pipeline.database_stage import build_database, database_dir, optimize_database
+from diffloc.pipeline.reloc_stage import relocalize_dataset
 from diffloc.sim.dataset import simulate_dataset
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -72,11 +81,83 @@ def run_optimize_db(cfg: DictConfig) -> dict:
     return summary
 
 
+def _results_dir(cfg: DictConfig) -> Path:
+    """``task.out_dir``, else the Hydra run folder, else ``<dataset>/reloc``."""
+    if cfg.task.out_dir:
+        return Path(cfg.task.out_dir)
+    if HydraConfig.initialized():
+        return Path(HydraConfig.get().runtime.output_dir)
+    return Path(cfg.dataset) / "reloc"
+
+
+def run_relocalize(cfg: DictConfig) -> dict:
+    """``task=relocalize``: relocalise the query sequences; print the table and plot paths."""
+    out = _results_dir(cfg)
+    results = relocalize_dataset(
+        Path(cfg.dataset),
+        OmegaConf.to_object(cfg.db),
+        OmegaConf.to_object(cfg.reloc),
+        out,
+        show_progress=cfg.progress,
+    )
+    print(results["table"])
+    for name, entry in results["sequences"].items():
+        for kind, path in entry["plots"].items():
+            print(f"{name} {kind}: {path}")
+    print(f"results: {out / 'results.json'}")
+    return results
+
+
+def _stage_done(summary: Path, config: dict) -> bool:
+    """A stage summary exists and was written with the same configuration."""
+    if not summary.is_file():
+        return False
+    return json.loads(summary.read_text()).get("config") == config
+
+
+def run_main(cfg: DictConfig) -> dict:
+    """``task=main``: simulate if needed, map, database, optimisation, relocalisation."""
+    start = time.perf_counter()
+    dataset = Path(cfg.dataset)
+    if not (dataset / "dataset.json").is_file():
+        scene = OmegaConf.to_object(cfg.scene)
+        simulate_dataset(scene, dataset, show_progress=cfg.progress)
+    build_maps(
+        dataset,
+        OmegaConf.to_object(cfg.task.build_map),
+        OmegaConf.to_object(cfg.surfel),
+        show_progress=cfg.progress,
+    )
+    db_cfg = OmegaConf.to_object(cfg.db)
+    folder = database_dir(dataset, db_cfg.noise_sigma)
+    db_config = json.loads(json.dumps(asdict(db_cfg)))
+    if not _stage_done(folder / "build_db.json", db_config):
+        run_build_db(cfg)
+        (folder / "optimize_db.json").unlink(missing_ok=True)
+    if cfg.task.optimize and not _stage_done(folder / "optimize_db.json", db_config):
+        run_optimize_db(cfg)
+    reloc = OmegaConf.to_object(cfg.reloc)
+    reloc.database = "optimized" if cfg.task.optimize else "database"
+    out = _results_dir(cfg)
+    results = relocalize_dataset(dataset, db_cfg, reloc, out, show_progress=cfg.progress)
+    results["peak_rss_mb"] = peak_rss_mb()
+    results["wall_s"] = round(time.perf_counter() - start, 1)
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
+    print(results["table"])
+    for name, entry in results["sequences"].items():
+        for kind, path in entry["plots"].items():
+            print(f"{name} {kind}: {path}")
+    print(f"results: {out / 'results.json'} (peak memory {results['peak_rss_mb']:.0f} MB)")
+    return results
+
+
 TASKS: dict[str, Callable[[DictConfig], object]] = {
     "simulate": run_simulate,
     "build_map": run_build_map,
     "build_db": run_build_db,
     "optimize_db": run_optimize_db,
+    "relocalize": run_relocalize,
+    "main": run_main,
 }
 
 

@@ -15,6 +15,7 @@ from omegaconf import MISSING
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.pipeline.build_map import BuildMapConfig
 from diffloc.pipeline.database_stage import DatabaseConfig
+from diffloc.pipeline.reloc_stage import RelocStageConfig
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
 
 
@@ -34,6 +35,41 @@ class DatabaseTaskConfig:
 
 
 @dataclass
+class RelocalizeTaskConfig:
+    """``task=relocalize``: the settings live in the root ``reloc`` node.
+
+    Attributes:
+        out_dir: where results go; empty: the Hydra run folder (``<dataset>/reloc`` outside
+            a Hydra run).
+    """
+
+    name: str = "relocalize"
+    out_dir: str = ""
+
+
+@dataclass
+class MainTaskConfig:
+    """``task=main``: the whole pipeline on the selected scene, each stage cached.
+
+    simulate (unless ``dataset`` exists) -> surfel map -> database -> optimisation ->
+    relocalisation of ``reloc.sequences`` -> metrics table and plots.
+
+    Attributes:
+        out_dir: where results go (as in :class:`RelocalizeTaskConfig`).
+        build_map: the map stage; only the surfel map by default (the coloured point maps
+            serve the rendered-database localisation, not this pipeline).
+        optimize: run the surfel optimisation (and relocalise in the optimised database).
+    """
+
+    name: str = "main"
+    out_dir: str = ""
+    build_map: BuildMapConfig = field(
+        default_factory=lambda: BuildMapConfig(point_maps=[], preview_frames=2)
+    )
+    optimize: bool = True
+
+
+@dataclass
 class DifflocConfig:
     """The app's root: which task, which scene, where the dataset lives, map settings."""
 
@@ -43,6 +79,7 @@ class DifflocConfig:
     out_dir: str = MISSING
     dataset: str = MISSING
     db: DatabaseConfig = field(default_factory=DatabaseConfig)
+    reloc: RelocStageConfig = MISSING
     progress: bool = True
 
 
@@ -53,6 +90,9 @@ def register_configs() -> None:
     store.store(group="task", name="schema_simulate", node=SimulateTaskConfig)
     store.store(group="task", name="schema_build_map", node=BuildMapConfig)
     store.store(group="task", name="schema_database", node=DatabaseTaskConfig)
+    store.store(group="task", name="schema_relocalize", node=RelocalizeTaskConfig)
+    store.store(group="task", name="schema_main", node=MainTaskConfig)
     store.store(group="surfel", name="schema_surfel", node=SurfelMapConfig)
+    store.store(group="reloc", name="schema_reloc", node=RelocStageConfig)
     store.store(group="scene", name="schema_indoor", node=IndoorSceneConfig)
     store.store(group="scene", name="schema_outdoor", node=OutdoorSceneConfig)

@@ -62,3 +62,26 @@ def test_console_script_simulates_a_dataset(tmp_path):
     assert f"dataset: {out}" in done.stdout
     assert (out / "preview.png").exists()
     assert len(list((out / "mapping" / "rgb").glob("*.png"))) == 2
+
+
+@pytest.mark.parametrize(
+    "task", ["simulate", "build_map", "build_db", "optimize_db", "relocalize", "main"]
+)
+@pytest.mark.parametrize("scene", ["indoor", "outdoor"])
+def test_every_task_config_composes_into_typed_objects(task, scene):
+    cfg = OmegaConf.to_object(compose_config([f"task={task}", f"scene={scene}"]))
+    assert cfg.task.name == task
+    assert cfg.reloc.validation.theta_in == 15
+    assert cfg.reloc.validation.theta_dist_m == (0.3 if scene == "indoor" else 0.8)
+    assert (cfg.reloc.method.top_k, cfg.reloc.method.n_max, cfg.reloc.method.n_co) == (30, 3, 5)
+
+
+def test_the_default_task_is_the_main_job():
+    assert compose_config([]).task.name == "main"
+
+
+def test_relocalize_without_a_database_says_which_task_to_run(tmp_path):
+    from diffloc.cli import run
+
+    with pytest.raises(FileNotFoundError, match="task=build_db"):
+        run(compose_config(["task=relocalize", f"dataset={tmp_path}"]))

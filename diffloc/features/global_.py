@@ -423,6 +423,42 @@ class BagOfWords:
         self.weights = values[order]
         self.num_images = num_images
 
+    def state_arrays(self) -> dict[str, torch.Tensor]:
+        """The vocabulary and the built index as named tensors (for ``.npz`` files)."""
+        if self.idf is None:
+            raise RuntimeError("BagOfWords has no database yet; call build first")
+        return {
+            "vocabulary": self.vocabulary,
+            "idf": self.idf,
+            "indptr": self.indptr,
+            "doc_ids": self.doc_ids,
+            "weights": self.weights,
+            "num_images": torch.tensor(self.num_images),
+        }
+
+    @classmethod
+    def from_state_arrays(cls, arrays: dict[str, torch.Tensor]) -> BagOfWords:
+        """Rebuild a built :class:`BagOfWords` from :meth:`state_arrays`.
+
+        Raises:
+            ValueError: a missing array or inconsistent sizes.
+        """
+        names = ("vocabulary", "idf", "indptr", "doc_ids", "weights", "num_images")
+        missing = [n for n in names if n not in arrays]
+        if missing:
+            raise ValueError(f"bag-of-words state lacks {missing}")
+        bow = cls(arrays["vocabulary"])
+        if arrays["idf"].shape != (bow.num_words,) or arrays["indptr"].shape != (
+            bow.num_words + 1,
+        ):
+            raise ValueError("bag-of-words state: idf/indptr sizes do not match the vocabulary")
+        bow.idf = arrays["idf"].float()
+        bow.indptr = arrays["indptr"].long()
+        bow.doc_ids = arrays["doc_ids"].long()
+        bow.weights = arrays["weights"].float()
+        bow.num_images = int(arrays["num_images"])
+        return bow
+
     def histograms(self, descriptor_sets: Sequence[torch.Tensor]) -> torch.Tensor:
         """Dense (B, W) L2-normalised tf-idf histograms (a reference for :meth:`score`)."""
         rows, words, values = self._tfidf(descriptor_sets)

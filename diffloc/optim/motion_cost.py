@@ -56,7 +56,7 @@ CHI2_2DOF_95 = 5.991
 """95 % quantile of the chi-square distribution with 2 degrees of freedom (ORB-SLAM)."""
 
 
-@dataclass(frozen=True)
+@dataclass
 class MotionRefineConfig:
     """Settings of :func:`refine_pose` (defaults: ORB-SLAM's ``PoseOptimization``).
 

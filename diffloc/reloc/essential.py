@@ -79,7 +79,7 @@ _BAILOUT_SIGMAS = 3.0  # keep candidates within this many binomial std of the be
 _LO_COST_TOL = 1e-6  # LO stops once the inlier set is stable and the cost drops less than this
 
 
-@dataclass(frozen=True)
+@dataclass
 class EssentialCheckConfig:
     """Settings of :func:`essential_check`.
 

@@ -76,7 +76,7 @@ _REFINE_STEP_TOL = 1e-5  # Gauss-Newton on inliers stops after a step this small
 _P3P_REFINE_ITERATIONS = 0  # Newton steps on the P3P depths inside RANSAC (models are refined)
 
 
-@dataclass(frozen=True)
+@dataclass
 class PnPRansacConfig:
     """Settings of :func:`solve_pnp_ransac`.
 

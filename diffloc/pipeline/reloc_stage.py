@@ -1,0 +1,309 @@
+"""The relocalisation stage: query sequences against a visual database, metrics and plots.
+
+``relocalize_dataset`` loads the database of one noise level (optimised or as built), fits or
+reuses the keyframe retriever, relocalises every query of each query sequence with
+:class:`~diffloc.reloc.hierarchical.HierarchicalRelocalizer`, validates the poses, and writes
+into ``out``:
+
+- ``<sequence>/estimates.tum`` (accepted poses, TUM format for evo), ``groundtruth.tum``,
+  ``queries.json`` (per query: found, accepted, inliers, errors, stage times);
+- ``<sequence>/precision_recall.png``, ``trajectory.png``, ``errors.png``;
+- ``results.md`` (a Markdown table) and ``results.json`` with, per sequence, ``recall``
+  (verified poses within ``max_trans_m``), ``mATE_m`` (mean error of the verified poses),
+  ``queries``, ``median_reloc_ms`` (per query, local feature extraction and the global
+  descriptor network excluded) and ``median_total_ms`` (all included).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffloc.database.database import VisualDatabase
+from diffloc.eval.metrics import (
+    localization_metrics,
+    pose_errors,
+    precision_recall_curve,
+    write_localized_tum,
+)
+from diffloc.eval.plots import plot_error_histogram, plot_precision_recall, plot_trajectory_topdown
+from diffloc.eval.tables import Column, markdown_table
+from diffloc.features.local import make_extractor
+from diffloc.io.atomic import atomic_write_text
+from diffloc.io.dataset import read_sequence
+from diffloc.io.trajectory import write_tum
+from diffloc.maps.surfel import SurfelMap
+from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
+from diffloc.progress import progress
+from diffloc.reloc.hierarchical import HierarchicalRelocalizer, RelocConfig, RelocResult
+from diffloc.reloc.retrieval import (
+    BowConfig,
+    BowRetriever,
+    NetVLADConfig,
+    NetVLADRetriever,
+    load_retriever,
+)
+from diffloc.reloc.validation import PoseValidator, ValidationConfig
+
+__all__ = ["RelocStageConfig", "relocalize_dataset"]
+
+EXTRACTION_STAGES = ("features", "global_descriptor")
+"""Stages counted as feature extraction (left out of ``median_reloc_ms``)."""
+
+
+@dataclass
+class RelocStageConfig:
+    """The relocalisation stage (the Hydra ``reloc`` node).
+
+    Attributes:
+        sequences: query sequences to relocalise.
+        database: ``"optimized"`` (after ``task=optimize_db``) or ``"database"`` (as built).
+        retriever: ``"netvlad"`` or ``"bow"``.
+        query_stride: use every n-th query frame.
+        max_trans_m: position threshold of a correct pose (seed 1: 0.3 m).
+        max_rot_deg: rotation threshold of ``recall_rot`` (degrees).
+        method: the hierarchical relocaliser.
+        validation: pose validation thresholds.
+        netvlad: NetVLAD retriever settings.
+        bow: bag-of-words retriever settings.
+    """
+
+    sequences: list[str] = field(default_factory=lambda: ["query_same", "changed"])
+    database: str = "optimized"
+    retriever: str = "netvlad"
+    query_stride: int = 1
+    max_trans_m: float = 0.3
+    max_rot_deg: float = 5.0
+    method: RelocConfig = field(default_factory=RelocConfig)
+    validation: ValidationConfig = field(default_factory=ValidationConfig)
+    netvlad: NetVLADConfig = field(default_factory=NetVLADConfig)
+    bow: BowConfig = field(default_factory=BowConfig)
+
+    def __post_init__(self) -> None:
+        if self.database not in ("optimized", "database"):
+            raise ValueError(f"database must be 'optimized' or 'database', got {self.database!r}")
+        if self.retriever not in ("netvlad", "bow"):
+            raise ValueError(f"retriever must be 'netvlad' or 'bow', got {self.retriever!r}")
+        if self.query_stride < 1:
+            raise ValueError(f"query_stride must be >= 1, got {self.query_stride}")
+
+
+def _load_database(dataset: Path, db_cfg: DatabaseConfig, which: str) -> tuple[VisualDatabase, dict]:
+    folder = database_dir(dataset, db_cfg.noise_sigma)
+    built_path, db_path = folder / "build_db.json", folder / which
+    if not built_path.is_file():
+        raise FileNotFoundError(f"{built_path} is missing: run `diffloc task=build_db` first")
+    if not db_path.is_dir():
+        task = "optimize_db" if which == "optimized" else "build_db"
+        raise FileNotFoundError(f"{db_path} is missing: run `diffloc task={task}` first")
+    return VisualDatabase.load(db_path), json.loads(built_path.read_text())
+
+
+def _retriever(
+    dataset: Path, db_cfg: DatabaseConfig, cfg: RelocStageConfig, db: VisualDatabase, built: dict
+) -> NetVLADRetriever | BowRetriever:
+    """Load the cached retriever of this database, or fit and cache it."""
+    folder = database_dir(dataset, db_cfg.noise_sigma) / f"retriever_{cfg.retriever}"
+    settings = asdict(cfg.netvlad if cfg.retriever == "netvlad" else cfg.bow)
+    if (folder / "retriever.json").is_file():
+        retriever = load_retriever(folder)
+        if asdict(retriever.config) == settings:
+            return retriever
+    if cfg.retriever == "bow":
+        slices = [db.keyframe_slice(k) for k in range(db.num_keyframes)]
+        retriever = BowRetriever.fit([db.descriptors[s] for s in slices], cfg.bow)
+    else:
+        sequence = read_sequence(dataset, db_cfg.sequence)
+        images = (sequence.load_rgb(i) for i in built["keyframe_frames"])
+        retriever = NetVLADRetriever.fit(images, cfg.netvlad)
+    retriever.save(folder)
+    return retriever
+
+
+@dataclass
+class _SequenceRun:
+    """Per-query outcomes of one sequence."""
+
+    timestamps: np.ndarray
+    T_wc_true: np.ndarray
+    T_wc_est: np.ndarray
+    found: np.ndarray
+    accepted: np.ndarray
+    inliers: np.ndarray
+    timings: list[dict[str, float]]
+
+
+def _relocalize_sequence(
+    dataset: Path,
+    name: str,
+    cfg: RelocStageConfig,
+    extractor,
+    relocalizer: HierarchicalRelocalizer,
+    show_progress: bool,
+) -> _SequenceRun:
+    sequence = read_sequence(dataset, name)
+    frames = list(range(0, len(sequence), cfg.query_stride))
+    validator = PoseValidator(cfg.validation)
+    estimates, found, accepted, inliers, timings = [], [], [], [], []
+    for i in progress(frames, f"relocalise {name}", show_progress):
+        image = sequence.load_rgb(i)
+        start = time.perf_counter()
+        features = extractor.extract(image)
+        extract_ms = (time.perf_counter() - start) * 1e3
+        result: RelocResult = relocalizer.relocalize(image, features, sequence.camera)
+        ok = result.found and validator.validate(
+            result.T_wc, result.num_inliers, float(sequence.timestamps[i])
+        )
+        estimates.append(result.T_wc if result.found else torch.full((4, 4), math.nan))
+        found.append(result.found)
+        accepted.append(ok)
+        inliers.append(result.num_inliers)
+        timings.append({"features": extract_ms, **result.timings_ms})
+    return _SequenceRun(
+        timestamps=np.asarray(sequence.timestamps)[frames],
+        T_wc_true=sequence.T_wc[frames].double().numpy(),
+        T_wc_est=torch.stack(estimates).double().numpy(),
+        found=np.array(found),
+        accepted=np.array(accepted),
+        inliers=np.array(inliers, dtype=np.float64),
+        timings=timings,
+    )
+
+
+def _report_sequence(run: _SequenceRun, cfg: RelocStageConfig, out: Path, name: str) -> dict:
+    """Metrics, TUM files and plots of one sequence; returns its results entry."""
+    out.mkdir(parents=True, exist_ok=True)
+    verified = pose_errors(run.T_wc_est, run.T_wc_true, run.accepted)
+    raw = pose_errors(run.T_wc_est, run.T_wc_true, run.found)
+    reloc_ms = [sum(v for k, v in t.items() if k not in EXTRACTION_STAGES) for t in run.timings]
+    total_ms = [sum(t.values()) for t in run.timings]
+    metrics = localization_metrics(verified, reloc_ms, cfg.max_trans_m)
+    metrics_rot = localization_metrics(verified, None, cfg.max_trans_m, cfg.max_rot_deg)
+    write_localized_tum(out / "estimates.tum", run.timestamps, run.T_wc_est, run.accepted)
+    write_tum(out / "groundtruth.tum", run.timestamps, torch.from_numpy(run.T_wc_true))
+    curves = {
+        "with validation": precision_recall_curve(
+            run.inliers, raw, run.accepted, cfg.max_trans_m
+        ),
+        "without validation": precision_recall_curve(run.inliers, raw, None, cfg.max_trans_m),
+    }
+    plots = {
+        "precision_recall": plot_precision_recall(
+            curves, out / "precision_recall.png", title=f"{name}: sweep of the inlier threshold"
+        ),
+        "trajectory": plot_trajectory_topdown(
+            run.T_wc_true,
+            np.where(run.found[:, None, None], run.T_wc_est, np.nan),
+            run.accepted,
+            out / "trajectory.png",
+            title=f"{name}: accepted (green) and rejected (red) poses",
+        ),
+        "errors": plot_error_histogram(
+            raw.translation_m, out / "errors.png", threshold=cfg.max_trans_m,
+            title=f"{name}: position error of every found pose",
+        ),
+    }
+    stages = sorted({k for t in run.timings for k in t})
+    per_query = [
+        {
+            "timestamp": float(run.timestamps[q]),
+            "found": bool(run.found[q]),
+            "accepted": bool(run.accepted[q]),
+            "inliers": int(run.inliers[q]),
+            "translation_error_m": _finite(raw.translation_m[q]),
+            "rotation_error_deg": _finite(raw.rotation_deg[q]),
+            "timings_ms": {k: round(v, 3) for k, v in run.timings[q].items()},
+        }
+        for q in range(len(run.found))
+    ]
+    atomic_write_text(out / "queries.json", json.dumps(per_query, indent=1) + "\n")
+    return {
+        "recall": metrics.recall,
+        "mATE_m": _finite(metrics.mATE_m),
+        "queries": metrics.queries,
+        "median_reloc_ms": _finite(metrics.median_reloc_ms),
+        "median_total_ms": statistics.median(total_ms) if total_ms else None,
+        "recall_rot": metrics_rot.recall,
+        "found": int(run.found.sum()),
+        "accepted": int(run.accepted.sum()),
+        "median_stage_ms": {
+            s: statistics.median(t.get(s, 0.0) for t in run.timings) for s in stages
+        },
+        "plots": {k: str(v) for k, v in plots.items()},
+        "estimates": str(out / "estimates.tum"),
+    }
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def relocalize_dataset(
+    dataset: str | Path,
+    db_cfg: DatabaseConfig,
+    cfg: RelocStageConfig,
+    out: str | Path,
+    surfel_map: str | Path | None = None,
+    show_progress: bool = True,
+) -> dict:
+    """Relocalise the query sequences of ``dataset`` and write metrics and plots (module doc).
+
+    Args:
+        dataset: the dataset folder (with ``db/sigma_<s>/`` from the database stages).
+        db_cfg: the database settings (noise level, local features).
+        cfg: the stage settings.
+        out: the folder to write results into.
+        surfel_map: the surfel map PLY (default ``<dataset>/map/surfel_map.ply``), read only
+            by the ``naive`` method.
+        show_progress: progress bars.
+
+    Returns:
+        The ``results.json`` content.
+
+    Raises:
+        FileNotFoundError: a missing database, surfel map or sequence.
+    """
+    dataset, out = Path(dataset), Path(out)
+    db, built = _load_database(dataset, db_cfg, cfg.database)
+    retriever = _retriever(dataset, db_cfg, cfg, db, built)
+    centers = None
+    if cfg.method.points == "naive":
+        path = Path(surfel_map) if surfel_map else dataset / "map" / "surfel_map.ply"
+        centers = SurfelMap.load(path).centers
+    relocalizer = HierarchicalRelocalizer(db, retriever, cfg.method, centers)
+    extractor = make_extractor(db_cfg.features)
+    results: dict = {"sequences": {}}
+    rows = []
+    for name in cfg.sequences:
+        run = _relocalize_sequence(dataset, name, cfg, extractor, relocalizer, show_progress)
+        entry = _report_sequence(run, cfg, out / name, name)
+        results["sequences"][name] = entry
+        rows.append({"sequence": name, **entry})
+    headline = results["sequences"].get("query_same") or next(iter(results["sequences"].values()))
+    for key in ("recall", "mATE_m", "queries", "median_reloc_ms"):
+        results[key] = headline[key]
+    results["database"] = str(database_dir(dataset, db_cfg.noise_sigma) / cfg.database)
+    results["config"] = asdict(cfg)
+    table = markdown_table(
+        [{"sequence": r["sequence"], **r} for r in rows],
+        [
+            Column("sequence"),
+            Column("queries"),
+            Column("recall", "recall@0.3m [%]", ".1f", scale=100),
+            Column("mATE_m", "mATE [cm]", ".1f", scale=100),
+            Column("median_reloc_ms", "reloc [ms]", ".1f"),
+            Column("median_total_ms", "with features [ms]", ".1f"),
+        ],
+    )
+    results["table"] = table
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "results.md", table + "\n")
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
+    return results

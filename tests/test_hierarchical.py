@@ -1,0 +1,132 @@
+"""Hierarchical relocalisation and the main job on the tiny simulated scene."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from evo.tools import file_interface
+
+from diffloc.cli import run
+from diffloc.database.database import VisualDatabase
+from diffloc.features.local import XFeatConfig, make_extractor
+from diffloc.io.dataset import read_sequence
+from diffloc.maps.surfel import SurfelMap
+from diffloc.reloc.hierarchical import (
+    HierarchicalRelocalizer,
+    RelocConfig,
+    covisibility_clusters,
+)
+from diffloc.reloc.retrieval import load_retriever
+from tests.conftest import TINY, compose_config
+
+FINE = ["surfel.voxel_size_m=0.02", "surfel.mean_radius_m=0.02", "surfel.normal_radius_m=0.08"]
+
+
+def test_clusters_are_connected_components_ordered_by_their_best_keyframe():
+    C = torch.zeros(6, 6, dtype=torch.int64)
+    for a, b, w in [(0, 1, 5), (1, 2, 1), (3, 4, 9)]:
+        C[a, b] = C[b, a] = w
+    clusters = covisibility_clusters(torch.tensor([4, 2, 5, 0, 3, 1]), C, 1)
+    assert [c.tolist() for c in clusters] == [[4, 3], [2, 0, 1], [5]]
+    clusters = covisibility_clusters(torch.tensor([4, 2, 5, 0, 3, 1]), C, 2)
+    assert [c.tolist() for c in clusters] == [[4, 3], [2], [5], [0, 1]]
+
+
+@pytest.fixture(scope="module")
+def main_run(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory):
+    root = tmp_path_factory.mktemp("reloc") / "indoor"
+    shutil.copytree(tiny_indoor_dataset, root)
+    out = root.parent / "results"
+    overrides = [f"dataset={root}", f"task.out_dir={out}", "task.optimize=false"]
+    results = run(compose_config(TINY + FINE + ["task=main", *overrides]))
+    return root, out, results
+
+
+def test_main_job_writes_results_tables_and_plots(main_run):
+    root, out, results = main_run
+    saved = json.loads((out / "results.json").read_text())
+    for key in ("recall", "mATE_m", "queries", "median_reloc_ms", "peak_rss_mb"):
+        assert key in saved
+    assert set(saved["sequences"]) == {"query_same", "changed"}
+    assert saved["queries"] == len(read_sequence(root, "query_same"))
+    for entry in saved["sequences"].values():
+        for path in entry["plots"].values():
+            assert Path(path).stat().st_size > 1000
+    assert "recall@0.3m" in (out / "results.md").read_text()
+
+
+def test_main_job_localizes_the_tiny_scene_above_a_floor(main_run):
+    _, _, results = main_run
+    assert results["recall"] >= 0.4
+    assert results["mATE_m"] <= 0.1
+
+
+def test_estimates_are_a_tum_trajectory_evo_reads(main_run):
+    _, out, results = main_run
+    entry = results["sequences"]["query_same"]
+    trajectory = file_interface.read_tum_trajectory_file(entry["estimates"])
+    assert trajectory.num_poses == entry["accepted"]
+
+
+@pytest.fixture(scope="module")
+def relocalizer_parts(main_run):
+    root, _, _ = main_run
+    db_dir = root / "db" / "sigma_0"
+    database = VisualDatabase.load(db_dir / "database")
+    retriever = load_retriever(db_dir / "retriever_netvlad")
+    centers = SurfelMap.load(root / "map" / "surfel_map.ply").centers
+    query = read_sequence(root, "query_same")
+    return database, retriever, centers, query
+
+
+@pytest.mark.parametrize("points", ["naive", "F", "FN"])
+def test_every_variant_localizes_a_query_near_a_keyframe(relocalizer_parts, points):
+    database, retriever, centers, query = relocalizer_parts
+    reloc = HierarchicalRelocalizer(database, retriever, RelocConfig(points=points), centers)
+    extractor = make_extractor(XFeatConfig(max_keypoints=512))
+    found = []
+    for i in range(len(query)):
+        image = query.load_rgb(i)
+        result = reloc.relocalize(image, extractor.extract(image), query.camera)
+        error = float((result.T_wc[:3, 3] - query.T_wc[i, :3, 3].double()).norm())
+        found.append(result.found and error < 0.3)
+        assert set(result.timings_ms) >= {"global_descriptor", "retrieval", "matching"}
+    assert any(found)
+
+
+def test_textureless_query_is_not_localized(relocalizer_parts):
+    database, retriever, _, query = relocalizer_parts
+    reloc = HierarchicalRelocalizer(database, retriever, RelocConfig())
+    image = torch.full((3, query.camera.height, query.camera.width), 0.5)
+    features = make_extractor(XFeatConfig(max_keypoints=512)).extract(image)
+    result = reloc.relocalize(image, features, query.camera)
+    assert not result.found and result.num_inliers == 0 and result.canonical == -1
+
+
+def test_wrong_image_size_and_descriptors_are_clear_errors(relocalizer_parts):
+    database, retriever, _, query = relocalizer_parts
+    reloc = HierarchicalRelocalizer(database, retriever, RelocConfig())
+    image = query.load_rgb(0)
+    features = make_extractor(XFeatConfig(max_keypoints=512)).extract(image)
+    with pytest.raises(ValueError, match="does not match the camera"):
+        reloc.relocalize(image[:, :-1], features, query.camera)
+    binary = type(features)(
+        features.keypoints,
+        features.scores,
+        torch.zeros(len(features), 32, dtype=torch.uint8),
+        features.sizes,
+    )
+    with pytest.raises(ValueError, match="do not match the database"):
+        reloc.relocalize(image, binary, query.camera)
+
+
+def test_naive_needs_surfel_centres_and_configs_are_checked(relocalizer_parts):
+    database, retriever, _, _ = relocalizer_parts
+    with pytest.raises(ValueError, match="naive"):
+        HierarchicalRelocalizer(database, retriever, RelocConfig(points="naive"))
+    with pytest.raises(ValueError, match="points"):
+        RelocConfig(points="everything")
