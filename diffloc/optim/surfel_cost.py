@@ -356,11 +356,6 @@ class SurfelOptimConfig:
             observable and ``False`` (every pose free) is also well posed.
         sigma_px: keypoint standard deviation in pixels (whitening).
         kernel: robust kernel on the whitened residuals (Huber, ``sqrt(5.991)``).
-        position_prior_sigma_m: standard deviation (metres) of a Gaussian prior tying every
-            keyframe position to its initial value, or ``None`` for none. Surfel constraints
-            leave motion parallel to the planes unobserved when a database sees few
-            non-parallel surfaces (e.g. a corridor wall); the prior keeps such directions
-            where the database put them instead of letting them drift.
         lm: Levenberg-Marquardt settings.
 
     Example:
@@ -373,15 +368,11 @@ class SurfelOptimConfig:
     kernel: RobustKernel = field(
         default_factory=lambda: RobustKernel("huber", math.sqrt(CHI2_2DOF_95))
     )
-    position_prior_sigma_m: float | None = 1.0
     lm: LMConfig = field(default_factory=lambda: LMConfig(max_iterations=100))
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.sigma_px) and self.sigma_px > 0):
             raise ValueError(f"sigma_px must be positive, got {self.sigma_px}")
-        prior = self.position_prior_sigma_m
-        if prior is not None and not (math.isfinite(prior) and prior > 0):
-            raise ValueError(f"position_prior_sigma_m must be positive or None, got {prior}")
 
 
 def _check_surfels(
@@ -508,24 +499,11 @@ def optimize_keyframe_poses(
     valid = cost.residuals_and_valid(T0[pairs.alpha], T0[pairs.beta])[1]
     if not bool(valid.any()):
         raise ValueError("the database has no valid surfel pairs to optimise")
-    index_a, index_b, residual_fn = pairs.alpha, pairs.beta, lambda T_a, T_b, extra: cost(T_a, T_b)
-    if config.position_prior_sigma_m is not None:
-        # Prior blocks (k, k) after the M pair blocks; residuals padded to 3 components.
-        M, keyframes = len(pairs), torch.arange(T0.shape[0])
-        index_a, index_b = torch.cat([index_a, keyframes]), torch.cat([index_b, keyframes])
-        valid = torch.cat([valid, torch.ones_like(keyframes, dtype=torch.bool)])
-        t0, sigma = T0[:, :3, 3], config.position_prior_sigma_m
-
-        def residual_fn(T_a: torch.Tensor, T_b: torch.Tensor, extra: None) -> torch.Tensor:
-            surfel = torch.nn.functional.pad(cost(T_a[..., :M, :, :], T_b[..., :M, :, :]), (0, 1))
-            prior = (T_a[..., M:, :3, 3] - t0) / sigma
-            return torch.cat([surfel, prior], dim=-2)
-
     result = levenberg_marquardt(
         T0,
-        residual_fn,
-        index_a,
-        index_b,
+        lambda T_a, T_b, extra: cost(T_a, T_b),
+        pairs.alpha,
+        pairs.beta,
         mask=valid,
         fixed=[0] if config.fix_first_keyframe else None,
         kernel=config.kernel,
