@@ -95,7 +95,9 @@ class RelocStageConfig:
             raise ValueError(f"query_stride must be >= 1, got {self.query_stride}")
 
 
-def _load_database(dataset: Path, db_cfg: DatabaseConfig, which: str) -> tuple[VisualDatabase, dict]:
+def _load_database(
+    dataset: Path, db_cfg: DatabaseConfig, which: str
+) -> tuple[VisualDatabase, dict]:
     folder = database_dir(dataset, db_cfg.noise_sigma)
     built_path, db_path = folder / "build_db.json", folder / which
     if not built_path.is_file():
@@ -189,9 +191,7 @@ def _report_sequence(run: _SequenceRun, cfg: RelocStageConfig, out: Path, name: 
     write_localized_tum(out / "estimates.tum", run.timestamps, run.T_wc_est, run.accepted)
     write_tum(out / "groundtruth.tum", run.timestamps, torch.from_numpy(run.T_wc_true))
     curves = {
-        "with validation": precision_recall_curve(
-            run.inliers, raw, run.accepted, cfg.max_trans_m
-        ),
+        "with validation": precision_recall_curve(run.inliers, raw, run.accepted, cfg.max_trans_m),
         "without validation": precision_recall_curve(run.inliers, raw, None, cfg.max_trans_m),
     }
     plots = {
@@ -206,7 +206,9 @@ def _report_sequence(run: _SequenceRun, cfg: RelocStageConfig, out: Path, name: 
             title=f"{name}: accepted (green) and rejected (red) poses",
         ),
         "errors": plot_error_histogram(
-            raw.translation_m, out / "errors.png", threshold=cfg.max_trans_m,
+            raw.translation_m,
+            out / "errors.png",
+            threshold=cfg.max_trans_m,
             title=f"{name}: position error of every found pose",
         ),
     }
