@@ -108,9 +108,11 @@ def run_relocalize(cfg: DictConfig) -> dict:
     return results
 
 
-def _stage_done(summary: Path, config: dict) -> bool:
-    """A stage summary exists and was written with the same configuration."""
+def _stage_done(summary: Path, config: dict, inputs: list[Path]) -> bool:
+    """A stage summary exists, holds the same configuration and is newer than its inputs."""
     if not summary.is_file():
+        return False
+    if any(p.stat().st_mtime > summary.stat().st_mtime for p in inputs):
         return False
     return json.loads(summary.read_text()).get("config") == config
 
@@ -129,12 +131,13 @@ def run_main(cfg: DictConfig) -> dict:
         show_progress=cfg.progress,
     )
     db_cfg = OmegaConf.to_object(cfg.db)
-    folder = database_dir(dataset, db_cfg.noise_sigma)
+    folder = database_dir(dataset, db_cfg)
     db_config = json.loads(json.dumps(asdict(db_cfg)))
-    if not _stage_done(folder / "build_db.json", db_config):
+    surfel_map = dataset / "map" / "surfel_map.ply"
+    if not _stage_done(folder / "build_db.json", db_config, [surfel_map]):
         run_build_db(cfg)
-        (folder / "optimize_db.json").unlink(missing_ok=True)
-    if cfg.task.optimize and not _stage_done(folder / "optimize_db.json", db_config):
+    built = [surfel_map, folder / "build_db.json"]
+    if cfg.task.optimize and not _stage_done(folder / "optimize_db.json", db_config, built):
         run_optimize_db(cfg)
     reloc = OmegaConf.to_object(cfg.reloc)
     reloc.database = "optimized" if cfg.task.optimize else "database"

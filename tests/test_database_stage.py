@@ -15,6 +15,7 @@ from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.pipeline.database_stage import (
+    DatabaseConfig,
     database_dir,
     keyframe_position_rmse,
     perturb_positions,
@@ -61,7 +62,7 @@ def test_build_then_optimize_with_noisy_poses(mapped: Path):
     optimized = _run("optimize_db", mapped, "db.noise_sigma=0.05")
     assert optimized["kf_pos_rmse_before_m"] == pytest.approx(built["kf_pos_rmse_m"])
     assert torch.isfinite(torch.tensor(optimized["kf_pos_rmse_after_m"]))
-    out = database_dir(mapped, 0.05)
+    out = database_dir(mapped, DatabaseConfig(noise_sigma=0.05))
     assert json.loads((out / "optimize_db.json").read_text()) == optimized
     assert VisualDatabase.load(out / "optimized").num_keyframes == built["keyframes"]
 
@@ -71,3 +72,16 @@ def test_missing_inputs_are_clear_errors(tmp_path: Path, mapped: Path):
         _run("build_db", tmp_path)
     with pytest.raises(FileNotFoundError, match="build_db"):
         _run("optimize_db", mapped, "db.noise_sigma=0.3")
+
+
+def test_orb_databases_live_beside_the_xfeat_ones(mapped: Path):
+    built = _run("build_db", mapped, "db.local_features=orb")
+    folder = database_dir(mapped, DatabaseConfig(local_features="orb"))
+    assert built["database"] == str(folder / "database")
+    db = VisualDatabase.load(folder / "database")
+    assert db.metric == "hamming" and db.descriptors.dtype == torch.uint8
+
+
+def test_unknown_local_features_are_refused():
+    with pytest.raises(ValueError, match="local_features"):
+        DatabaseConfig(local_features="superpoint")

@@ -75,7 +75,7 @@ def test_estimates_are_a_tum_trajectory_evo_reads(main_run):
 @pytest.fixture(scope="module")
 def relocalizer_parts(main_run):
     root, _, _ = main_run
-    db_dir = root / "db" / "sigma_0"
+    db_dir = root / "db" / "xfeat_sigma_0"
     database = VisualDatabase.load(db_dir / "database")
     retriever = load_retriever(db_dir / "retriever_netvlad")
     centers = SurfelMap.load(root / "map" / "surfel_map.ply").centers

@@ -24,6 +24,7 @@ Example:
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -120,6 +121,8 @@ class DatabaseBuilder:
         self.surfel_map = surfel_map
         self.extractor = extractor
         self.database = database
+        self.timings_ms: dict[str, float] = {"features": 0.0, "database": 0.0}
+        """Accumulated wall time of :meth:`add_image`: feature extraction and the rest."""
 
     def build(
         self,
@@ -169,7 +172,9 @@ class DatabaseBuilder:
         check_finite(T_wc, "T_wc")
         if tuple(image.shape[1:]) != (camera.height, camera.width):
             raise ValueError(f"image size {tuple(image.shape[1:])} does not match the camera")
+        start = time.perf_counter()
         features = self._features(image)
+        extracted = time.perf_counter()
         render = render_surfel_index(
             self.surfel_map.centers,
             self.surfel_map.normals,
@@ -194,6 +199,8 @@ class DatabaseBuilder:
         matched = self._match(db, covisible, features, T_wc, camera, render)
         self._create_points(db, keyframe, surfels, matched)
         self._cull(db)
+        self.timings_ms["features"] += (extracted - start) * 1e3
+        self.timings_ms["database"] += (time.perf_counter() - extracted) * 1e3
         return db.num_keyframes - 1
 
     def _features(self, image: torch.Tensor) -> Features:

@@ -12,14 +12,15 @@ dataset's ground truth, so the effect of the optimisation is measured where it h
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+import time
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
 
 from diffloc.database.builder import BuilderConfig, DatabaseBuilder
 from diffloc.database.database import VisualDatabase
-from diffloc.features.local import XFeatConfig, make_extractor
+from diffloc.features.local import OrbConfig, XFeatConfig, make_extractor
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap
@@ -29,6 +30,8 @@ from diffloc.optim.surfel_cost import (
     optimize_keyframe_poses,
     replace_map_points,
 )
+
+LOCAL_FEATURES = ("xfeat", "orb")
 
 __all__ = [
     "DatabaseConfig",
@@ -49,8 +52,14 @@ class DatabaseConfig:
         noise_sigma: standard deviation (metres, per axis) of the Gaussian noise added to the
             keyframe positions before building (seed 1 Table III: 0, 0.2, 0.4).
         noise_seed: seed of that noise.
-        features: XFeat settings of the database keypoints.
+        local_features: ``"xfeat"`` or ``"orb"``: which extractor makes the keypoints.
+        xfeat: XFeat settings.
+        orb: ORB settings (ORB-SLAM-style grid and pyramid).
         builder: matching, fusion and culling thresholds of the builder.
+        radius_px_per_noise_m: the guided-matching radius grows by this many pixels per metre
+            of ``noise_sigma`` (projected map points move by about ``f * error / depth``:
+            500 px * 0.2 m / 3 m ~ 33 px at sigma 0.2 on the default scene); 110 gives 30 px
+            at sigma 0.2 and 52 px at 0.4 on top of ``builder.guided_radius_px``.
         optim: the surfel reprojection optimisation. Defaults: every keyframe free (the
             surfel planes fix the frame; the first keyframe is as noisy as the others) and a
             Cauchy kernel of 2 px: with noisy poses many associations are wrong and Huber's
@@ -61,18 +70,32 @@ class DatabaseConfig:
     sequence: str = "mapping"
     noise_sigma: float = 0.0
     noise_seed: int = 0
-    features: XFeatConfig = field(default_factory=lambda: XFeatConfig(max_keypoints=1000))
+    local_features: str = "xfeat"
+    xfeat: XFeatConfig = field(default_factory=lambda: XFeatConfig(max_keypoints=1000))
+    orb: OrbConfig = field(default_factory=lambda: OrbConfig(max_keypoints=1000))
     builder: BuilderConfig = field(default_factory=BuilderConfig)
+    radius_px_per_noise_m: float = 110.0
     optim: SurfelOptimConfig = field(
         default_factory=lambda: SurfelOptimConfig(
             fix_first_keyframe=False, kernel=RobustKernel("cauchy", 2.0)
         )
     )
 
+    def __post_init__(self) -> None:
+        if self.local_features not in LOCAL_FEATURES:
+            raise ValueError(
+                f"local_features must be one of {LOCAL_FEATURES}, got {self.local_features!r}"
+            )
 
-def database_dir(dataset: str | Path, noise_sigma: float) -> Path:
-    """``<dataset>/db/sigma_<noise_sigma>``: where the stages of one noise level write."""
-    return Path(dataset) / "db" / f"sigma_{noise_sigma:g}"
+    def extractor_config(self) -> XFeatConfig | OrbConfig:
+        """The settings of the chosen local feature extractor."""
+        return self.xfeat if self.local_features == "xfeat" else self.orb
+
+
+def database_dir(dataset: str | Path, cfg: DatabaseConfig) -> Path:
+    """``<dataset>/db/<local_features>_sigma_<noise_sigma>``: where the database stages of one
+    feature type and noise level write."""
+    return Path(dataset) / "db" / f"{cfg.local_features}_sigma_{cfg.noise_sigma:g}"
 
 
 def perturb_positions(T_wc: torch.Tensor, sigma: float, generator: torch.Generator) -> torch.Tensor:
@@ -130,13 +153,17 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
     seq = read_sequence(root, cfg.sequence)
     generator = torch.Generator().manual_seed(cfg.noise_seed)
     seq.T_wc = perturb_positions(seq.T_wc, cfg.noise_sigma, generator)
+    radius = cfg.builder.guided_radius_px + cfg.noise_sigma * cfg.radius_px_per_noise_m
     builder = DatabaseBuilder(
-        cfg.builder, SurfelMap.load(surfel_path), make_extractor(cfg.features)
+        replace(cfg.builder, guided_radius_px=radius),
+        SurfelMap.load(surfel_path),
+        make_extractor(cfg.extractor_config()),
     )
     db = builder.build(seq, show_progress=show_progress)
+    images = len(seq.rgb_paths)
     frames = _keyframe_frames(db, seq.T_wc)
     truth = read_sequence(root, cfg.sequence).T_wc[frames]
-    out = database_dir(root, cfg.noise_sigma)
+    out = database_dir(root, cfg)
     db.save(out / "database")
     summary = {
         "config": asdict(cfg),
@@ -144,6 +171,10 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
         **db.stats(),
         "keyframe_frames": frames.tolist(),
         "kf_pos_rmse_m": keyframe_position_rmse(db.T_wc, truth),
+        "guided_radius_px": radius,
+        "images": images,
+        "features_ms_per_image": builder.timings_ms["features"] / images,
+        "build_ms_per_image": builder.timings_ms["database"] / images,
     }
     _write_summary(out / "build_db.json", summary)
     return summary
@@ -159,7 +190,7 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
         FileNotFoundError: the database or surfel map is missing.
     """
     root = Path(dataset)
-    out = database_dir(root, cfg.noise_sigma)
+    out = database_dir(root, cfg)
     built_path = out / "build_db.json"
     if not built_path.is_file():
         raise FileNotFoundError(f"{built_path} is missing: run `diffloc task=build_db` first")
@@ -169,17 +200,22 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
     centers, normals = surfels.centers.double(), surfels.normals.double()
     truth = read_sequence(root, cfg.sequence).T_wc[torch.tensor(built["keyframe_frames"])]
     before = keyframe_position_rmse(db.T_wc, truth)
+    start = time.perf_counter()
     T_wc, result = optimize_keyframe_poses(db, centers, normals, cfg.optim)
     db.T_wc = T_wc
     db.point_positions = replace_map_points(db, centers, normals)
+    optimize_ms = (time.perf_counter() - start) * 1e3
     db.save(out / "optimized")
     summary = {
+        "config": asdict(cfg),
         "database": str(out / "optimized"),
         "kf_pos_rmse_before_m": before,
         "kf_pos_rmse_after_m": keyframe_position_rmse(db.T_wc, truth),
         "iterations": int(result.iterations.max()),
         "final_cost": float(result.cost.sum()),
         "converged": bool(torch.as_tensor(result.converged).all()),
+        "optimize_ms": optimize_ms,
+        "optimize_ms_per_image": optimize_ms / db.num_keyframes,
     }
     _write_summary(out / "optimize_db.json", summary)
     return summary

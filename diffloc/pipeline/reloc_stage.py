@@ -98,7 +98,7 @@ class RelocStageConfig:
 def _load_database(
     dataset: Path, db_cfg: DatabaseConfig, which: str
 ) -> tuple[VisualDatabase, dict]:
-    folder = database_dir(dataset, db_cfg.noise_sigma)
+    folder = database_dir(dataset, db_cfg)
     built_path, db_path = folder / "build_db.json", folder / which
     if not built_path.is_file():
         raise FileNotFoundError(f"{built_path} is missing: run `diffloc task=build_db` first")
@@ -111,10 +111,13 @@ def _load_database(
 def _retriever(
     dataset: Path, db_cfg: DatabaseConfig, cfg: RelocStageConfig, db: VisualDatabase, built: dict
 ) -> NetVLADRetriever | BowRetriever:
-    """Load the cached retriever of this database, or fit and cache it."""
-    folder = database_dir(dataset, db_cfg.noise_sigma) / f"retriever_{cfg.retriever}"
+    """Load the cached retriever of this database (same settings, newer than the database),
+    or fit and cache it."""
+    folder = database_dir(dataset, db_cfg) / f"retriever_{cfg.retriever}"
     settings = asdict(cfg.netvlad if cfg.retriever == "netvlad" else cfg.bow)
-    if (folder / "retriever.json").is_file():
+    built_path = database_dir(dataset, db_cfg) / "build_db.json"
+    saved = folder / "retriever.json"
+    if saved.is_file() and saved.stat().st_mtime >= built_path.stat().st_mtime:
         retriever = load_retriever(folder)
         if asdict(retriever.config) == settings:
             return retriever
@@ -280,7 +283,7 @@ def relocalize_dataset(
         path = Path(surfel_map) if surfel_map else dataset / "map" / "surfel_map.ply"
         centers = SurfelMap.load(path).centers
     relocalizer = HierarchicalRelocalizer(db, retriever, cfg.method, centers)
-    extractor = make_extractor(db_cfg.features)
+    extractor = make_extractor(db_cfg.extractor_config())
     results: dict = {"sequences": {}}
     rows = []
     for name in cfg.sequences:
@@ -291,7 +294,7 @@ def relocalize_dataset(
     headline = results["sequences"].get("query_same") or next(iter(results["sequences"].values()))
     for key in ("recall", "mATE_m", "queries", "median_reloc_ms"):
         results[key] = headline[key]
-    results["database"] = str(database_dir(dataset, db_cfg.noise_sigma) / cfg.database)
+    results["database"] = str(database_dir(dataset, db_cfg) / cfg.database)
     results["config"] = asdict(cfg)
     table = markdown_table(
         [{"sequence": r["sequence"], **r} for r in rows],

@@ -72,7 +72,9 @@ class RelocConfig:
         min_matches: fewest 2D-3D matches to attempt PnP.
         projection_radius_px: window of the projection search around each projected point.
         projection_ratio: ratio test of the projection search, or ``None``.
-        essential: settings of the essential check.
+        essential: settings of the essential check. It only pre-filters matches for PnP, so
+            its local optimisation is off by default: on the default scene that halves its
+            time and leaves the refined inlier counts unchanged.
         pnp: settings of PnP RANSAC.
         refine: settings of the motion-only refinement.
         seed: seed of the per-query random generators (RANSAC).
@@ -88,7 +90,11 @@ class RelocConfig:
     min_matches: int = 12
     projection_radius_px: float = 10.0
     projection_ratio: float | None = 0.9
-    essential: EssentialCheckConfig = field(default_factory=EssentialCheckConfig)
+    essential: EssentialCheckConfig = field(
+        default_factory=lambda: EssentialCheckConfig(
+            min_iterations=64, lo_rounds=0, refine_iterations=0
+        )
+    )
     pnp: PnPRansacConfig = field(default_factory=PnPRansacConfig)
     refine: MotionRefineConfig = field(default_factory=MotionRefineConfig)
     seed: int = 0
@@ -145,6 +151,13 @@ class _Timer:
         now = time.perf_counter()
         self.ms[stage] += (now - self._start) * 1e3
         self._start = now
+
+
+def _concat_ranges(starts: torch.Tensor, ends: torch.Tensor) -> torch.Tensor:
+    """``cat([arange(s, e) for s, e in zip(starts, ends)])`` without a Python loop."""
+    lengths = ends - starts
+    first = torch.repeat_interleave(starts - torch.cumsum(lengths, 0) + lengths, lengths)
+    return first + torch.arange(len(first))
 
 
 def covisibility_clusters(
@@ -204,8 +217,14 @@ class HierarchicalRelocalizer:
         self.config = config
         self.surfel_centers = None if surfel_centers is None else surfel_centers.double()
         self.covisibility = database.covisibility().to_dense()
-        self.keypoint_keyframes = database.keypoint_keyframes()
         self.point_positions = database.point_positions.to(torch.float64)
+        observations = database.observations()  # (O, 3) keyframe, keypoint, point
+        order = torch.argsort(observations[:, 0], stable=True)
+        self._keyframe_points = observations[order, 2]
+        counts = torch.bincount(observations[:, 0], minlength=database.num_keyframes)
+        self._keyframe_offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)])
+        self._surfel_order = torch.argsort(database.point_surfels)
+        self._sorted_surfels = database.point_surfels[self._surfel_order]
 
     # ------------------------------------------------------------------ public API
 
@@ -281,16 +300,20 @@ class HierarchicalRelocalizer:
         """(F, N): point ids seen by ``F_c`` and its covisible keyframes, and the points of
         ``F_c``'s neighbouring surfels that are not in F (empty unless ``points = "FN"``)."""
         db = self.db
-        co = db.covisible_keyframes(canonical, top_n=self.config.n_co)[0]
-        local = torch.cat([torch.tensor([canonical]), co])
-        points_f = db.points_observed_by(local)
+        weights = self.covisibility[canonical]
+        co = torch.topk(weights, min(self.config.n_co, len(weights))).indices
+        local = torch.cat([torch.tensor([canonical]), co[weights[co] > 0]])
+        rows = _concat_ranges(self._keyframe_offsets[local], self._keyframe_offsets[local + 1])
+        points_f = torch.unique(self._keyframe_points[rows])
         if self.config.points != "FN":
             return points_f, points_f[:0]
-        rows = db.keyframe_slice(canonical)
-        start, stop = int(db.neighbour_offsets[rows.start]), int(db.neighbour_offsets[rows.stop])
-        surfels = torch.cat([db.neighbour_surfels[start:stop], db.keypoint_surfels[rows]])
+        kp = db.keyframe_slice(canonical)
+        start, stop = int(db.neighbour_offsets[kp.start]), int(db.neighbour_offsets[kp.stop])
+        surfels = torch.cat([db.neighbour_surfels[start:stop], db.keypoint_surfels[kp]])
         surfels = torch.unique(surfels[surfels >= 0])
-        near = torch.nonzero(torch.isin(db.point_surfels, surfels)).flatten()
+        lo = torch.searchsorted(self._sorted_surfels, surfels)
+        hi = torch.searchsorted(self._sorted_surfels, surfels, right=True)
+        near = torch.unique(self._surfel_order[_concat_ranges(lo, hi)])
         return points_f, near[~torch.isin(near, points_f)]
 
     def _match(self, features: Features, points: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
