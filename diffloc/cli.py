@@ -1,9 +1,9 @@
 """The ``diffloc`` command: one Hydra app whose ``task=`` selects the job.
 
 Examples:
-    diffloc                                         # simulate the default indoor scene
+    diffloc                                         # the main job on the default indoor scene
     diffloc task=simulate scene=outdoor scene.seed=3 out_dir=data/courtyard
-    diffloc -m scene.seed=0,1,2                     # a multirun sweep over seeds
+    diffloc -m task=simulate scene.seed=0,1,2       # a multirun sweep over seeds
     diffloc task=build_map dataset=data/indoor_seed0 # surfel map + coloured point maps
     diffloc task=build_db db.noise_sigma=0.2         # visual database with noisy poses
     diffloc task=optimize_db db.noise_sigma=0.2      # surfel reprojection optimisation

@@ -245,3 +245,15 @@ def test_features_validates_shapes() -> None:
         Features(torch.zeros(3, 2), torch.zeros(2), torch.zeros(3, 8), torch.zeros(3))
     with pytest.raises(ShapeError):
         Features(torch.zeros(3, 3), torch.zeros(3), torch.zeros(3, 8), torch.zeros(3))
+
+
+@pytest.mark.parametrize("size", [(120, 160), (100, 130)])
+def test_xfeat_dense_map_is_the_dense_backbone_output_of_the_same_pass(size, extractors: dict):
+    from diffloc.features.dense import DenseXFeat
+
+    image = torch.rand(3, *size, generator=torch.Generator().manual_seed(3))
+    batch = extractors["xfeat"].extract(torch.stack([image, image.flip(-1)]))
+    for features, single in zip(batch, (image, image.flip(-1)), strict=True):
+        assert features.dense.shape == (64, size[0] // 8, size[1] // 8)
+        torch.testing.assert_close(features.dense, DenseXFeat()(single[None])[0])
+    assert extractors["orb"].extract(image).dense is None

