@@ -20,6 +20,7 @@ Conventions (see ``ARCHITECTURE.md``):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -27,9 +28,9 @@ from typing import Any
 import torch
 
 from diffloc.checks import ShapeError, check_finite, check_positive_int, check_shape
-from diffloc.geometry.se3 import hat, invert, transform_points
+from diffloc.geometry.se3 import invert, transform_points
 
-__all__ = ["MIN_DEPTH", "PinholeCamera"]
+__all__ = ["MIN_DEPTH", "PinholeCamera", "pose_jacobian_map"]
 
 MIN_DEPTH = 1e-6
 """Points with camera-frame ``z <= MIN_DEPTH`` (metres) are not projectable."""
@@ -40,6 +41,58 @@ _MAX_UNDISTORT_ITERATIONS = 20
 def _undistort_tolerance(dtype: torch.dtype) -> float:
     """Largest residual |distort(x) - x_d| at which the Newton iteration stops."""
     return 1e-14 if dtype == torch.float64 else 1e-7
+
+
+@functools.lru_cache(maxsize=8)
+def pose_jacobian_map(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """The Jacobian of the normalised projection w.r.t. the pose as a linear map.
+
+    With ``(x, y) = (X / Z, Y / Z)`` the normalised projection of a camera-frame point and
+    ``u = (x, y, 1, 1/Z)``, the derivatives w.r.t. a left twist ``[v, w]`` of ``T_cw`` (as in
+    :meth:`PinholeCamera.project_jacobian_pose`)::
+
+        d(x, y)/dv = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]
+        d(x, y)/dw = [[-x y, 1 + x^2, -y], [-(1 + y^2), x y, x]]
+
+    are linear in the products ``u_a u_b``: ``J = (u u^T).flatten() @ map``, so a batch of
+    Jacobians costs one outer product and one small matrix product.
+
+    Args:
+        dtype: floating dtype of the map.
+        device: its device.
+
+    Returns:
+        (16, 12) map from ``(u u^T)`` flattened (index ``4 a + b``) to the Jacobian
+        flattened parameter-major (index ``2 k + c`` for ``d (x, y)_c / d twist_k``, i.e. the
+        (6, 2) transposed Jacobian row-major). Cached: never modify it in place.
+
+    Example:
+        >>> u = torch.tensor([0.0, 0.0, 1.0, 0.5], dtype=torch.float64)  # point (0, 0, 2)
+        >>> J_t = ((u[:, None] * u).flatten() @ pose_jacobian_map(torch.float64, u.device))
+        >>> J_t.view(6, 2).T.tolist()
+        [[0.5, 0.0, 0.0, 0.0, 1.0, 0.0], [0.0, 0.5, 0.0, -1.0, 0.0, 0.0]]
+    """
+    x, y, one, iz = range(4)
+    terms = (  # (a, b, coefficient of u_a u_b) for d (x, y)_c / d twist_k, index 2 k + c
+        ((one, iz, 1.0),),  # dx/dv_x
+        (),  # dy/dv_x
+        (),  # dx/dv_y
+        ((one, iz, 1.0),),  # dy/dv_y
+        ((x, iz, -1.0),),  # dx/dv_z
+        ((y, iz, -1.0),),  # dy/dv_z
+        ((x, y, -1.0),),  # dx/dw_x
+        ((one, one, -1.0), (y, y, -1.0)),  # dy/dw_x
+        ((one, one, 1.0), (x, x, 1.0)),  # dx/dw_y
+        ((x, y, 1.0),),  # dy/dw_y
+        ((y, one, -1.0),),  # dx/dw_z
+        ((x, one, 1.0),),  # dy/dw_z
+    )
+    with torch.inference_mode(False):  # an ordinary tensor even if first made in that mode
+        out = torch.zeros(16, len(terms), dtype=dtype, device=device)
+        for column, entries in enumerate(terms):
+            for a, b, value in entries:
+                out[4 * a + b, column] = value
+    return out
 
 
 def _as_float_tensor(value: Any, dtype: torch.dtype, device: torch.device | None) -> torch.Tensor:
@@ -440,7 +493,7 @@ class PinholeCamera:
         valid = z > MIN_DEPTH
         z_safe = torch.where(valid, z, torch.ones_like(z))
         xy = points_cam[..., :2] / z_safe[..., None]
-        xy_d = self._distort_and_jacobian(xy)[0]
+        xy_d = xy if self.distortion is None else self._distort_and_jacobian(xy)[0]
         return xy_d * self._focal() + self._centre(), valid
 
     def project_world(
@@ -599,7 +652,18 @@ class PinholeCamera:
             torch.Size([1, 2, 6])
         """
         check_shape(points_cam, "*,N,3", "points_cam")
-        j_point = self.project_jacobian_point(points_cam)
-        eye = torch.eye(3, dtype=points_cam.dtype, device=points_cam.device)
-        d_point = torch.cat((eye.expand(*points_cam.shape, 3), -hat(points_cam)), dim=-1)
-        return j_point @ d_point
+        # Channel-first (..., k, N) intermediates: torch's element-wise kernels are much
+        # faster with N innermost than with tiny trailing dimensions.
+        z = points_cam[..., 2]
+        inv_z = 1.0 / torch.where(z > MIN_DEPTH, z, torch.ones_like(z))
+        x, y = points_cam[..., 0] * inv_z, points_cam[..., 1] * inv_z
+        u = torch.stack((x, y, torch.ones_like(x), inv_z), dim=-2)  # (..., 4, N)
+        outer = (u[..., :, None, :] * u[..., None, :, :]).flatten(-3, -2)  # (..., 16, N)
+        j = (pose_jacobian_map(u.dtype, u.device).T @ outer).unflatten(-2, (6, 2))
+        if self.distortion is not None:  # d xy_d / d xy @ j without a tiny matrix product
+            d = self._distort_and_jacobian(torch.stack((x, y), dim=-1))[1].movedim(-3, -1)
+            j = torch.addcmul(
+                d[..., None, :, 0, :] * j[..., 0:1, :], d[..., None, :, 1, :], j[..., 1:2, :]
+            )
+        j = j * self._focal()[..., None]  # (..., 6, 2, N) times (fx, fy)
+        return j.movedim(-1, -3).transpose(-1, -2)  # (..., N, 2, 6) view

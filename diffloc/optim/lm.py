@@ -11,8 +11,11 @@ Problem
         F = 0.5 * sum_m mask_m * rho(||r_m||^2)
 
 Pose update (right, body-frame perturbation)
-    ``T_wc <- T_wc @ se3_exp(delta)`` with ``delta = [v, w]`` (translation first, as in
-    :mod:`diffloc.geometry.se3`) expressed in the camera frame. Jacobians given by the caller
+    ``T_wc <- T_wc @ [[Cay(w), v], [0, 1]]`` with ``delta = [v, w]`` (translation first, as in
+    :mod:`diffloc.geometry.se3`) expressed in the camera frame and ``Cay`` the Cayley map
+    (:func:`cayley_rotation`). This retraction agrees with ``T_wc @ se3_exp(delta)`` to first
+    order (so the Jacobians are the same) and costs a handful of tensor operations instead of
+    the exponential's trigonometric branches. Jacobians given by the caller
     must follow this convention: ``J_a = d r(T_a @ se3_exp(d)) / d d`` at ``d = 0``. For a
     reprojection residual ``r = project(T_cw X) - p`` this is
     ``-camera.project_jacobian_pose(X_cam)`` (that method perturbs ``T_cw`` on the left,
@@ -65,6 +68,8 @@ Example:
 
 from __future__ import annotations
 
+import functools
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 
@@ -84,6 +89,7 @@ __all__ = [
     "PoseJacobianFn",
     "PoseResidualFn",
     "autodiff_linearize",
+    "cayley_rotation",
     "levenberg_marquardt",
     "levenberg_marquardt_single_pose",
     "solve_spd",
@@ -222,6 +228,58 @@ class LMResult:
 # ---------------------------------------------------------------------------- linear algebra
 
 
+@functools.lru_cache(maxsize=8)
+def _cayley_coefficients(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(16, 10) map from the outer product ``q q^T`` (flattened) of ``q = (s, x, y, z)`` to
+    the nine entries of ``|q|^2 R(q)`` (row-major) and ``|q|^2``. Never modified in place."""
+    terms = (
+        ((0, 0, 1), (1, 1, 1), (2, 2, -1), (3, 3, -1)),  # R00 = ss + xx - yy - zz
+        ((1, 2, 2), (0, 3, -2)),  # R01 = 2 (xy - sz)
+        ((1, 3, 2), (0, 2, 2)),  # R02 = 2 (xz + sy)
+        ((1, 2, 2), (0, 3, 2)),  # R10 = 2 (xy + sz)
+        ((0, 0, 1), (1, 1, -1), (2, 2, 1), (3, 3, -1)),  # R11
+        ((2, 3, 2), (0, 1, -2)),  # R12 = 2 (yz - sx)
+        ((1, 3, 2), (0, 2, -2)),  # R20 = 2 (xz - sy)
+        ((2, 3, 2), (0, 1, 2)),  # R21 = 2 (yz + sx)
+        ((0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, 1)),  # R22
+        ((0, 0, 1), (1, 1, 1), (2, 2, 1), (3, 3, 1)),  # |q|^2
+    )
+    with torch.inference_mode(False):  # an ordinary tensor even if first made in one
+        coefficients = torch.zeros(16, len(terms), dtype=dtype, device=device)
+        for column, entries in enumerate(terms):
+            for a, b, value in entries:
+                coefficients[4 * a + b, column] = value
+    return coefficients
+
+
+def cayley_rotation(w: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices of the Cayley map, the cheap retraction of the LM pose updates.
+
+    ``Cay(w) = ((1 - |c|^2) I + 2 hat(c) + 2 c c^T) / (1 + |c|^2)`` with ``c = w / 2`` is the
+    rotation of the quaternion ``(1, c)``: an exact rotation that agrees with
+    ``so3_exp(w)`` up to second order (angle ``2 atan(|w| / 2)`` about ``w``), computed with
+    a handful of tensor operations (one outer product and one small matrix product).
+
+    Args:
+        w: (..., 3) rotation vectors (radians).
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+
+    Example:
+        >>> R = cayley_rotation(torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64))
+        >>> torch.allclose(R @ R.mT, torch.eye(3, dtype=torch.float64))
+        True
+        >>> round(float(torch.atan2(R[1, 0], R[0, 0])), 4)  # 2 atan(0.25), not 0.5
+        0.49
+    """
+    check_shape(w, "*,3", "w")
+    q = torch.nn.functional.pad(w, (1, 0), value=2.0)  # 2 (1, w / 2): the scale cancels
+    outer = (q[..., :, None] * q[..., None, :]).flatten(-2)
+    m = outer @ _cayley_coefficients(w.dtype, w.device)
+    return (m[..., :9] / m[..., 9:]).unflatten(-1, (3, 3))
+
+
 def solve_spd(H: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Solve symmetric positive (semi-)definite systems ``H x = b``, batched.
 
@@ -315,6 +373,7 @@ class _Structure:
     ab_sel_b: torch.Tensor | None = None  # the same blocks' positions in b_sel
     ab_pair: torch.Tensor | None = None
     ba_pair: torch.Tensor | None = None
+    single: bool = False  # one free pose, every block on it, no extra parameters
 
     @property
     def num_free(self) -> int:
@@ -328,7 +387,7 @@ class _Structure:
     @classmethod
     def single_pose(cls, device: torch.device) -> _Structure:
         zero = torch.zeros(1, dtype=torch.long, device=device)
-        return cls(zero, 0, zero, zero, zero, None, None, None)
+        return cls(zero, 0, zero, zero, zero, None, None, None, single=True)
 
     @classmethod
     def from_blocks(
@@ -436,13 +495,17 @@ class _System:
 
     def diagonal(self) -> torch.Tensor:
         """(B, D) diagonal of ``H``."""
+        if self.structure.single:
+            return self.blocks[:, 0].diagonal(dim1=-2, dim2=-1)
         pose = self.blocks[:, self.structure.diag_pairs].diagonal(dim1=-2, dim2=-1)
         extra = self.H_ee.diagonal(dim1=-2, dim2=-1)
         return torch.cat((pose.flatten(1), extra), dim=1)
 
     def dense(self) -> torch.Tensor:
-        """(B, D, D) dense ``H``."""
+        """(B, D, D) dense ``H`` (a new tensor)."""
         s = self.structure
+        if s.single:
+            return self.blocks[:, 0].clone()
         B, n6, D = self.grad.shape[0], 6 * s.num_free, s.size
         H = self.grad.new_zeros(B, D, D)
         eye6 = torch.arange(6, device=H.device)
@@ -459,6 +522,8 @@ class _System:
     def matvec(self, x: torch.Tensor) -> torch.Tensor:
         """(B, D) product ``H x`` from the blocks, ``x``: (B, D)."""
         s = self.structure
+        if s.single:
+            return torch.bmm(self.blocks[:, 0], x[..., None])[..., 0]
         n6 = 6 * s.num_free
         x_p = x[:, :n6].reshape(x.shape[0], s.num_free, 6)
         y_p = torch.zeros_like(x_p)
@@ -520,6 +585,8 @@ def _assemble(
 ) -> _System:
     """Normal equations of the masked, robustly weighted blocks (no loop over blocks)."""
     s = structure
+    if s.single and lin.jac_b is None and lin.jac_extra is None:
+        return _assemble_single(lin.residuals, lin.jac_a, mask, kernel, s)
     r = _masked(lin.residuals, mask)
     cost, weights = _robust_weights(r, mask, kernel)
     B, dtype, device = r.shape[0], r.dtype, r.device
@@ -554,6 +621,38 @@ def _assemble(
         grad_e = (WJ_e.flatten(1, 2).transpose(1, 2) @ r.flatten(1, 2)[..., None])[..., 0]
     grad = torch.cat((grad_p.flatten(1), grad_e), dim=1)
     return _System(cost, grad, blocks, H_pe, H_ee, s)
+
+
+def _assemble_single(
+    residuals: torch.Tensor,
+    jacobian: torch.Tensor,
+    mask: torch.Tensor,
+    kernel: KernelFn,
+    structure: _Structure,
+) -> _System:
+    """:func:`_assemble` for one pose and no extra parameters, in (B, ., M) layout.
+
+    The residuals (B, M, R) and Jacobians (B, M, R, 6) are read through permuted views with
+    the blocks innermost (free when the residual function produced them in that layout),
+    where torch's element-wise and reduction kernels are several times faster than on
+    (..., R) rows. The products are summed over the R residual components one by one, so
+    every reduction runs over the blocks in order: padding blocks at the end of a batch
+    leave the sums bitwise unchanged.
+    """
+    R = residuals.shape[2]
+    keep, zero = mask[:, None, :], residuals.new_zeros(())  # (B, 1, M)
+    r = torch.where(keep, residuals.transpose(1, 2), zero)  # (B, R, M)
+    rho, weight = kernel((r * r).sum(1))
+    cost = torch.where(mask, rho, zero).sum(-1).mul_(0.5)
+    J = torch.where(keep[:, None], jacobian.permute(0, 3, 2, 1), zero)  # (B, 6, R, M)
+    WJ = J * torch.where(mask, weight, zero)[:, None, None]
+    H = torch.bmm(WJ[:, :, 0], J[:, :, 0].mT)
+    grad = torch.bmm(WJ[:, :, 0], r[:, 0, :, None])
+    for i in range(1, R):
+        H = torch.baddbmm(H, WJ[:, :, i], J[:, :, i].mT)
+        grad = torch.baddbmm(grad, WJ[:, :, i], r[:, i, :, None])
+    empty = r.new_zeros(r.shape[0], 1, 6, 0)
+    return _System(cost, grad[..., 0], H[:, None], empty, empty[:, 0, :0], structure)
 
 
 # ---------------------------------------------------------------------------- autodiff
@@ -615,11 +714,14 @@ def autodiff_linearize(
 def _retract(
     T: torch.Tensor, extra: torch.Tensor | None, delta: torch.Tensor, structure: _Structure
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Apply a step: ``T_p <- T_p @ se3_exp(delta_p)`` for free poses, ``extra += delta_e``."""
+    """Apply a step: ``T_p <- T_p @ [[Cay(w_p), v_p], [0, 1]]`` for free poses (the retraction
+    of the module notes), ``extra += delta_e``."""
     s = structure
     n6 = 6 * s.num_free
-    step = se3_exp(delta[:, :n6].reshape(delta.shape[0], s.num_free, 6))
-    T_new = T.index_copy(1, s.free, T[:, s.free] @ step)
+    d = delta[:, :n6].reshape(delta.shape[0], s.num_free, 6)
+    top = torch.cat((cayley_rotation(d[..., 3:]), d[..., :3, None]), dim=-1)  # (B, F, 3, 4)
+    step = torch.cat((top, T[:, :1, 3:].expand(*top.shape[:2], 1, 4)), dim=-2)
+    T_new = T @ step if s.single else T.index_copy(1, s.free, T[:, s.free] @ step)
     return T_new, None if extra is None else extra + delta[:, n6:]
 
 
@@ -659,7 +761,12 @@ def _minimize(
     kernel: KernelFn,
     config: LMConfig,
 ) -> LMResult:
-    """The shared batched LM loop on poses (B, P, 4, 4) and extra (B, E)."""
+    """The shared batched LM loop on poses (B, P, 4, 4) and extra (B, E).
+
+    The linear algebra is batched over the B problems; the per-problem scalars (damping,
+    gain ratio, stopping tests) are plain Python floats, read once per iteration, since a
+    torch operation on a (B,) tensor costs far more than the arithmetic itself.
+    """
     B = T.shape[0]
     lin = problem.linearize(T, extra)
     _check_linearization(lin, B, problem.num_blocks)
@@ -668,77 +775,111 @@ def _minimize(
     mask = problem.mask if problem.mask is not None else torch.ones(B, M, dtype=torch.bool)
     mask = mask.to(T.device).expand(B, M)
     system = _assemble(lin, mask, kernel, structure)
-    if not bool(torch.isfinite(system.cost).all() & torch.isfinite(system.grad).all()):
+    cost, grad_max = _cost_and_gradient_norm(system)
+    if not all(map(math.isfinite, cost + grad_max)):
         raise ValueError("the residuals or Jacobians are not finite at the initial parameters")
 
-    dtype = system.cost.dtype
-    damping = torch.full((B,), config.initial_damping, dtype=dtype, device=T.device)
-    nu = torch.full_like(damping, 2.0)
-    status = torch.full((B,), _RUNNING, dtype=torch.long, device=T.device)
-    iterations = torch.zeros(B, dtype=torch.long, device=T.device)
-    history = [system.cost]
+    dtype, device = system.cost.dtype, T.device
+    roundoff = _ROUNDOFF_EPS * torch.finfo(dtype).eps
+    damping = [config.initial_damping] * B
+    nu = [2.0] * B
+    status = [_RUNNING] * B
+    iterations = [0] * B
+    history = [list(cost)]
     for _ in range(config.max_iterations):
-        running = status == _RUNNING
-        status[running & (system.grad.abs().amax(-1) <= config.gradient_tolerance)] = _GRADIENT
-        running = status == _RUNNING
-        if not bool(running.any()):
+        for b in range(B):
+            if status[b] == _RUNNING and grad_max[b] <= config.gradient_tolerance:
+                status[b] = _GRADIENT
+        running = [code == _RUNNING for code in status]
+        if not any(running):
             break
-        delta = torch.where(running[:, None], system.solve(damping, config), 0.0)
-        iterations += running
+        delta = system.solve(torch.tensor(damping, dtype=dtype, device=device), config)
+        if not all(running):
+            delta = torch.where(torch.tensor(running, device=device)[:, None], delta, 0.0)
         T_new, extra_new = _retract(T, extra, delta, structure)
         candidate = None
         if problem.evaluate is None:
             candidate = _assemble(problem.linearize(T_new, extra_new), mask, kernel, structure)
-            new_cost = torch.where(
-                torch.isfinite(candidate.grad).all(-1), candidate.cost, torch.inf
-            )
+            new_cost = candidate.cost
+            # A non-finite gradient fails the step too: the cost plus the sum of the gradient
+            # is finite iff both are (or, harmlessly, when the sum overflows).
+            check = candidate.cost + candidate.grad.sum(-1)
         else:
             residuals = _masked(problem.evaluate(T_new, extra_new), mask)
-            new_cost = _robust_weights(residuals, mask, kernel)[0]
-        predicted = -(system.grad * delta).sum(-1) - 0.5 * (delta * system.matvec(delta)).sum(-1)
-        actual = system.cost - new_cost
-        finite = running & torch.isfinite(new_cost)
-        # A step whose predicted decrease is below the rounding error of the cost cannot be
-        # judged by the measured (noisy) change, but it is harmlessly small and the quadratic
-        # model is exact at that scale: count it as ideal so LM reaches full precision.
-        roundoff = _ROUNDOFF_EPS * torch.finfo(dtype).eps * system.cost.abs()
-        in_noise = finite & (predicted.abs() <= roundoff)
-        ok = finite & (predicted > 0)
-        gain = torch.where(ok, actual / torch.where(ok, predicted, 1.0), -1.0)
-        gain = torch.where(in_noise, 1.0, gain)
-        accept = in_noise | (ok & (gain > 0))
+            new_cost = check = _robust_weights(residuals, mask, kernel)[0]
+        # Minus the decrease of the quadratic model, g.delta + delta.H.delta / 2.
+        model_change = (torch.add(system.grad, system.matvec(delta), alpha=0.5) * delta).sum(-1)
+        step_norm = torch.linalg.vector_norm(delta, dim=-1)
+        new_cost_, check_, model_change_, step_norm_ = torch.stack(
+            (new_cost, check, model_change, step_norm)
+        ).tolist()
 
-        T = torch.where(accept[:, None, None, None], T_new, T)
-        if extra is not None:
-            extra = torch.where(accept[:, None], extra_new, extra)
-        shrink = torch.clamp(1.0 - (2.0 * gain - 1.0) ** 3, min=1.0 / 3.0)
-        damping = torch.where(accept, damping * shrink, torch.where(running, damping * nu, damping))
-        damping = damping.clamp(min=config.min_damping)
-        nu = torch.where(accept, 2.0, torch.where(running, 2.0 * nu, nu))
+        accept = [False] * B
+        for b in range(B):
+            if not running[b]:
+                continue
+            iterations[b] += 1
+            finite_b = math.isfinite(check_[b])
+            actual, predicted = cost[b] - new_cost_[b], -model_change_[b]
+            # A step whose predicted decrease is below the rounding error of the cost cannot
+            # be judged by the measured (noisy) change, but it is harmlessly small and the
+            # quadratic model is exact at that scale: count it as ideal so LM reaches full
+            # precision.
+            in_noise = finite_b and abs(predicted) <= roundoff * abs(cost[b])
+            ok = finite_b and predicted > 0
+            gain = 1.0 if in_noise else (actual / predicted if ok else -1.0)
+            accept[b] = in_noise or (ok and gain > 0)
+            if accept[b]:
+                damping[b] *= max(1.0 - (2.0 * gain - 1.0) ** 3, 1.0 / 3.0)
+                nu[b] = 2.0
+            else:
+                damping[b] *= nu[b]
+                nu[b] *= 2.0
+            damping[b] = max(damping[b], config.min_damping)
+            if step_norm_[b] <= config.step_tolerance:
+                status[b] = _STEP
+            elif accept[b] and not in_noise and actual <= config.cost_tolerance * cost[b]:
+                status[b] = _COST
+            elif damping[b] > config.max_damping:
+                status[b] = _DAMPING
 
-        small_step = running & (torch.linalg.vector_norm(delta, dim=-1) <= config.step_tolerance)
-        small_decrease = accept & ~in_noise & (actual <= config.cost_tolerance * system.cost)
-        status[small_step] = _STEP
-        status[(status == _RUNNING) & small_decrease] = _COST
-        status[(status == _RUNNING) & (damping > config.max_damping)] = _DAMPING
-
-        if bool(accept.any()):
-            if candidate is None:
-                candidate = _assemble(problem.linearize(T, extra), mask, kernel, structure)
-            system = system.where(accept, candidate)
-        history.append(system.cost)
-    status[status == _RUNNING] = _MAX_ITERATIONS
-    converged = torch.zeros_like(status, dtype=torch.bool)
-    for code in _CONVERGED:
-        converged |= status == code
+        if any(accept):
+            if candidate is None:  # residual-only evaluation: linearize the accepted poses
+                T_lin = T_new if all(accept) else _pick(accept, T_new, T)
+                extra_lin = extra_new if all(accept) else _pick(accept, extra_new, extra)
+                candidate = _assemble(problem.linearize(T_lin, extra_lin), mask, kernel, structure)
+            if all(accept):
+                T, extra, system = T_new, extra_new, candidate
+            else:
+                accepted = torch.tensor(accept, device=device)
+                T, extra = _pick(accept, T_new, T), _pick(accept, extra_new, extra)
+                system = system.where(accepted, candidate)
+            cost, grad_max = _cost_and_gradient_norm(system)
+        history.append(list(cost))
+    status = [_MAX_ITERATIONS if code == _RUNNING else code for code in status]
     return LMResult(
         T_wc=T,
         extra=extra,
-        cost_history=torch.stack(history, dim=-1),
-        iterations=iterations,
-        converged=converged,
-        reason=tuple(_REASONS[int(c)] for c in status),
+        cost_history=torch.tensor(history, dtype=dtype, device=device).T.contiguous(),
+        iterations=torch.tensor(iterations, dtype=torch.long, device=device),
+        converged=torch.tensor([code in _CONVERGED for code in status], device=device),
+        reason=tuple(_REASONS[code] for code in status),
     )
+
+
+def _cost_and_gradient_norm(system: _System) -> tuple[list[float], list[float]]:
+    """Per problem: the cost and ``max |g|``, as Python floats."""
+    norm = torch.linalg.vector_norm(system.grad, ord=math.inf, dim=-1)
+    cost, grad_max = torch.stack((system.cost, norm)).tolist()
+    return cost, grad_max
+
+
+def _pick(accept: list[bool], new: torch.Tensor | None, old: torch.Tensor | None):
+    """Per problem (leading dimension): ``new`` where ``accept``, else ``old``."""
+    if new is None or old is None:
+        return new
+    mask = torch.tensor(accept, device=new.device).view(-1, *[1] * (new.dim() - 1))
+    return torch.where(mask, new, old)
 
 
 # ---------------------------------------------------------------------------- front ends

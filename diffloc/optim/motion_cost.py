@@ -46,7 +46,7 @@ from torch import nn
 
 from diffloc.checks import ShapeError, check_finite, check_positive_int, check_shape
 from diffloc.geometry.camera import PinholeCamera
-from diffloc.geometry.se3 import invert, se3_exp, transform_points
+from diffloc.geometry.se3 import se3_exp
 from diffloc.optim.lm import LMConfig, levenberg_marquardt_single_pose, solve_spd
 from diffloc.optim.robust import RobustKernel, make_robust_kernel
 
@@ -151,13 +151,23 @@ class MotionOnlyCost(nn.Module):
         keypoints: torch.Tensor,
         sigmas: torch.Tensor,
         mask: torch.Tensor | None,
+        check: bool = True,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Whitened residuals, camera-frame points and the mask of usable matches."""
-        check_shape(T_wc, "*,4,4", "T_wc")
-        check_shape(points_world, "*,N,3", "points_world")
-        check_shape(keypoints, "*,N,2", "keypoints")
-        check_shape(sigmas, "*,N", "sigmas")
-        points_cam = transform_points(invert(T_wc), points_world)
+        """Whitened residuals, camera-frame points and the mask of usable matches.
+
+        ``check=False`` skips the shape checks (for :func:`refine_pose`, which validated its
+        inputs once, and calls this every LM iteration).
+        """
+        if check:
+            check_shape(T_wc, "*,4,4", "T_wc")
+            check_shape(points_world, "*,N,3", "points_world")
+            check_shape(keypoints, "*,N,2", "keypoints")
+            check_shape(sigmas, "*,N", "sigmas")
+        # X_cam = R^T X - R^T t with T_wc = [R | t], computed as (..., 3, N) and viewed as
+        # (..., N, 3): with N innermost the camera's element-wise kernels run several times
+        # faster, and every result below keeps that layout.
+        R_t = T_wc[..., :3, :3].mT
+        points_cam = (R_t @ points_world.mT).sub_(R_t @ T_wc[..., :3, 3:]).mT
         uv, in_front = self.camera.project(points_cam)
         keep = in_front if mask is None else in_front & mask
         residuals = (keypoints - uv) / sigmas[..., None]
@@ -212,7 +222,21 @@ class MotionOnlyCost(nn.Module):
         Returns:
             ``(residuals (..., N, 2), jacobian (..., N, 2, 6))``, zero where not used.
         """
-        residuals, points_cam, keep = self._residuals(T_wc, points_world, keypoints, sigmas, mask)
+        return self._linearize(T_wc, points_world, keypoints, sigmas, mask, check=True)
+
+    def _linearize(
+        self,
+        T_wc: torch.Tensor,
+        points_world: torch.Tensor,
+        keypoints: torch.Tensor,
+        sigmas: torch.Tensor,
+        mask: torch.Tensor | None,
+        check: bool,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`linearize`, with the shape checks optional (see :meth:`_residuals`)."""
+        residuals, points_cam, keep = self._residuals(
+            T_wc, points_world, keypoints, sigmas, mask, check
+        )
         jacobian = self.camera.project_jacobian_pose(points_cam) / sigmas[..., None, None]
         return residuals, torch.where(keep[..., None, None], jacobian, 0.0)
 
@@ -236,7 +260,19 @@ class MotionOnlyCost(nn.Module):
         Returns:
             (..., N) chi-square values, ``inf`` where masked or behind the camera.
         """
-        residuals, _, keep = self._residuals(T_wc, points_world, keypoints, sigmas, mask)
+        return self._chi2(T_wc, points_world, keypoints, sigmas, mask, check=True)
+
+    def _chi2(
+        self,
+        T_wc: torch.Tensor,
+        points_world: torch.Tensor,
+        keypoints: torch.Tensor,
+        sigmas: torch.Tensor,
+        mask: torch.Tensor | None,
+        check: bool,
+    ) -> torch.Tensor:
+        """:meth:`chi2`, with the shape checks optional (see :meth:`_residuals`)."""
+        residuals, _, keep = self._residuals(T_wc, points_world, keypoints, sigmas, mask, check)
         return torch.where(keep, (residuals * residuals).sum(-1), torch.inf)
 
 
@@ -362,7 +398,9 @@ def refine_pose(
     config = config or MotionRefineConfig()
     batched, T0, X, kp, sig, valid = _prepare_inputs(T_wc, points_world, keypoints, sigmas, mask)
     cost = MotionOnlyCost(camera.to(torch.float64))
-    Xd, kpd, sigd = X.detach(), kp.detach(), sig.detach()
+    # Keypoints stored (B, 2, N) and viewed as (B, N, 2), the layout of the projections (see
+    # MotionOnlyCost._residuals), so the residual arithmetic keeps N innermost.
+    Xd, kpd, sigd = X.detach(), kp.detach().mT.contiguous().mT, sig.detach()
     T = T0.detach()
     inliers = valid
     iterations = torch.zeros(T.shape[0], dtype=torch.long)
@@ -375,13 +413,13 @@ def refine_pose(
         result = levenberg_marquardt_single_pose(
             T,
             lambda T_cur, used=used: cost(T_cur, Xd, kpd, sigd, used),
-            jacobian_fn=lambda T_cur, used=used: cost.linearize(T_cur, Xd, kpd, sigd, used),
+            jacobian_fn=lambda T_cur, used=used: cost._linearize(T_cur, Xd, kpd, sigd, used, False),
             mask=used,
             kernel=kernel,
             config=config.lm,
         )
         T, iterations = result.T_wc, iterations + result.iterations
-        chi2 = cost.chi2(T, Xd, kpd, sigd, valid)
+        chi2 = cost._chi2(T, Xd, kpd, sigd, valid, check=False)
         inliers = chi2 <= config.chi2_threshold
     converged &= inliers.sum(-1) >= config.min_inliers
     rho = make_robust_kernel(kernel)

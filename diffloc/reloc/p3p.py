@@ -23,7 +23,7 @@ The implementation follows the paper's mathematics, written for tensors of ``H``
 (no Python loops over hypotheses) with as few torch operations as possible, since for the
 hundred-odd hypotheses of a RANSAC batch their fixed cost dominates: symmetric 3x3 matrices
 are (H, 6) rows and their adjugates one gather and three element-wise operations, the cubic's
-coefficients come from ``det`` at four values of ``gamma``, the cubic is solved in closed form
+coefficients are the traces ``tr(adj(D_i) D_j)``, the cubic is solved in closed form
 (Cardano / trigonometric) and polished by a Newton step, and the eigenvectors of the rank-2
 ``D0`` come from its adjugate (``adj D0 = sigma1 sigma2 e3 e3^T``) and the rank-1 matrix
 ``D0 - sigma2 (I - e3 e3^T) = (sigma1 - sigma2) e1 e1^T``.
@@ -48,14 +48,9 @@ _COLLINEAR_SIN2 = 1e-10  # squared sine of the angle between the world-point dif
 _RANK_EPS = 1e-14  # sigma1 * sigma2 must be below -_RANK_EPS |D0|^2 (a proper line pair)
 _ORTHONORMAL_TOL = 1e-6  # largest |R R^T - I| of an accepted rotation
 
-# det(D1 + g D2) sampled at g = -1, 0, 1, 2; coefficients c0..c3 = samples @ _VANDERMONDE_INV.T.
-_GAMMA_SAMPLES = (-1.0, 0.0, 1.0, 2.0)
-_VANDERMONDE_INV = (
-    (0.0, 1.0, 0.0, 0.0),
-    (-1.0 / 3.0, -0.5, 1.0, -1.0 / 6.0),
-    (0.5, -1.0, 0.5, 0.0),
-    (-1.0 / 6.0, 0.5, -0.5, 1.0 / 6.0),
-)
+# [tr(adj(D1) D1), tr(adj(D1) D2), tr(adj(D2) D1), tr(adj(D2) D2)] times these are the
+# coefficients c0..c3 of det(D1 + g D2) (tr(adj(X) X) = 3 det X).
+_TRACE_TO_CUBIC = (1.0 / 3.0, 1.0, 1.0, 1.0 / 3.0)
 # Symmetric 3x3 matrices are (..., 6) rows [s00, s01, s02, s11, s12, s22].
 _SYM_TO_FULL = (0, 1, 2, 1, 3, 4, 2, 4, 5)
 _SYM_DIAGONAL = (0, 3, 5)
@@ -67,26 +62,40 @@ _SYM_ADJUGATE = (
     (4, 1, 2, 2, 0, 1),
     (4, 5, 3, 2, 4, 1),
 )
-# D1 and D2 entries gathered from the row [n (3), -n (3), p (4), -p (4), d (2), 0] with
-# n = (n12, n13, n23), p = (n23 b12, n23 b13, n12 b23, n13 b23), d = (n23 - n12, n23 - n13).
-_D1_D2_ENTRIES = (2, 10, 16, 14, 8, 3, 2, 16, 11, 4, 9, 15)
+# D1 and D2 (symmetric rows) are linear in v = [n (3), n_i gram_k (27, index 3 + 9 i + k)],
+# with b12, b13, b23 at k = 1, 2, 5 of the flat Gram matrix of the bearings:
+# D1 = n23 M12 - n12 M23 = [n23, -n23 b12, 0, n23 - n12, n12 b23, -n12] and
+# D2 = n23 M13 - n13 M23 = [n23, 0, -n23 b13, -n13, n13 b23, n23 - n13]. Each entry is a list
+# of (index in v, coefficient).
+_D1_D2_MAP = (
+    ((2, 1.0),),
+    ((22, -1.0),),
+    (),
+    ((2, 1.0), (0, -1.0)),
+    ((8, 1.0),),
+    ((0, -1.0),),
+    ((2, 1.0),),
+    (),
+    ((23, -1.0),),
+    ((1, -1.0),),
+    ((17, 1.0),),
+    ((2, 1.0), (1, -1.0)),
+)
 _PAIRS = ((0, 0, 1), (1, 2, 2))  # (i, j) of the pairs 12, 13, 23
 
 
 class _Constants(NamedTuple):
-    gammas: torch.Tensor  # (4, 1)
-    vandermonde_inv_t: torch.Tensor  # (4, 4)
+    trace_to_cubic: torch.Tensor  # (4,)
     sym_to_full: torch.Tensor  # (9,) long
     sym_diagonal: torch.Tensor  # (3,) long
     sym_norm_weights: torch.Tensor  # (6,)
     sym_adjugate: torch.Tensor  # (24,) long
-    d1_d2_entries: torch.Tensor  # (12,) long
+    d1_d2_map: torch.Tensor  # (30, 12), v -> [D1, D2]
     pair_i: torch.Tensor  # (3,) long
     pair_j: torch.Tensor  # (3,) long
-    prod_n: torch.Tensor  # (4,) long, the n and b factors of p
-    prod_b: torch.Tensor  # (4,) long
     gram_pairs: torch.Tensor  # (3,) long, positions of b12, b13, b23 in a flat 3x3 Gram
     eye: torch.Tensor  # (3, 3)
+    three_eye: torch.Tensor  # (3, 3)
 
 
 @functools.lru_cache(maxsize=8)
@@ -96,21 +105,34 @@ def _constants(dtype: torch.dtype, device: torch.device) -> _Constants:
     def index(values: tuple[int, ...]) -> torch.Tensor:
         return torch.tensor(values, dtype=torch.long, device=device)
 
-    return _Constants(
-        gammas=torch.tensor(_GAMMA_SAMPLES, dtype=dtype, device=device)[:, None],
-        vandermonde_inv_t=torch.tensor(_VANDERMONDE_INV, dtype=dtype, device=device).T,
-        sym_to_full=index(_SYM_TO_FULL),
-        sym_diagonal=index(_SYM_DIAGONAL),
-        sym_norm_weights=torch.tensor(_SYM_NORM_WEIGHTS, dtype=dtype, device=device),
-        sym_adjugate=index(sum(_SYM_ADJUGATE, ())),
-        d1_d2_entries=index(_D1_D2_ENTRIES),
-        pair_i=index(_PAIRS[0]),
-        pair_j=index(_PAIRS[1]),
-        prod_n=index((2, 2, 0, 1)),
-        prod_b=index((0, 1, 2, 2)),
-        gram_pairs=index((1, 2, 5)),
-        eye=torch.eye(3, dtype=dtype, device=device),
-    )
+    with torch.inference_mode(False):  # ordinary tensors even if first made in RANSAC
+        return _Constants(
+            trace_to_cubic=torch.tensor(_TRACE_TO_CUBIC, dtype=dtype, device=device),
+            sym_to_full=index(_SYM_TO_FULL),
+            sym_diagonal=index(_SYM_DIAGONAL),
+            sym_norm_weights=torch.tensor(_SYM_NORM_WEIGHTS, dtype=dtype, device=device),
+            sym_adjugate=index(sum(_SYM_ADJUGATE, ())),
+            d1_d2_map=_linear_map(_D1_D2_MAP, 30, dtype, device),
+            pair_i=index(_PAIRS[0]),
+            pair_j=index(_PAIRS[1]),
+            gram_pairs=index((1, 2, 5)),
+            eye=torch.eye(3, dtype=dtype, device=device),
+            three_eye=3.0 * torch.eye(3, dtype=dtype, device=device),
+        )
+
+
+def _linear_map(
+    columns: tuple[tuple[tuple[int, float], ...], ...],
+    rows: int,
+    dtype: torch.dtype,
+    device: torch.device,
+) -> torch.Tensor:
+    """(rows, len(columns)) matrix whose column k has the given (row, value) entries."""
+    out = torch.zeros(rows, len(columns), dtype=dtype, device=device)
+    for k, entries in enumerate(columns):
+        for row, value in entries:
+            out[row, k] = value
+    return out
 
 
 def _full(sym: torch.Tensor, const: _Constants) -> torch.Tensor:
@@ -121,28 +143,29 @@ def _full(sym: torch.Tensor, const: _Constants) -> torch.Tensor:
 def _adjugate(sym: torch.Tensor, const: _Constants) -> torch.Tensor:
     """(..., 6) adjugates of (..., 6) symmetric rows."""
     p, q, r, u = sym.index_select(-1, const.sym_adjugate).view(*sym.shape[:-1], 4, 6).unbind(-2)
-    return p * q - r * u
+    return torch.addcmul(p * q, r, u, value=-1.0)
 
 
 def _largest_real_cubic_root(k2: torch.Tensor, k1: torch.Tensor, k0: torch.Tensor) -> torch.Tensor:
     """Largest real root of ``g^3 + k2 g^2 + k1 g + k0`` (closed form + a Newton step)."""
     a = k2 / 3.0
-    p3 = (k1 - k2 * a) / 3.0  # p / 3 of the depressed cubic t^3 + p t + q, g = t - a
-    h = 0.5 * (a * (2.0 * a * a - k1) + k0)  # q / 2
-    disc = h * h + p3 * p3 * p3
+    p3 = torch.addcmul(k1, k2, a, value=-1.0).div_(3.0)  # p / 3 of t^3 + p t + q, g = t - a
+    h = torch.addcmul(k0, a, torch.addcmul(-k1, a, a, value=2.0)).mul_(0.5)  # q / 2
+    p3_sq = p3 * p3
+    disc = torch.addcmul(h * h, p3_sq, p3)
     # One real root (disc > 0): Cardano with the cancellation-free sign choice.
-    big = -(h + torch.copysign(disc.clamp(min=0.0).sqrt(), h))
-    u = torch.copysign(big.abs().pow(1.0 / 3.0), big)
-    t_one = u - p3 / u
+    big = torch.copysign(disc.clamp(min=0.0).sqrt_(), h).add_(h).neg_()
+    u = torch.copysign(big.abs().pow_(1.0 / 3.0), big)
+    t_one = torch.addcdiv(u, p3, u, value=-1.0)
     # Three real roots (disc <= 0, so p <= 0): trigonometric form, largest branch.
-    r = (-p3).clamp(min=0.0).sqrt()
-    cos_arg = (-h / (r * r * r).clamp(min=1e-300)).clamp(-1.0, 1.0)
-    t_three = 2.0 * r * torch.cos(torch.acos(cos_arg) / 3.0)
-    g = torch.where(disc > 0, t_one, t_three) - a
-    f = ((g + k2) * g + k1) * g + k0
-    df = (3.0 * g + 2.0 * k2) * g + k1
-    polished = g - f / df
-    return torch.where(torch.isfinite(polished), polished, g)
+    r = p3.neg().clamp_(min=0.0).sqrt_()
+    r3 = torch.mul(p3, r).neg_().clamp_(min=1e-300)  # r^3 = -p3 r
+    cos_arg = torch.div(h, r3).neg_().clamp_(-1.0, 1.0)
+    t_three = torch.acos(cos_arg).div_(3.0).cos_().mul_(r).mul_(2.0)
+    g = torch.where(disc > 0, t_one, t_three).sub_(a)
+    f = torch.addcmul(k0, torch.addcmul(k1, g + k2, g), g)
+    df = torch.addcmul(k1, torch.add(g, k2, alpha=2.0 / 3.0), g, value=3.0)
+    return torch.where(df != 0, torch.addcdiv(g, f, df, value=-1.0), g)
 
 
 def _pick_column(M: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
@@ -155,9 +178,10 @@ def _intersection_directions(
     D12: torch.Tensor, const: _Constants
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Directions (H, 4, 3) of the intersections of the conics D1, D2 (H, 2, 6), validity."""
-    pencil = D12[:, None, 0] + const.gammas * D12[:, None, 1]  # (H, 4, 6) at 4 gammas
-    det = (_adjugate(pencil, const)[..., :3] * pencil[..., :3]).sum(-1)
-    c = det @ const.vandermonde_inv_t  # (H, 4) coefficients of det(D1 + g D2)
+    # det(A + g B) = det A + g tr(adj(A) B) + g^2 tr(A adj(B)) + g^3 det B for 3x3 matrices,
+    # and tr(adj(X) Y) = sum_k w_k adj(X)_k Y_k on symmetric rows (w: off-diagonals twice).
+    traces = (_adjugate(D12, const)[:, :, None] * D12[:, None]) @ const.sym_norm_weights
+    c = traces.view(-1, 4) * const.trace_to_cubic  # (H, 4) coefficients of det(D1 + g D2)
     # Solve det(A + g B) = 0 with |det B| >= |det A|: the monic constant term is <= 1. If
     # both determinants vanish the result is NaN and the sample invalid (a null set).
     swap = c[:, 3].abs() < c[:, 0].abs()
@@ -165,34 +189,40 @@ def _intersection_directions(
     A, B = torch.where(swap[:, None, None], D12.flip(1), D12).unbind(1)
     k0, k1, k2 = (c[:, :3] / c[:, 3:]).unbind(-1)
     gamma = _largest_real_cubic_root(k2, k1, k0)
-    D0 = A + gamma[:, None] * B
+    D0 = torch.addcmul(A, gamma[:, None], B)
 
     adj = _adjugate(D0, const)
     diag_adj = adj.index_select(-1, const.sym_diagonal)
     minors = diag_adj.sum(-1)  # sigma1 * sigma2
-    ok = minors < -_RANK_EPS * (D0 * D0 * const.sym_norm_weights).sum(-1)
+    norm2 = (D0 * D0) @ const.sym_norm_weights  # squared Frobenius norm
+    ok = minors < norm2.mul_(-_RANK_EPS)
     e3 = _pick_column(_full(adj, const), diag_adj.abs())  # null vector of D0
-    half = 0.5 * D0.index_select(-1, const.sym_diagonal).sum(-1)
-    root = (half * half - minors).clamp(min=0.0).sqrt()
+    D0_full = _full(D0, const)
+    half = torch.diagonal(D0_full, dim1=-2, dim2=-1).sum(-1).mul_(0.5)
+    root = torch.addcmul(-minors, half, half).clamp_(min=0.0).sqrt_()
     sigma1, sigma2 = half + root, half - root
-    rank1 = _full(D0, const) - sigma2[:, None, None] * (const.eye - e3[:, :, None] * e3[:, None])
-    e1 = _pick_column(rank1, torch.diagonal(rank1, dim1=-2, dim2=-1).contiguous())
+    # D0 - sigma2 (I - e3 e3^T) = (sigma1 - sigma2) e1 e1^T
+    projector = torch.addcmul(const.eye, e3[:, :, None], e3[:, None], value=-1.0)
+    rank1 = torch.addcmul(D0_full, sigma2[:, None, None], projector, value=-1.0)
+    e1 = _pick_column(rank1, torch.diagonal(rank1, dim1=-2, dim2=-1))
     e2 = torch.linalg.cross(e3, e1, dim=-1)
-    se1 = (-sigma2 / sigma1).clamp(min=0.0).sqrt()[:, None] * e1
+    se1 = torch.div(sigma2, sigma1).neg_().clamp_(min=0.0).sqrt_()[:, None] * e1
+    W = torch.stack((e3, e2 + se1, e2 - se1), dim=1)  # (H, 3, 3) rows u, v+, v-
 
     # Lines e1.l = +-s e2.l span (e3, e2 +- s e1); restrict the better-conditioned conic
     # (on the lines A = -gamma B) to each of them: qa a^2 + qb a b + qc b^2 = 0.
-    W = torch.stack((e3, e2 + se1, e2 - se1), dim=1)  # (H, 3, 3) rows u, v+, v-
     conic = _full(torch.where((gamma.abs() > 1.0)[:, None], A, B), const)
     forms = W @ conic @ W.transpose(-1, -2)
     qa = forms[:, 0, :1]
     qb = 2.0 * forms[:, 0, 1:]
     qc = torch.diagonal(forms, dim1=-2, dim2=-1)[:, 1:]
-    disc = qb * qb - 4.0 * qa * qc
-    qq = -0.5 * (qb + torch.copysign(disc.clamp(min=0.0).sqrt(), qb))
+    disc = torch.addcmul(qb * qb, qa, qc, value=-4.0)
+    qq = torch.copysign(disc.clamp(min=0.0).sqrt_(), qb).add_(qb).mul_(-0.5)
     alpha = torch.stack((qq, qc), dim=-1)  # two (alpha, beta) roots per line
     beta = torch.stack((qa.expand_as(qq), qq), dim=-1)
-    dirs = alpha[..., None] * e3[:, None, None, :] + beta[..., None] * W[:, 1:, None, :]
+    dirs = torch.addcmul(
+        alpha[..., None] * e3[:, None, None, :], beta[..., None], W[:, 1:, None, :]
+    )
     valid = (ok[:, None] & (disc >= 0))[..., None].expand(-1, 2, 2)
     return dirs.reshape(-1, 4, 3), valid.reshape(-1, 4)
 
@@ -241,20 +271,19 @@ def p3p_flat(
     const = _constants(bearings.dtype, bearings.device)
     y = bearings
     gram = y @ y.transpose(-1, -2)
-    b = gram.view(-1, 9).index_select(-1, const.gram_pairs)  # b12, b13, b23
     diffs = points_world.index_select(1, const.pair_j) - points_world.index_select(1, const.pair_i)
     a = (diffs * diffs).sum(-1)  # a12, a13, a23
     total = a.sum(-1, keepdim=True)
     n = a / total
-    prod = n.index_select(-1, const.prod_n) * b.index_select(-1, const.prod_b)
-    table = torch.cat((n, -n, prod, -prod, n[:, 2:] - n[:, :2], torch.zeros_like(n[:, :1])), -1)
-    D12 = table.index_select(-1, const.d1_d2_entries).view(-1, 2, 6)
+    products = (n[:, :, None] * gram.view(-1, 1, 9)).flatten(1)  # n_i gram_k
+    D12 = (torch.cat((n, products), dim=-1) @ const.d1_d2_map).view(-1, 2, 6)
     dirs, valid = _intersection_directions(D12, const)
 
     # Scale from the sum of the distance equations: l^T (3 I - gram) l = a12 + a13 + a23.
-    dmd = ((dirs @ (3.0 * const.eye - gram)) * dirs).sum(-1)
-    lam = torch.copysign((total / dmd).sqrt(), dirs.sum(-1))[..., None] * dirs
+    dmd = ((dirs @ (const.three_eye - gram)) * dirs).sum(-1)
+    lam = torch.copysign(torch.div(total, dmd).sqrt_(), dirs.sum(-1))[..., None] * dirs
     if refine_iterations > 0:
+        b = gram.view(-1, 9).index_select(-1, const.gram_pairs)  # b12, b13, b23
         b_cols, a_cols = b[:, None].unbind(-1), a[:, None].unbind(-1)
         lam = _refine_depths(lam, b_cols, a_cols, refine_iterations)
     valid = valid & (lam > 0).all(-1)
@@ -269,9 +298,10 @@ def p3p_flat(
     C = lam[..., None] * y[:, None]  # (H, 4, 3, 3)
     dc = C[:, :, 1:] - C[:, :, :1]
     Y = torch.stack((dc[:, :, 0], dc[:, :, 1], torch.linalg.cross(dc[:, :, 0], dc[:, :, 1])), -1)
-    R = Y @ x_inv[:, None]
-    t = C[:, :, 0] - (R @ points_world[:, None, 0, :, None])[..., 0]
-    ortho = (R @ R.transpose(-1, -2) - const.eye).abs().flatten(-2).amax(-1)
+    H = y.shape[0]
+    R = (Y.view(H, 12, 3) @ x_inv).view(H, 4, 3, 3)  # the rows of the 4 solutions at once
+    t = C[:, :, 0] - (R.view(H, 12, 3) @ points_world[:, 0, :, None]).view(H, 4, 3)
+    ortho = (R @ R.transpose(-1, -2)).sub_(const.eye).abs_().flatten(-2).amax(-1)
     return R, t, valid & (ortho < _ORTHONORMAL_TOL)
 
 
