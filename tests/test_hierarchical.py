@@ -107,13 +107,15 @@ def test_textureless_query_is_not_localized(relocalizer_parts):
     assert not result.found and result.num_inliers == 0 and result.canonical == -1
 
 
-def test_wrong_image_size_and_descriptors_are_clear_errors(relocalizer_parts):
+def test_wrong_image_size_dtype_and_descriptors_are_clear_errors(relocalizer_parts):
     database, retriever, _, query = relocalizer_parts
     reloc = HierarchicalRelocalizer(database, retriever, RelocConfig())
     image = query.load_rgb(0)
     features = make_extractor(XFeatConfig(max_keypoints=512)).extract(image)
     with pytest.raises(ValueError, match="does not match the camera"):
         reloc.relocalize(image[:, :-1], features, query.camera)
+    with pytest.raises(TypeError, match="float"):
+        reloc.relocalize((image * 255).to(torch.uint8), features, query.camera)
     binary = type(features)(
         features.keypoints,
         features.scores,

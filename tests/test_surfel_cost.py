@@ -14,6 +14,7 @@ from diffloc.database.database import VisualDatabase
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, se3_log
 from diffloc.optim import surfel_cost
+from diffloc.optim.lm import autodiff_linearize, levenberg_marquardt
 from diffloc.optim.surfel_cost import (
     SurfelOptimConfig,
     SurfelReprojectionCost,
@@ -362,6 +363,113 @@ def test_cost_batched_poses_match_unbatched() -> None:
     batched = cost(T_a @ delta, T_b @ delta.flip(0))
     for i in range(2):
         assert_close(batched[i], cost(T_a @ delta[i], T_b @ delta[1 - i]))
+
+
+# ---------------------------------------------------------------------------- analytic Jacobians
+
+DEGENERATE = ("parallel ray", "plane behind alpha", "alpha on the plane", "behind beta")
+
+
+def _random_pairs(M: int, batch: tuple[int, ...], seed: int):
+    """A cost of ``M`` random pairs and (*batch, M) poses; the first pairs are degenerate.
+
+    Keypoints lie on the image, the surfel plane through the keypoint's point at a depth of
+    1-5 m in ``alpha`` has a random tilt, ``beta`` is ``alpha`` moved by up to 0.3 rad and
+    0.5 m. Pairs ``0 .. 3`` (when ``M > 4``) are made invalid as named in ``DEGENERATE``;
+    batch entries differ by small pose changes that keep them so.
+    """
+    g = torch.Generator().manual_seed(seed)
+    T_a = random_se3((M,), generator=g, max_translation=3.0)
+    T_b = T_a @ random_se3((M,), generator=g, max_angle=0.3, max_translation=0.5)
+    K = (INTRINSICS * (1.0 + 0.2 * torch.rand(M, 4, generator=g, dtype=F64))).contiguous()
+    kp_a = torch.rand(M, 2, generator=g, dtype=F64) * torch.tensor([640.0, 480.0])
+    kp_b = torch.rand(M, 2, generator=g, dtype=F64) * torch.tensor([640.0, 480.0])
+    rays = torch.stack([(kp_a[:, 0] - K[:, 2]) / K[:, 0], (kp_a[:, 1] - K[:, 3]) / K[:, 1]], -1)
+    rays_world = (T_a[:, :3, :3] @ torch.cat([rays, torch.ones(M, 1, dtype=F64)], -1)[..., None])[
+        ..., 0
+    ]
+    depth = 1.0 + 4.0 * torch.rand(M, 1, generator=g, dtype=F64)
+    normals = -_unit(rays_world) + 0.7 * torch.randn(M, 3, generator=g, dtype=F64)
+    normals = normals * (0.5 + torch.rand(M, 1, generator=g, dtype=F64))  # any length
+    in_plane = torch.linalg.cross(normals, torch.randn(M, 3, generator=g, dtype=F64))
+    centers = T_a[:, :3, 3] + depth * rays_world + 0.3 * _unit(in_plane)
+    sigma = 0.5 + torch.rand(M, generator=g, dtype=F64)
+    keep = torch.ones(M, dtype=torch.bool)  # pairs whose poses may be perturbed in the batch
+    if M > len(DEGENERATE):
+        normals[0] = torch.linalg.cross(rays_world[0], torch.tensor([1.0, 2.0, 3.0], dtype=F64))
+        centers[1] = T_a[1, :3, 3] - 2.0 * rays_world[1]
+        centers[2] = T_a[2, :3, 3]
+        T_b[3] = T_a[3] @ torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0], dtype=F64))
+        keep[: len(DEGENERATE)] = False
+    cost = SurfelReprojectionCost(kp_a, kp_b, centers, normals, K, K.flip(0), sigma)
+    delta_a = random_se3((*batch, M), generator=g, max_angle=0.05, max_translation=0.05)
+    delta_b = random_se3((*batch, M), generator=g, max_angle=0.05, max_translation=0.05)
+    identity = torch.eye(4, dtype=F64)
+    delta_a = torch.where(keep[:, None, None], delta_a, identity)
+    delta_b = torch.where(keep[:, None, None], delta_b, identity)
+    return cost, T_a @ delta_a, T_b @ delta_b
+
+
+def _assert_jacobian_close(J: torch.Tensor, J_ref: torch.Tensor, rtol: float = 1e-8) -> None:
+    """Entries within ``rtol`` of the largest entry of their block (..., M, 2, 6)."""
+    scale = J_ref.abs().amax(dim=(-2, -1), keepdim=True)
+    error = (J - J_ref).abs()
+    assert bool((error <= rtol * scale).all()), float((error / scale.clamp(min=1e-300)).max())
+
+
+@pytest.mark.parametrize(
+    ("M", "batch"), [(1, ()), (5, ()), (64, ()), (300, ()), (64, (2,)), (40, (1, 2))]
+)
+def test_linearize_matches_autodiff(M: int, batch: tuple[int, ...]) -> None:
+    cost, T_a, T_b = _random_pairs(M, batch, seed=M + len(batch))
+    lin = cost.linearize(T_a, T_b)
+    ref = autodiff_linearize(lambda Ta, Tb, e: cost(Ta, Tb), T_a, T_b)
+    residuals, valid = cost.residuals_and_valid(T_a, T_b)
+    assert lin.residuals.shape == (*batch, M, 2)
+    assert lin.jac_a.shape == lin.jac_b.shape == (*batch, M, 2, 6)
+    assert lin.jac_a.dtype == lin.jac_b.dtype == F64
+    assert_close(lin.residuals, residuals, rtol=1e-12, atol=0)
+    assert_close(lin.residuals, ref.residuals, rtol=1e-12, atol=0)
+    _assert_jacobian_close(lin.jac_a, ref.jac_a)
+    _assert_jacobian_close(lin.jac_b, ref.jac_b)
+    if M > len(DEGENERATE):
+        assert not bool(valid[..., : len(DEGENERATE)].any()), "degenerate pairs must be invalid"
+        random_valid = valid[..., len(DEGENERATE) :].double().mean()
+        assert float(random_valid) >= 0.5, "most random pairs should be valid"
+    invalid = ~valid[..., None, None]
+    for J in (lin.jac_a, lin.jac_b, lin.residuals[..., None]):
+        assert bool(torch.where(invalid, J, 0.0).eq(0).all())
+        assert bool(torch.isfinite(J).all())
+
+
+def test_linearize_bad_shapes_raise() -> None:
+    cost, T_a, T_b = _random_pairs(6, (), seed=12)
+    with pytest.raises(ShapeError):
+        cost.linearize(T_a[:5], T_b[:5])
+    with pytest.raises(ShapeError):
+        cost.linearize(T_a, T_b[..., :3, :])
+
+
+def test_optimize_analytic_matches_autodiff_lm(scene: Scene) -> None:
+    """optimize_keyframe_poses (analytic Jacobians) takes the steps of the autodiff solver."""
+    T_init = _perturb(scene.T_true, torch.Generator().manual_seed(4))
+    db = _database(scene, T_init)
+    config = SurfelOptimConfig(fix_first_keyframe=False)
+    T_wc, result = optimize_keyframe_poses(db, scene.centers, scene.normals, config)
+    pairs = pairs_from_database(db, scene.centers, scene.normals)
+    cost = SurfelReprojectionCost.from_pairs(pairs)
+    T0 = db.T_wc.to(F64)
+    reference = levenberg_marquardt(
+        T0,
+        lambda T_a, T_b, extra: cost(T_a, T_b),
+        pairs.alpha,
+        pairs.beta,
+        mask=cost.residuals_and_valid(T0[pairs.alpha], T0[pairs.beta])[1],
+        kernel=config.kernel,
+        config=config.lm,
+    )
+    assert_close(T_wc, reference.T_wc, atol=1e-9, rtol=0)
+    assert_close(result.cost_history[:5], reference.cost_history[:5], rtol=1e-9, atol=1e-12)
 
 
 def test_doctests() -> None:

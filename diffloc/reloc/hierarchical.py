@@ -244,10 +244,16 @@ class HierarchicalRelocalizer:
 
         Raises:
             ShapeError: an image that is not (3, H, W).
+            TypeError: an image that is not floating point (e.g. uint8).
             ValueError: an image size that does not match the camera, or descriptors of
                 another kind than the database's.
         """
         check_shape(image, "3,H,W", "image")
+        if not image.is_floating_point():
+            raise TypeError(
+                f"the query image must be float in [0, 1] (diffloc.io.images loads it so), "
+                f"got {image.dtype}"
+            )
         if tuple(image.shape[1:]) != (camera.height, camera.width):
             raise ValueError(
                 f"query image size {tuple(image.shape[1:])} does not match the camera "
