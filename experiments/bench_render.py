@@ -11,7 +11,9 @@ Simulates the default indoor dataset if it is not there yet. Keys:
 - ``surfel_index_500k_640x480_ms``: surfel index render of 500k surfels (0.02 m, seed 1's indoor
   radius, built from the mapping sweeps and the scanner map around the camera), median;
 - ``open3d_mesh_raycast_640x480_ms``: open3d ``RaycastingScene`` on the textured mesh, same
-  camera, same run;
+  camera, same run, its calls interleaved with the surfel renders (so that load changes on a
+  shared machine hit both alike); ``surfel_index_to_open3d_ratio``: the ratio of the two;
+  ``load_average``: the 1-minute load average before and after the run;
 - ``surfel_depth_median_abs_err_m``: median |surfel depth - mesh depth| over the pixels both
   cover, on mapping frames near the camera; ``surfel_depth_coverage``: fraction of pixels with
   both;
@@ -24,6 +26,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import statistics
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +79,19 @@ def million_points(cloud_path: Path, generator: torch.Generator) -> tuple[torch.
     return points[index], colors
 
 
+def interleaved_median_ms(functions: dict[str, Callable[[], object]], repeats: int) -> dict:
+    """Median wall time (ms) of each function after a warm-up, the calls taken in turns."""
+    for function in functions.values():
+        function()
+    times = {name: [] for name in functions}
+    for _ in range(repeats):
+        for name, function in functions.items():
+            start = time.perf_counter()
+            function()
+            times[name].append((time.perf_counter() - start) * 1e3)
+    return {name: round(statistics.median(values), 3) for name, values in times.items()}
+
+
 def see_through(render_depth: torch.Tensor, true_depth: torch.Tensor) -> float:
     near = (true_depth > 0) & (true_depth < NEAR_SURFACE_M)
     through = (render_depth == 0) | (render_depth > true_depth + BEHIND_M)
@@ -85,6 +104,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("experiments/results/bench_render.json"))
     args = parser.parse_args()
     generator = torch.Generator().manual_seed(0)
+    load_before = os.getloadavg()[0]
 
     root, _ = default_dataset()
     seq = read_sequence(root, "mapping")
@@ -100,7 +120,17 @@ def main() -> None:
     def surfel_render(T: torch.Tensor):
         return render_surfel_index(surfels.centers, surfels.normals, surfels.radii, T, camera)
 
-    surfel_ms = median_ms(lambda: surfel_render(T_wc), args.repeats)
+    mesh = read_textured_mesh_obj(maps["mesh"])
+    raycaster = MeshRaycaster(mesh)
+    origins, directions = camera_rays(camera, T_wc)
+    timed = interleaved_median_ms(
+        {
+            "surfel": lambda: surfel_render(T_wc),
+            "raycast": lambda: raycaster.cast(origins[0], directions[0]),
+        },
+        args.repeats,
+    )
+    surfel_ms, raycast_ms = timed["surfel"], timed["raycast"]
     errors, covered = [], []
     for i in frames.tolist():
         depth = surfel_render(seq.T_wc[i : i + 1].to(torch.float32)).depth[0]
@@ -108,11 +138,6 @@ def main() -> None:
         both = (depth > 0) & (truth > 0)
         errors.append((depth - truth).abs()[both])
         covered.append(float(both.float().mean()))
-
-    mesh = read_textured_mesh_obj(maps["mesh"])
-    raycaster = MeshRaycaster(mesh)
-    origins, directions = camera_rays(camera, T_wc)
-    raycast_ms = median_ms(lambda: raycaster.cast(origins[0], directions[0]), args.repeats)
 
     points, colors = million_points(maps["lidar_map"], generator)
     inverse_depth = PointSizes.inverse_depth(1.0, 16.0)
@@ -137,6 +162,8 @@ def main() -> None:
         "surfel_index_500k_640x480_ms": round(surfel_ms, 2),
         "surfels": len(surfels),
         "open3d_mesh_raycast_640x480_ms": round(raycast_ms, 2),
+        "surfel_index_to_open3d_ratio": round(surfel_ms / raycast_ms, 3),
+        "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "surfel_depth_median_abs_err_m": round(float(torch.cat(errors).median()), 4),
         "surfel_depth_coverage": round(float(np.mean(covered)), 3),
         "see_through_fraction_fixed": round(float(np.mean(fixed)), 4),

@@ -76,9 +76,7 @@ def test_a_dataset_without_lidar_is_a_clear_error(built: Path, tmp_path: Path):
     shutil.rmtree(root / "mapping" / "lidar")
     (root / "mapping" / "lidar").mkdir()
     with pytest.raises((ValueError, FileNotFoundError)):
-        build_maps(
-            root, BuildMapConfig(use_sweeps=True, clouds=[], overwrite=True), FINE, False
-        )
+        build_maps(root, BuildMapConfig(use_sweeps=True, clouds=[], overwrite=True), FINE, False)
 
 
 def test_surfel_ids_are_stable_under_sub_pixel_pose_changes(built: Path):

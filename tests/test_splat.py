@@ -270,6 +270,129 @@ def test_surfel_missing_values_and_empty_map_are_culled(camera):
     assert torch.equal(empty.normals, torch.zeros(2, 3, 48, 64))
 
 
+def random_surfel_scene(generator, count):
+    """Disks of very different sizes (1-pixel to image-filling windows) around a unit box.
+
+    Some reach past the image border, some straddle the camera plane of the poses below.
+    """
+    centers = torch.rand(count, 3, generator=generator) * torch.tensor([3.0, 2.4, 3.0]) - 1.5
+    normals = torch.randn(count, 3, generator=generator)
+    radii = torch.exp(
+        torch.empty(count).uniform_(math.log(0.004), math.log(0.6), generator=generator)
+    )
+    return centers, normals, radii
+
+
+@pytest.mark.parametrize("cull_backfaces", [False, True])
+def test_many_mixed_size_surfels_match_dense_reference(cull_backfaces):
+    g = torch.Generator().manual_seed(11)
+    centers, normals, radii = random_surfel_scene(g, 400)
+    T_wc = torch.stack(
+        (
+            look_at((0.2, -0.1, -2.6), (0.0, 0.0, 0.0)),
+            look_at((1.2, 0.4, -1.2), (0.0, 0.0, 0.3)),  # inside the cloud: near-plane disks
+            look_at((-0.3, 0.2, -0.4), (0.1, 0.0, 1.0)),
+        )
+    ).float()
+    camera = PinholeCamera.from_fov(72, 56, math.radians(75.0))
+    out = render_surfel_index(centers, normals, radii, T_wc, camera, cull_backfaces=cull_backfaces)
+    if cull_backfaces:  # the reference draws two-sided disks: give it the front faces only
+        per_pose = []
+        for b in range(len(T_wc)):
+            T_cw = invert(T_wc[b].double())
+            facing = normals.double() @ T_cw[:3, :3].T * transform_points(T_cw, centers.double())
+            front = torch.nonzero(facing.sum(-1) < 0)[:, 0]
+            ids, depth, margin = reference_surfels(
+                centers[front], normals[front], radii[front], T_wc[b : b + 1], camera
+            )
+            per_pose.append((torch.where(ids >= 0, front[ids.clamp_min(0)], -1), depth, margin))
+        ref_ids, ref_depth, margin = (torch.cat(x) for x in zip(*per_pose, strict=True))
+    else:
+        ref_ids, ref_depth, margin = reference_surfels(centers, normals, radii, T_wc, camera)
+    safe = margin.abs() > 1e-4
+    assert safe.float().mean() > 0.97
+    assert 0.3 < float(out.mask.float().mean()) < 0.99
+    assert torch.equal(out.ids[safe], ref_ids[safe])
+    assert_close(out.depth[safe], ref_depth[safe].float())
+    # Normals: the winning surfel's unit normal, rotated into each camera.
+    n_w = normals / normals.norm(dim=-1, keepdim=True)
+    expected = torch.einsum("bji,bhwj->bihw", T_wc[:, :3, :3], n_w[out.ids.clamp_min(0)])
+    expected = torch.where(out.mask[:, None], expected, 0.0)
+    assert_close(out.normals, expected, atol=1e-5, rtol=1e-5)
+
+
+def test_equal_depths_go_to_the_lowest_index_in_any_order(camera):
+    # Surfels 1 and 3 are the same disk; it lies in front of the others.
+    centers = torch.tensor([[0.0, 0.0, 3.0], [0.02, 0.01, 2.0], [0.1, 0.0, 2.5], [0.02, 0.01, 2.0]])
+    normals = torch.tensor([[0.0, 0.0, -1.0], [0.3, 0.1, -1.0], [0.0, 0.0, -1.0], [0.3, 0.1, -1.0]])
+    radii = torch.tensor([0.9, 0.25, 0.4, 0.25])
+    out = render_surfel_index(centers, normals, radii, identity(), camera)
+    assert int((out.ids == 1).sum()) > 50
+    assert int((out.ids == 3).sum()) == 0
+    for perm in ([3, 0, 2, 1], [2, 3, 1, 0], [1, 3, 0, 2]):
+        perm = torch.tensor(perm)
+        other = render_surfel_index(centers[perm], normals[perm], radii[perm], identity(), camera)
+        lowest = torch.nonzero((perm == 1) | (perm == 3))[0, 0]  # new index of the first twin
+        assert torch.equal(other.ids == lowest, out.ids == 1)
+        assert torch.equal(other.depth, out.depth)
+
+
+def test_surfels_straddling_the_frustum_planes(camera):
+    # Centres just outside each image edge and just behind the camera, radii reaching in.
+    z = 2.0
+    half_w = (camera.width / 2) / float(camera.fx) * z
+    half_h = (camera.height / 2) / float(camera.fy) * z
+    centers = torch.tensor(
+        [
+            [-half_w - 0.05, 0.0, z],
+            [half_w + 0.05, 0.1, z],
+            [0.1, -half_h - 0.05, z],
+            [-0.2, half_h + 0.05, z],
+            [0.0, 0.3, -0.05],  # behind the camera, reaching in front: culled (centre rule)
+            [3.0, 0.0, z],  # far outside: culled
+        ]
+    )
+    normals = torch.tensor([[0.0, 0.0, -1.0]]).expand(6, 3)
+    radii = torch.tensor([0.2, 0.2, 0.2, 0.2, 0.5, 0.2])
+    out = render_surfel_index(centers, normals, radii, identity(), camera)
+    ref_ids, ref_depth, margin = reference_surfels(centers, normals, radii, identity(), camera)
+    safe = margin.abs() > 1e-4
+    assert torch.equal(out.ids[safe], ref_ids[safe])
+    assert set(out.ids.unique().tolist()) == {-1, 0, 1, 2, 3}
+
+
+def test_bad_surfel_anywhere_in_the_map_raises(camera):
+    g = torch.Generator().manual_seed(2)
+    centers = torch.randn(1000, 3, generator=g)
+    centers[:, 2] -= 10.0  # all behind the camera: nothing would be drawn
+    normals = torch.randn(1000, 3, generator=g)
+    radii = torch.full((1000,), 0.1)
+    render_surfel_index(centers, normals, radii, identity(), camera)
+    with pytest.raises(ValueError, match="normals"):
+        render_surfel_index(
+            centers, normals.index_fill(0, torch.tensor([500]), 0.0), radii, identity(), camera
+        )
+    with pytest.raises(ValueError, match="radii"):
+        render_surfel_index(
+            centers, normals, radii.index_fill(0, torch.tensor([700]), 0.0), identity(), camera
+        )
+
+
+def test_tie_breakers_survive_the_window_product():
+    """The z-buffer tie-breaker is a float32 constant term of a matrix product (see
+    ``_rasterise_surfels``): it must come out bit for bit at every pixel of the largest window."""
+    from diffloc.render.splat import _MAX_SURFELS, _make_window_basis, _tie_breakers
+
+    local = torch.tensor([0, 1, 2, 1000, 2**24 + 1, _MAX_SURFELS - 1])
+    ties = _tie_breakers(local)
+    assert bool((ties >= torch.finfo(torch.float32).tiny).all() and torch.isfinite(ties).all())
+    assert bool((ties.view(torch.int32).diff() < 0).all())  # lower surfel, larger key
+    basis, _ = _make_window_basis(640, 480, 640, torch.device("cpu"))
+    zero = torch.zeros_like(ties)
+    values = basis[:, 3:] @ torch.stack((zero, zero, ties))  # (i, j, 1) monomials
+    assert torch.equal(values.view(torch.int32), ties.view(torch.int32).expand_as(values))
+
+
 # ---------------------------------------------------------------------------- points
 
 

@@ -16,17 +16,26 @@ Design notes:
   of its float32 depth (positive floats order like their bit patterns) and whose low 32 bits
   are the primitive index. ``scatter_reduce(..., reduce="amin")`` over the flattened pixels
   keeps, per pixel, the nearest depth and its id in one pass; equal depths go to the lower
-  index, so renders are deterministic and independent of the input order. Cameras are
-  rendered one after the other; everything per camera is vectorised over primitives and
-  pixels (chunked to bound the memory).
+  index, so renders are deterministic and independent of the input order. (Surfel keys hold
+  the inverse depth and are max-reduced, see below.) Cameras are rendered one after the
+  other; everything per camera is vectorised over primitives and pixels (chunked to bound the
+  memory).
 - **Surfels.** The ray through a pixel centre ``d = ((u - cx) / fx, (v - cy) / fy, 1)`` hits
   the plane of a surfel (centre ``c``, unit normal ``n``, radius ``r``, camera frame) at
   z-depth ``t = (n.c) / (n.d)``; the pixel is covered when ``|t d - c| <= r``. Multiplying by
   ``(n.d)^2`` makes the test a quadratic (conic) in the pixel coordinates and ``1 / t`` an
-  affine function of them, so a chunk of same-sized candidate windows is tested with one
-  small matrix product. Candidate windows are the pixels of the analytic bounding box of the
-  projected ellipse (clipped to the image), grouped in buckets of a few window sizes. Surfels
-  are first culled against the view frustum with their bounding spheres.
+  affine function of them, so a chunk of same-sized candidate windows is evaluated with small
+  matrix products. Candidate windows are the pixels of the analytic bounding box of the
+  projected ellipse (clipped to the image), grouped in buckets of a few window sizes (sparse
+  buckets merged into larger ones). Surfels are first culled against the view frustum with
+  their bounding spheres (one ``4 x 3`` product over the world-frame map) and the survivors
+  numbered in map order. Their z-buffer key holds the float32 *inverse* depth (high word) and
+  a tie-breaker decreasing with that number (low word), max-reduced: the matrix product writes
+  the keys directly (the tie-breaker is a constant polynomial) and the ray-disk test is one
+  ``copysign`` that makes misses negative. The nearest hit wins; equal inverse depths go to
+  the lower index. Depths come out as ``1 / inverse depth``, bit for bit what a depth-keyed
+  z-buffer would store, but two hits whose different inverse depths round to the same depth
+  are ordered by the inverse depth rather than the index.
 - **Points.** A point of integer size ``k`` covers the ``k x k`` pixels whose centres lie in
   the square of side ``k`` centred on its projection (OpenGL point rasterisation). The keys of
   each pass (size level) are scattered once into an "anchor" image (top-left pixel of each
@@ -47,8 +56,11 @@ Design notes:
 
 from __future__ import annotations
 
+import bisect
+import functools
 import math
-from collections.abc import Callable, Iterator
+import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import torch
@@ -78,6 +90,23 @@ _BBOX_MARGIN_PX = 1e-2
 """Slack added to the analytic ellipse bounding box against float32 rounding."""
 _ELLIPSE_CONDITION = 1e-3
 """Ellipses with ``4AC - B^2 <= 1e-3 * 4AC`` (aspect ratio above ~30) use the sphere bound."""
+_CULL_SLACK = 1e-5
+"""Slack of the frustum cull against float32 rounding, relative to ``1 m + |camera centre|``."""
+_HIGH_WORD = 1 if sys.byteorder == "little" else 0
+"""Which of the two 32-bit words of an int64 in memory holds its high half."""
+_NO_KEY = torch.iinfo(torch.int64).min
+"""Surfel z-buffer key of an empty pixel (keys are max-reduced)."""
+_TIE_TOP = 0x7F7FFFFF
+"""Bits of the largest finite float32; tie-breakers count down from it."""
+_MAX_SURFELS = _TIE_TOP - 0x00800000 + 1
+"""Surfels per render, so that every tie-breaker is a positive normal float32."""
+_MERGE_PIXELS = 4096
+"""A bucket of windows joins a larger one when that adds at most this many candidate pixels
+(about the cost of the few tensor operations that every bucket takes)."""
+_BASIS_CACHE_AREA = 1024
+"""Window bases up to this many pixels are memoised (a few MB at most)."""
+_PROBE_DIRECTION = (1.0, 0.7548776662466927, 0.5698402909980532)
+"""A direction orthogonal to no simple normal (powers of the inverse plastic number)."""
 
 
 # ---------------------------------------------------------------------------- results
@@ -233,9 +262,9 @@ def _check_camera(camera: PinholeCamera, batch: int) -> PinholeCamera:
     return camera.to(torch.float32)
 
 
-def _check_map_size(n: int, what: str) -> None:
-    if n > _MAX_PRIMITIVES:
-        raise ValueError(f"at most {_MAX_PRIMITIVES} {what} can be rendered, got {n}")
+def _check_map_size(n: int, what: str, limit: int = _MAX_PRIMITIVES) -> None:
+    if n > limit:
+        raise ValueError(f"at most {limit} {what} can be rendered, got {n}")
 
 
 @dataclass(frozen=True)
@@ -286,6 +315,12 @@ def _unpack_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return ids, depth
 
 
+def _key_words(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(low, high)`` int32 halves of (P,) int64 keys, (P,) strided views each (no copy)."""
+    words = keys.view(torch.int32)  # (2 P,)
+    return words[1 - _HIGH_WORD :: 2], words[_HIGH_WORD::2]
+
+
 def _empty_keys(shape: tuple[int, ...], device: torch.device) -> torch.Tensor:
     return torch.full(shape, _EMPTY_KEY, dtype=torch.int64, device=device)
 
@@ -305,65 +340,125 @@ def _gather_channels_first(values: torch.Tensor, ids: torch.Tensor) -> torch.Ten
 
 
 @dataclass(frozen=True)
-class _SurfelWindows:
-    """Visible surfels of one camera with their conics and candidate pixel boxes.
+class _SurfelCandidates:
+    """The surfels of one camera that pass the frustum cull, in the camera frame.
 
-    ``q(du, dv) = du (A du + B dv + D) + dv (C dv + E) <= 1`` is the ray-disk test in pixel
-    offsets ``(du, dv)`` from the projected centre ``(uc, vc)``; the inverse hit depth is
-    ``g0 + gu du + gv dv``. The candidate pixels are the box of ``extent`` pixels from
-    ``corner``, inside the image. Fields are tuples of 1-D tensors: 1-D tensors index much
-    faster than 2-D ones.
+    Their local numbers ``0 .. M - 1`` (the z-buffer's) follow the map index, so ties broken
+    towards the lower local number go to the lower map index.
     """
 
-    ids: torch.Tensor  # (M,) surfel index
-    coeffs: tuple[torch.Tensor, ...]  # 10 x (M,): A, B, C, D, E, g0, gu, gv, uc, vc
-    near: torch.Tensor  # (M,) bool: the disk may reach the near plane (extra depth test)
-    corner: tuple[torch.Tensor, torch.Tensor]  # 2 x (M,) int64 top-left pixel u_lo, v_lo
-    extent: tuple[torch.Tensor, torch.Tensor]  # 2 x (M,) int64 box width, height (<= 0: empty)
-
-    def _map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> _SurfelWindows:
-        """Apply ``fn`` to every (M,) tensor."""
-        return _SurfelWindows(
-            fn(self.ids),
-            tuple(fn(c) for c in self.coeffs),
-            fn(self.near),
-            (fn(self.corner[0]), fn(self.corner[1])),
-            (fn(self.extent[0]), fn(self.extent[1])),
-        )
-
-    def select(self, index: torch.Tensor) -> _SurfelWindows:
-        """The windows at (K,) ``index``."""
-        return self._map(lambda t: t.index_select(0, index))
-
-    def narrow(self, start: int, length: int) -> _SurfelWindows:
-        """The windows ``start .. start + length - 1`` (views)."""
-        return self._map(lambda t: t.narrow(0, start, length))
+    ids: torch.Tensor  # (M,) int64 increasing map indices
+    centers: torch.Tensor  # (3, M) float32 camera-frame centres (coordinates as rows)
+    normals: torch.Tensor  # (3, M) float32 unit camera-frame normals
+    radii: torch.Tensor  # (M,) float32
 
 
-def _in_frustum(
-    centers_cam: torch.Tensor, radii: torch.Tensor, view: _View, height: int, width: int
+@dataclass(frozen=True)
+class _Windows:
+    """Candidate pixel windows of one camera, sorted into buckets of one window size.
+
+    Window ``w`` tests the ``size_v x size_u`` pixels from flat index ``base[w]``, with
+    polynomials in the offsets ``(i, j)`` from that top-left pixel: ``inside[:, w]`` holds the
+    coefficients of ``1 - q`` (>= 0 on the disk, see :class:`_Conics`) on the monomials
+    ``(i^2, i j, j^2, i, j, 1)``, ``keys[:, 2 w + 1]`` those of the inverse depth on
+    ``(i, j, 1)`` and ``keys[:, 2 w]`` a constant, the float32 whose bits are the window's
+    z-buffer tie-breaker (see :func:`_rasterise_surfels`; the two swap on big-endian
+    machines, so that each pair reads as one int64 key). Windows ``start .. start + count - 1``
+    of a bucket share the size; ``near`` buckets hold surfels that may reach the near plane.
+    """
+
+    inside: torch.Tensor  # (6, K) float32
+    keys: torch.Tensor  # (3, 2 K) float32
+    base: torch.Tensor  # (K,) int64 flat index of the top-left pixel
+    buckets: list[tuple[int, int, bool, int, int]]  # size_u, size_v, near, start, count
+
+
+def _frustum_candidates(
+    centers: torch.Tensor, radii: torch.Tensor, view: _View, height: int, width: int
 ) -> torch.Tensor:
-    """(N,) bool: centre in front of the camera, bounding sphere not outside the image frustum.
+    """(M,) int64 increasing indices of the surfels whose bounding sphere may be in view.
 
-    A conservative visibility test against the four side planes through the camera centre.
+    One ``(4, 3) x (3, N)`` product gives, straight from the world-frame centres, the signed
+    distances to the four side planes of the frustum (through the camera centre and the outer
+    pixel edges, e.g. ``u = -0.5``); a surfel is kept when its radius (plus a float32 slack)
+    reaches into all four half-spaces, which every disk point seen at a pixel centre lies
+    strictly inside. The half-spaces only meet in front of the camera, so this also drops the
+    surfels behind it; the centre's ``z > MIN_DEPTH`` is tested on the survivors. Surfels with
+    NaN coordinates or radii are dropped.
+
+    Args:
+        centers: (N, 3) world-frame centres.
+        radii: (N,) radii.
+        view: the camera.
+        height: image height.
+        width: image width.
+
+    Returns:
+        (M,) int64 surfel indices, increasing.
     """
-    x, y, z = centers_cam
-    keep = z > MIN_DEPTH
-    # Side planes through the camera centre, e.g. u >= -0.5  <=>  fx x + (cx + 0.5) z >= 0.
-    for a, b, coord in (
-        (view.fx, view.cx + 0.5, x),
-        (-view.fx, width - 0.5 - view.cx, x),
-        (view.fy, view.cy + 0.5, y),
-        (-view.fy, height - 0.5 - view.cy, y),
+    planes = []  # camera-frame unit normals, e.g. of fx x + (cx + 0.5) z >= 0 (u >= -0.5)
+    for a, b, axis in (
+        (view.fx, view.cx + 0.5, 0),
+        (-view.fx, width - 0.5 - view.cx, 0),
+        (view.fy, view.cy + 0.5, 1),
+        (-view.fy, height - 0.5 - view.cy, 1),
     ):
         norm = math.hypot(a, b)
-        keep &= torch.add(radii, coord, alpha=a / norm).add_(z, alpha=b / norm) >= 0
-    return keep
+        normal = [0.0, 0.0, b / norm]
+        normal[axis] = a / norm
+        planes.append(tuple(normal))
+    normals = torch.tensor(planes, dtype=torch.float32, device=centers.device)  # (4, 3)
+    slack = _CULL_SLACK * (1.0 + float(view.t_cw.norm()))
+    distances = torch.addmm(normals @ view.t_cw, normals @ view.R_cw, centers.T)  # (4, N)
+    reach = distances.amin(0).add_(radii)
+    return (reach >= -slack).nonzero().view(-1)
+
+
+def _surfel_candidates(
+    centers: torch.Tensor,
+    normals: torch.Tensor,
+    radii: torch.Tensor,
+    view: _View,
+    height: int,
+    width: int,
+) -> _SurfelCandidates:
+    """Cull the map to the view frustum and move the survivors to the camera frame.
+
+    Args:
+        centers: (N, 3) world-frame centres.
+        normals: (N, 3) world-frame normals (any non-zero length).
+        radii: (N,) radii.
+        view: the camera.
+        height: image height.
+        width: image width.
+    """
+    ids = _frustum_candidates(centers, radii, view, height, width)
+    c = view.to_camera(centers.index_select(0, ids).T)
+    n = view.R_cw @ normals.index_select(0, ids).T
+    n = n / (n * n).sum(0).sqrt_()
+    return _SurfelCandidates(ids, c, n, radii.index_select(0, ids))
+
+
+@dataclass(frozen=True)
+class _Conics:
+    """Ray-disk conics of M surfels; ``(2, M)`` fields hold a ``u`` row and a ``v`` row.
+
+    ``q(du, dv) = du (A du + B dv + D) + dv (C dv + E) <= 1`` is the ray-disk test in pixel
+    offsets ``(du, dv)`` from the projected centre, and the inverse hit depth is
+    ``g0 + gu du + gv dv``.
+    """
+
+    AC: torch.Tensor  # (2, M) A, C
+    B: torch.Tensor  # (M,)
+    DE: torch.Tensor  # (2, M) D, E
+    g0: torch.Tensor  # (M,)
+    g_uv: torch.Tensor  # (2, M) gu, gv
+    centre: torch.Tensor  # (2, M) projected centre (u, v), pixels
 
 
 def _surfel_conics(
-    c: torch.Tensor, n: torch.Tensor, r: torch.Tensor, view: _View
-) -> tuple[torch.Tensor, torch.Tensor]:
+    c: torch.Tensor, n: torch.Tensor, r: torch.Tensor, cc: torch.Tensor, view: _View
+) -> tuple[_Conics, torch.Tensor]:
     """Ray-disk conics of surfels in front of the camera.
 
     The ray ``d = c / cz + (du / fx, dv / fy, 0)`` meets the plane ``n.p = k`` (``k = n.c``)
@@ -378,80 +473,60 @@ def _surfel_conics(
         c: (3, M) centres, camera frame, ``cz > 0``.
         n: (3, M) unit normals, camera frame.
         r: (M,) radii.
+        cc: (M,) ``|c|^2``.
         view: the camera.
 
     Returns:
-        ``(coeffs, k)``: 10 (M,) rows ``A, B, C, D, E, g0, gu, gv, uc, vc`` (see
-        :class:`_SurfelWindows`) and (M,) ``k = n.c``.
+        ``(conics, k)`` with (M,) ``k = n.c``.
     """
-    cx_, cy_, cz = c
-    nx, ny, _ = n
+    cxy, cz, nxy = c[:2], c[2], n[:2]
     fx, fy = view.fx, view.fy
+    f = c.new_tensor([[fx], [fy]])
     k = (n * c).sum(0)
     h = cz / k
     t = (h / r).square_()
-    m = (c * c).sum(0).sub_(r * r)
-    kx, ky = k * nx, k * ny
-    kk = k * k
-    A = (kk - 2.0 * kx * cx_).addcmul_(nx * nx, m).mul_(t / (fx * fx))
-    C = (kk - 2.0 * ky * cy_).addcmul_(ny * ny, m).mul_(t / (fy * fy))
-    B = (nx * ny * m).sub_(ky * cx_).sub_(kx * cy_).mul_(t * (2.0 / (fx * fy)))
-    D = nx * h * (-2.0 / fx)
-    E = ny * h * (-2.0 / fy)
+    m = cc - r * r
+    kn = k * nxy  # k n_x, k n_y
+    AC = (
+        (k * k - 2.0 * kn * cxy)
+        .addcmul_(nxy * nxy, m)
+        .mul_(t / c.new_tensor([[fx * fx], [fy * fy]]))
+    )
+    B = (nxy[0] * nxy[1] * m).sub_(kn[1] * cxy[0]).sub_(kn[0] * cxy[1]).mul_(t * (2.0 / (fx * fy)))
+    DE = nxy * h * c.new_tensor([[-2.0 / fx], [-2.0 / fy]])
     g0 = cz.reciprocal()
-    gu = nx / k / fx
-    gv = ny / k / fy
-    uc = cx_ * g0 * fx + view.cx
-    vc = cy_ * g0 * fy + view.cy
-    return (A, B, C, D, E, g0, gu, gv, uc, vc), k
+    centre = (cxy * g0 * f).add_(c.new_tensor([[view.cx], [view.cy]]))
+    return _Conics(AC, B, DE, g0, nxy / k / f, centre), k
 
 
 def _surfel_windows(
-    centers_cam: torch.Tensor,
-    normals_cam: torch.Tensor,
-    radii: torch.Tensor,
-    view: _View,
-    height: int,
-    width: int,
-    cull_backfaces: bool,
-) -> tuple[_SurfelWindows, torch.Tensor]:
-    """Conics and candidate boxes of the surfels that may be visible in one camera.
+    surfels: _SurfelCandidates, view: _View, height: int, width: int, cull_backfaces: bool
+) -> _Windows:
+    """Conics and candidate windows of the surfels that may be visible in one camera.
 
     Args:
-        centers_cam: (3, N) surfel centres in the camera frame (coordinates as rows).
-        normals_cam: (3, N) normals in the camera frame (any non-zero length).
-        radii: (N,) radii.
+        surfels: the frustum-culled surfels.
         view: the camera.
         height: image height.
         width: image width.
         cull_backfaces: drop surfels whose normal points away from the camera.
-
-    Returns:
-        ``(windows, keep)``: the windows and (M,) bool, those to draw.
     """
-    ids = _in_frustum(centers_cam, radii, view, height, width).nonzero()[:, 0]
-    c = torch.stack([row.index_select(0, ids) for row in centers_cam])
-    n = torch.stack([row.index_select(0, ids) for row in normals_cam])
-    r = radii.index_select(0, ids)
-    n = n / (n * n).sum(0).sqrt_()
-    coeffs, k = _surfel_conics(c, n, r, view)
+    c, n, r = surfels.centers, surfels.normals, surfels.radii
+    cc = (c * c).sum(0)
+    conics, k = _surfel_conics(c, n, r, cc, view)
     total = c.sum(0) + n.sum(0) + r
     visible = (total - total) == 0  # false for NaN / inf
-    visible &= k.square() > _GRAZING_COS**2 * (c * c).sum(0)
+    visible &= c[2] > MIN_DEPTH
+    visible &= k.square() > _GRAZING_COS**2 * cc
     if cull_backfaces:
         visible &= k < 0
     near = c[2] - r <= MIN_DEPTH
-    box = _surfel_boxes(coeffs, near, r, c, view, height, width)
-    extent = box[2:] - box[:2] + 1
-    visible &= (extent > 0).all(0)
-    windows = _SurfelWindows(ids, coeffs, near, (box[0], box[1]), (extent[0], extent[1]))
-    return windows, visible
+    lo, hi = _surfel_boxes(conics, near, r, c, view, height, width)
+    return _bucket_windows(conics, near, lo, hi, visible, height, width)
 
 
-def _ellipse_box_offsets(
-    A: torch.Tensor, B: torch.Tensor, C: torch.Tensor, D: torch.Tensor, E: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Bounding box ``(du_min, du_max, dv_min, dv_max)`` of ``q(du, dv) <= 1``.
+def _ellipse_box_offsets(conics: _Conics) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bounding box ``(lo, hi)``, (2, M) offsets ``(du, dv)``, of ``q(du, dv) <= 1``.
 
     At the extremes of ``du`` the gradient of ``q`` is along ``du`` (``dq/ddv = 0``), which
     leaves the quadratic ``a du^2 + b du - c = 0`` with ``a = 4AC - B^2`` (> 0 for an ellipse),
@@ -459,50 +534,47 @@ def _ellipse_box_offsets(
     ``a`` is not positive or loses most of its digits to cancellation (very thin ellipses, a
     relative tolerance of :data:`_ELLIPSE_CONDITION`) the offsets are NaN.
     """
+    A, C = conics.AC
+    B = conics.B
     ac4 = 4.0 * A * C
     a = ac4 - B * B
     a = a.masked_fill_(a <= _ELLIPSE_CONDITION * ac4.abs(), math.nan)
-    bu = 4.0 * C * D - 2.0 * B * E
-    bv = 4.0 * A * E - 2.0 * B * D
-    root_u = (E * E + 4.0 * C).mul_(4.0 * a).addcmul_(bu, bu).sqrt_()
-    root_v = (D * D + 4.0 * A).mul_(4.0 * a).addcmul_(bv, bv).sqrt_()
+    CA, ED = conics.AC.flip(0), conics.DE.flip(0)
+    b = (4.0 * CA * conics.DE).sub_(2.0 * B * ED)
+    root = (ED * ED + 4.0 * CA).mul_(4.0 * a).addcmul_(b, b).sqrt_()
     half_inv_a = 0.5 / a
-    return (
-        (-bu - root_u).mul_(half_inv_a),
-        (root_u - bu).mul_(half_inv_a),
-        (-bv - root_v).mul_(half_inv_a),
-        (root_v - bv).mul_(half_inv_a),
-    )
+    return (-b - root).mul_(half_inv_a), (root - b).mul_(half_inv_a)
 
 
 def _surfel_boxes(
-    coeffs: tuple[torch.Tensor, ...],
+    conics: _Conics,
     near: torch.Tensor,
     r: torch.Tensor,
     c: torch.Tensor,
     view: _View,
     height: int,
     width: int,
-) -> torch.Tensor:
-    """(4, M) int64 inclusive pixel boxes ``u_lo, v_lo, u_hi, v_hi`` clipped to the image.
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(2, M) int64 inclusive pixel box corners ``lo = (u_lo, v_lo)``, ``hi``, in the image.
 
     The box is the analytic bounding box of the projected ellipse, intersected with the
     projection bound of the surfel's bounding sphere ``f r sqrt(x^2 + z^2) / (z (z - r))``
     (the only bound for ill-conditioned ellipses). A disk reaching the camera plane projects
     to an unbounded conic and gets the whole image. Empty boxes have ``lo > hi``.
     """
-    u_min, u_max, v_min, v_max = _ellipse_box_offsets(*coeffs[:5])
-    cx_, cy_, cz = c
+    lo, hi = _ellipse_box_offsets(conics)
+    cxy, cz = c[:2], c[2]
     scale = r / (cz * (cz - r)).masked_fill_(near, 0.0)  # inf where near
-    half_u = (cx_ * cx_).addcmul_(cz, cz).sqrt_().mul_(scale).mul_(view.fx)
-    half_v = (cy_ * cy_).addcmul_(cz, cz).sqrt_().mul_(scale).mul_(view.fy)
-    uc, vc = coeffs[8], coeffs[9]
+    half = (
+        (cxy * cxy).addcmul_(cz, cz).sqrt_().mul_(scale).mul_(c.new_tensor([[view.fx], [view.fy]]))
+    )
+    size = c.new_tensor([[width], [height]])
     # fmax / fmin skip the NaN offsets of ill-conditioned or unbounded conics.
-    u_lo = torch.fmax(u_min, -half_u).add_(uc).sub_(_BBOX_MARGIN_PX).ceil_().clamp_(0, width)
-    v_lo = torch.fmax(v_min, -half_v).add_(vc).sub_(_BBOX_MARGIN_PX).ceil_().clamp_(0, height)
-    u_hi = torch.fmin(u_max, half_u).add_(uc).add_(_BBOX_MARGIN_PX).floor_().clamp_(-1, width - 1)
-    v_hi = torch.fmin(v_max, half_v).add_(vc).add_(_BBOX_MARGIN_PX).floor_().clamp_(-1, height - 1)
-    return torch.stack((u_lo, v_lo, u_hi, v_hi)).to(torch.int64)
+    lo = torch.fmax(lo, -half).add_(conics.centre).sub_(_BBOX_MARGIN_PX).ceil_()
+    hi = torch.fmin(hi, half).add_(conics.centre).add_(_BBOX_MARGIN_PX).floor_()
+    lo = torch.clamp(lo, torch.zeros_like(size), size)
+    hi = torch.clamp(hi, torch.full_like(size, -1.0), size - 1)
+    return lo.to(torch.int64), hi.to(torch.int64)
 
 
 def _bucket_sizes(limit: int) -> list[int]:
@@ -513,38 +585,168 @@ def _bucket_sizes(limit: int) -> list[int]:
     return sizes
 
 
-def _sort_into_buckets(
-    windows: _SurfelWindows, keep: torch.Tensor, height: int, width: int
-) -> tuple[_SurfelWindows, list[tuple[int, int, int, int]]]:
-    """The kept windows ordered by bucket of (width, height), and the buckets.
+@dataclass(frozen=True)
+class _BucketLayout:
+    """The window buckets of one image size.
+
+    Bucket (group) ``g = 2 (levels l_u + l_v) + near`` holds windows of
+    ``shapes[g] = (size_u, size_v)`` pixels, the :func:`_bucket_sizes` of levels ``l_u`` and
+    ``l_v`` clipped to the image; ``near`` marks surfels that may reach the near plane.
+    """
+
+    levels: int
+    shapes: tuple[tuple[int, int], ...]  # (G,)
+    level: torch.Tensor  # (max(W, H) + 1,) int64 level of a box extent
+    sizes: torch.Tensor  # (2, G + 1) int64 (size_u, size_v) of each group, then 1 (dropped)
+
+
+@functools.lru_cache(maxsize=16)
+def _bucket_layout(width: int, height: int, device: torch.device) -> _BucketLayout:
+    """:class:`_BucketLayout` of a ``width x height`` image (memoised read-only constants)."""
+    limit = max(width, height)
+    sizes = _bucket_sizes(limit)
+    levels = len(sizes)
+    shapes = tuple(
+        (min(sizes[g // (2 * levels)], width), min(sizes[g // 2 % levels], height))
+        for g in range(2 * levels**2)
+    )
+    table = torch.tensor(sizes, device=device)
+    level = torch.bucketize(torch.arange(limit + 1, device=device), table)
+    sizes = torch.tensor([*shapes, (1, 1)], device=device).T.contiguous()
+    return _BucketLayout(levels, shapes, level, sizes)
+
+
+def _bucket_windows(
+    conics: _Conics,
+    near: torch.Tensor,
+    lo: torch.Tensor,
+    hi: torch.Tensor,
+    visible: torch.Tensor,
+    height: int,
+    width: int,
+) -> _Windows:
+    """Sort the visible windows into buckets of one (width, height) and place them in the image.
+
+    Each box widens to its bucket's size and shifts left / up to lie inside the image (extra
+    pixels fail the exact test). Surfels that may reach the near plane get buckets of their own,
+    which add a depth test. Sparse buckets join larger ones (see :func:`_merge_sparse_buckets`).
+
+    Args:
+        conics: the surfels' conics.
+        near: (M,) bool, the disk may reach the near plane.
+        lo: (2, M) int64 top-left pixel ``(u, v)`` of each box.
+        hi: (2, M) int64 bottom-right pixel (inclusive).
+        visible: (M,) bool, the surfels to draw.
+        height: image height.
+        width: image width.
+    """
+    layout = _bucket_layout(width, height, lo.device)
+    extent = hi - lo + 1
+    visible = visible & (torch.minimum(*extent) > 0)  # (int64 amin is slow on CPU)
+    level = layout.level.index_select(0, extent.clamp(0, layout.level.shape[0] - 1).view(-1))
+    level = level.view(2, -1)  # (2, M)
+    group = level[0].mul_(layout.levels).add_(level[1]).mul_(2).add_(near)
+    dropped = len(layout.shapes)
+    group = group.masked_fill_(~visible, dropped)  # sorted last
+    counts = torch.bincount(group, minlength=dropped + 1).tolist()
+    target = _merge_sparse_buckets(counts[:-1], layout.shapes)
+    group = torch.tensor([*target, dropped], device=lo.device).index_select(0, group)
+    buckets, start = [], 0
+    for g, count in enumerate(torch.bincount(group, minlength=dropped + 1)[:-1].tolist()):
+        if count:
+            buckets.append((*layout.shapes[g], g % 2 == 1, start, count))
+            start += count
+    size = layout.sizes.index_select(1, group)
+    corner = torch.minimum(lo, lo.new_tensor([[width], [height]]) - size)
+    order = torch.argsort(group.to(torch.int16))[:start]  # the local surfel numbers of the windows
+    inside, inverse_depth = _window_polynomials(conics, corner)
+    keys = inside.new_empty(3, start, 2)  # (tie-breaker, inverse depth) words of int64 keys
+    keys[:2, :, 1 - _HIGH_WORD] = 0.0
+    keys[2, :, 1 - _HIGH_WORD] = _tie_breakers(order)
+    keys[:, :, _HIGH_WORD] = inverse_depth.index_select(1, order)
+    base = (corner[1] * width + corner[0]).index_select(0, order)
+    return _Windows(inside.index_select(1, order), keys.view(3, -1), base, buckets)
+
+
+def _merge_sparse_buckets(counts: list[int], shapes: tuple[tuple[int, int], ...]) -> list[int]:
+    """The bucket each bucket's windows go to: sparse ones join the smallest that holds them.
+
+    Every bucket costs a few tensor operations whatever its size, so a bucket of ``c`` windows
+    of ``A`` pixels moves to the smallest-area bucket (same near flag, both sides at least as
+    large) when that adds at most :data:`_MERGE_PIXELS` candidate pixels, ``c (A' - A)``.
+    Sparsest buckets go first; a bucket that received windows may move on later.
+
+    Args:
+        counts: windows per bucket (group index ``g``, near flag ``g % 2``).
+        shapes: ``(size_u, size_v)`` of each bucket.
 
     Returns:
-        The reordered windows and, per non-empty bucket, ``(size_u, size_v, start, count)``:
-        windows ``start .. start + count - 1`` fit a ``size_v x size_u`` pixel window.
+        The target group of every group.
     """
-    sizes = _bucket_sizes(max(width, height))
-    lookup = torch.bucketize(torch.arange(max(width, height) + 1), torch.tensor(sizes))
-    lookup = lookup.to(windows.ids.device)
-    bucket_u, bucket_v = (lookup[e.clamp(0, max(width, height))] for e in windows.extent)
-    group = bucket_u * len(sizes) + bucket_v
-    group = group.masked_fill_(~keep, len(sizes) ** 2).to(torch.int32)  # dropped: sorted last
-    counts = torch.bincount(group, minlength=len(sizes) ** 2 + 1)[:-1].tolist()
-    buckets, start = [], 0
-    for g, count in enumerate(counts):
-        if count:
-            size_u, size_v = sizes[g // len(sizes)], sizes[g % len(sizes)]
-            buckets.append((min(size_u, width), min(size_v, height), start, count))
-            start += count
-    order = torch.argsort(group, stable=True)[:start]
-    return windows.select(order), buckets
+    alive = {g: c for g, c in enumerate(counts) if c}
+    by_area = sorted((shapes[g][0] * shapes[g][1], g) for g in alive)
+    target = list(range(len(counts)))
+    for g in sorted(alive, key=counts.__getitem__):
+        area, (size_u, size_v) = shapes[g][0] * shapes[g][1], shapes[g]
+        for other_area, h in by_area[bisect.bisect_left(by_area, (area, -1)) :]:
+            if alive[g] * (other_area - area) > _MERGE_PIXELS:
+                break
+            other_u, other_v = shapes[h]
+            if h != g and h in alive and h % 2 == g % 2 and other_u >= size_u and other_v >= size_v:
+                alive[h] += alive.pop(g)
+                target[g] = h
+                break
+    for g in range(len(target)):  # follow chains of moves
+        while target[target[g]] != target[g]:
+            target[g] = target[target[g]]
+    return target
 
 
-def _window_basis(size_u: int, size_v: int, device: torch.device) -> torch.Tensor:
-    """(9, 2 * size_v * size_u) monomials of the pixel offsets ``(i, j)`` of a window.
+def _window_polynomials(conics: _Conics, corner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``1 - q`` and the inverse depth in offsets ``(i, j)`` from each window's corner.
 
-    Row-major pixels; the first half of the columns evaluates the conic
-    ``(A, B, C, D, E, F) . (i^2, i j, j^2, i, j, 1)``, the second half the inverse depth
-    ``(g0, gu, gv) . (1, i, j)``, so one matrix product evaluates both for many windows.
+    Substituting ``du = i + a``, ``dv = j + b`` (``(a, b) = corner - centre``) into
+    ``q = du (A du + B dv + D) + dv (C dv + E)`` and ``g0 + gu du + gv dv``.
+
+    Args:
+        conics: the surfels' conics.
+        corner: (2, M) int64 top-left pixel ``(u0, v0)`` of each window.
+
+    Returns:
+        ``(inside, inverse_depth)``: (6, M) coefficients of ``1 - q`` on the monomials
+        ``(i^2, i j, j^2, i, j, 1)`` and (3, M) of the inverse depth on ``(i, j, 1)``.
+    """
+    (A, C), B, (D, E), (gu, gv) = conics.AC, conics.B, conics.DE, conics.g_uv
+    a, b = corner - conics.centre
+    qa = torch.addcmul(D, A, a).addcmul_(B, b)  # dq/ddu at (a, b) minus A a
+    qb = torch.addcmul(E, C, b)
+    q_i = qa + A * a
+    q_j = qb.addcmul(B, a).addcmul_(C, b)
+    q_1 = (qa * a).addcmul_(qb, b)
+    inside = torch.stack((A, B, C, q_i, q_j, q_1 - 1.0)).neg_()
+    inverse_depth = torch.stack((gu, gv, torch.addcmul(conics.g0, gu, a).addcmul_(gv, b)))
+    return inside, inverse_depth
+
+
+def _tie_breakers(local: torch.Tensor) -> torch.Tensor:
+    """(K,) float32 z-buffer tie-breakers of (K,) int64 local surfel numbers.
+
+    Their bits are ``_TIE_TOP - local``: positive normal floats, so a matrix product with one
+    non-zero (unit) term reproduces them bit for bit, decreasing with the surfel number, so
+    the max-reduced key of equal inverse depths holds the lowest.
+    """
+    return (_TIE_TOP - local).to(torch.int32).view(torch.float32)
+
+
+def _make_window_basis(
+    size_u: int, size_v: int, width: int, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Monomials and flat pixel offsets of the row-major pixels ``(i, j)`` of a window.
+
+    Returns:
+        ``(basis, offsets)``: (A, 6) float32 monomials ``(i^2, i j, j^2, i, j, 1)`` with
+        ``A = size_u * size_v`` (a matrix product with (6, m) coefficients evaluates m
+        polynomials at every pixel) and (A, 1) int64 offsets ``j W + i``.
     """
     j, i = torch.meshgrid(
         torch.arange(size_v, device=device, dtype=torch.float32),
@@ -552,66 +754,85 @@ def _window_basis(size_u: int, size_v: int, device: torch.device) -> torch.Tenso
         indexing="ij",
     )
     i, j = i.reshape(-1), j.reshape(-1)
-    one, zero = torch.ones_like(i), torch.zeros_like(i)
-    conic = torch.stack((i * i, i * j, j * j, i, j, one, zero, zero, zero))
-    inverse_depth = torch.stack((zero, zero, zero, zero, zero, zero, one, i, j))
-    return torch.cat((conic, inverse_depth), dim=1)
+    basis = torch.stack((i * i, i * j, j * j, i, j, torch.ones_like(i)), dim=1)
+    offsets = j.to(torch.int64).mul_(width).add_(i.to(torch.int64))
+    return basis, offsets[:, None]
 
 
-def _window_coefficients(part: _SurfelWindows, u0: torch.Tensor, v0: torch.Tensor) -> torch.Tensor:
-    """(m, 9) conic and inverse-depth coefficients in offsets from each window's corner.
-
-    Substituting ``du = i + a``, ``dv = j + b`` (``a = u0 - uc``, ``b = v0 - vc``) into
-    ``q = du (A du + B dv + D) + dv (C dv + E)`` and ``g0 + gu du + gv dv``.
-    """
-    A, B, C, D, E, g0, gu, gv, uc, vc = part.coeffs
-    a, b = u0 - uc, v0 - vc
-    qa = torch.addcmul(D, A, a).addcmul_(B, b)  # dq/ddu at (a, b) minus A a
-    qb = torch.addcmul(E, C, b)
-    rows = (
-        A,
-        B,
-        C,
-        qa + A * a,
-        qb.addcmul(B, a).addcmul_(C, b),
-        (qa * a).addcmul_(qb, b),
-        torch.addcmul(g0, gu, a).addcmul_(gv, b),
-        gu,
-        gv,
-    )
-    return torch.stack(rows).T  # a transposed view: the matrix product needs no copy
+_cached_window_basis = functools.lru_cache(maxsize=256)(_make_window_basis)
 
 
-def _rasterise_surfels(windows: _SurfelWindows, keep: torch.Tensor, keys: torch.Tensor) -> None:
-    """Ray-disk test of all candidate pixels, z-buffered into ``keys`` (H, W) in place.
+def _window_basis(
+    size_u: int, size_v: int, width: int, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_make_window_basis`, memoised for small windows (read-only constants)."""
+    if size_u * size_v <= _BASIS_CACHE_AREA:
+        return _cached_window_basis(size_u, size_v, width, device)
+    return _make_window_basis(size_u, size_v, width, device)
+
+
+def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> None:
+    """Ray-disk test of all candidate pixels, z-buffered into ``keys`` in place.
+
+    A candidate's key is the int64 read from two adjacent float32: the low word is the
+    window's tie-breaker and the high word the inverse depth, with the sign of ``1 - q``
+    (negative: the ray misses the disk). Positive floats order like their bits, so a
+    max-reduction keeps per pixel the largest inverse depth, i.e. the nearest hit, and of equal
+    ones the lowest surfel; misses are negative keys and never win. A matrix product per chunk
+    of windows writes the keys in place (the tie-breaker is a constant polynomial), a second
+    one ``1 - q``, and one ``copysign`` applies the test.
 
     Args:
-        windows: the surfel windows of one camera.
-        keep: (M,) bool, the windows to draw.
-        keys: (H, W) int64 z-buffer.
+        windows: the candidate windows of one camera.
+        keys: (H * W,) int64 flat z-buffer, in place (:data:`_NO_KEY` where empty).
+        width: image width W.
     """
-    height, width = keys.shape
-    flat_keys = keys.view(-1)
-    windows, buckets = _sort_into_buckets(windows, keep, height, width)
-    for size_u, size_v, first, count in buckets:
+    for size_u, size_v, near, first, count in windows.buckets:
         area = size_u * size_v
-        basis = _window_basis(size_u, size_v, keys.device)
-        offsets = basis[4, :area].long() * width + basis[3, :area].long()
+        basis, offsets = _window_basis(size_u, size_v, width, keys.device)
         step = max(1, _CHUNK // area)
         for start in range(first, first + count, step):
-            part = windows.narrow(start, min(step, first + count - start))
-            # Shift each window to lie inside the image; extra pixels fail the exact test.
-            u0 = part.corner[0].clamp_max(width - size_u)
-            v0 = part.corner[1].clamp_max(height - size_v)
-            values = _window_coefficients(part, u0, v0) @ basis
-            q, inv_depth = values[:, :area], values[:, area:]
-            miss = q > 1.0
-            if bool(part.near.any()):
-                miss |= (inv_depth <= 0) | (inv_depth >= 1.0 / MIN_DEPTH)
-            candidate = _pack_keys(inv_depth.reciprocal(), part.ids[:, None])
-            slots = (v0 * width + u0)[:, None] + offsets
-            candidate = candidate.masked_fill_(miss, _EMPTY_KEY).view(-1)
-            flat_keys.scatter_reduce_(0, slots.view(-1), candidate, "amin")
+            stop = min(start + step, first + count)
+            keys_pairs = windows.keys[:, 2 * start : 2 * stop]
+            candidates = torch.mm(basis[:, 3:], keys_pairs)  # (area, 2 m)
+            inside = torch.mm(basis, windows.inside[:, start:stop])  # (area, m)
+            inverse_depth = candidates[:, _HIGH_WORD::2]
+            if near:  # hits must also be in front of the near plane
+                miss = (inside < 0) | (inverse_depth <= 0) | (inverse_depth >= 1.0 / MIN_DEPTH)
+                inverse_depth.masked_fill_(miss, -1.0)
+            else:
+                inverse_depth.copysign_(inside)
+            slots = torch.add(windows.base[start:stop], offsets)
+            keys.scatter_reduce_(0, slots.view(-1), candidates.view(torch.int64).view(-1), "amax")
+
+
+def _resolve_surfel_keys(
+    keys: torch.Tensor,
+    surfels: _SurfelCandidates,
+    ids: torch.Tensor,
+    depth: torch.Tensor,
+    normals: torch.Tensor,
+) -> None:
+    """Write the surfel ids, depths and normals of a z-buffer into the output images.
+
+    Args:
+        keys: (P,) int64 z-buffer (see :func:`_rasterise_surfels`).
+        surfels: the camera's candidate surfels (the local numbering).
+        ids: (P,) int64 output, map index or -1.
+        depth: (P,) float32 output, z-depth or 0.
+        normals: (3, P) float32 output, unit camera-frame normal or 0.
+    """
+    count = surfels.ids.shape[0]
+    low, high = _key_words(keys)
+    inverse_depth = high.view(torch.float32)
+    hit = inverse_depth > 0  # empty pixels: _NO_KEY or a miss, high word -0.0 or negative
+    torch.reciprocal(torch.where(hit, inverse_depth, math.inf), out=depth)  # empty: 0
+    local = torch.sub(_TIE_TOP, torch.where(hit, low, _TIE_TOP - count))  # `count`: none
+    none = torch.full((1,), -1, dtype=torch.int64, device=keys.device)
+    torch.index_select(torch.cat((surfels.ids, none)), 0, local, out=ids)
+    table = torch.cat((surfels.normals, surfels.normals.new_zeros(3, 1)), dim=1)  # (3, M + 1)
+    for row, out in zip(table, normals, strict=True):
+        torch.index_select(row, 0, local, out=out)
 
 
 def _check_surfels(centers: torch.Tensor, normals: torch.Tensor, radii: torch.Tensor) -> None:
@@ -624,9 +845,18 @@ def _check_surfels(centers: torch.Tensor, normals: torch.Tensor, radii: torch.Te
             f"centers, normals and radii must have the same length N, got "
             f"{n}, {normals.shape[0]} and {radii.shape[0]}"
         )
-    _check_map_size(n, "surfels")
-    if bool((radii <= 0).any()):
+    _check_map_size(n, "surfels", _MAX_SURFELS)
+    if n == 0:
+        return
+    # One reduction each decides the common case; the exact (slower) tests run only when it
+    # is inconclusive: a NaN entry or a real violation.
+    if not bool(radii.min() > 0) and bool((radii <= 0).any()):
         raise ValueError("surfel radii must be positive")
+    if normals.dtype in (torch.float32, torch.float64):
+        # A zero row has a zero projection on any direction; a non-zero one almost never does.
+        direction = torch.tensor(_PROBE_DIRECTION, dtype=normals.dtype, device=normals.device)
+        if bool(torch.mv(normals, direction).abs_().min() > 0):
+            return
     if bool((normals == 0).all(-1).any()):
         raise ValueError("surfel normals must be non-zero")
 
@@ -681,30 +911,21 @@ def render_surfel_index(
     centers = centers.to(torch.float32)
     normals = normals.to(torch.float32)
     radii = radii.to(torch.float32)
-    keys = _empty_keys((batch, height, width), centers.device)
+    device = centers.device
+    ids = torch.empty((batch, height * width), dtype=torch.int64, device=device)
+    depth = torch.empty((batch, height * width), dtype=torch.float32, device=device)
+    normals_cam = torch.empty((batch, 3, height * width), dtype=torch.float32, device=device)
     for b, view in enumerate(_views(T_wc, camera)):
-        windows, keep = _surfel_windows(
-            view.to_camera(centers.T),
-            view.R_cw @ normals.T,
-            radii,
-            view,
-            height,
-            width,
-            cull_backfaces,
-        )
-        _rasterise_surfels(windows, keep, keys[b])
-    ids, depth = _unpack_keys(keys)
-    return SurfelRender(ids, depth, _camera_normals(normals, ids, T_wc))
-
-
-def _camera_normals(normals: torch.Tensor, ids: torch.Tensor, T_wc: torch.Tensor) -> torch.Tensor:
-    """(B, 3, H, W) unit camera-frame normals of the surfels in an id map, 0 where none."""
-    R_cw = T_wc[:, :3, :3].transpose(-1, -2).to(torch.float32)
-    world = _gather_channels_first(normals, ids)  # (B, 3, H, W)
-    cam = torch.einsum("bij,bjhw->bihw", R_cw, world)
-    x, y, z = cam.unbind(1)
-    norm = (x * x).addcmul_(y, y).addcmul_(z, z).sqrt_().clamp_min_(torch.finfo(cam.dtype).tiny)
-    return cam.div_(norm[:, None]).masked_fill_((ids < 0)[:, None], 0.0)
+        surfels = _surfel_candidates(centers, normals, radii, view, height, width)
+        windows = _surfel_windows(surfels, view, height, width, cull_backfaces)
+        keys = torch.full((height * width,), _NO_KEY, dtype=torch.int64, device=device)
+        _rasterise_surfels(windows, keys, width)
+        _resolve_surfel_keys(keys, surfels, ids[b], depth[b], normals_cam[b])
+    return SurfelRender(
+        ids.view(batch, height, width),
+        depth.view(batch, height, width),
+        normals_cam.view(batch, 3, height, width),
+    )
 
 
 # ---------------------------------------------------------------------------- points
