@@ -72,6 +72,8 @@ class RelocConfig:
         min_matches: fewest 2D-3D matches to attempt PnP.
         projection_radius_px: window of the projection search around each projected point.
         projection_ratio: ratio test of the projection search, or ``None``.
+        stop_inliers: stop processing further canonical keyframes once a candidate pose has
+            this many inliers (``None``: always process ``min(N_db, N_max)``, as seed 1).
         essential: settings of the essential check. It only pre-filters matches for PnP, so
             its local optimisation is off by default: on the default scene that halves its
             time and leaves the refined inlier counts unchanged.
@@ -90,6 +92,7 @@ class RelocConfig:
     min_matches: int = 12
     projection_radius_px: float = 10.0
     projection_ratio: float | None = 0.9
+    stop_inliers: int | None = None
     essential: EssentialCheckConfig = field(
         default_factory=lambda: EssentialCheckConfig(
             min_iterations=64, lo_rounds=0, refine_iterations=0
@@ -288,6 +291,9 @@ class HierarchicalRelocalizer:
             candidate = self._candidate(int(cluster[0]), features, camera, generator, timer)
             if candidate is not None and (best is None or candidate.num_inliers > best.num_inliers):
                 best = candidate
+            stop = self.config.stop_inliers
+            if best is not None and stop is not None and best.num_inliers >= stop:
+                break
         return self._result(best, retrieved, timer)
 
     # ------------------------------------------------------------------ stages
