@@ -57,10 +57,8 @@ Example:
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,6 +68,7 @@ from kornia.geometry.epipolar import find_essential, sampson_epipolar_distance
 from diffloc.checks import ShapeError, check_finite, check_shape
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import hat, so3_exp
+from diffloc.threads import intra_op_threads
 
 __all__ = ["EssentialCheckConfig", "EssentialCheckResult", "essential_check"]
 
@@ -200,20 +199,6 @@ class _Models:
 
     def __getitem__(self, index: torch.Tensor | slice) -> _Models:
         return _Models(self.E[index], self.err2[index], self.cost[index])
-
-
-@contextlib.contextmanager
-def _intra_op_threads(count: int | None) -> Iterator[None]:
-    """Run the body with ``count`` torch intra-op threads (``None``: unchanged)."""
-    previous = torch.get_num_threads()
-    if count is None or count == previous:
-        yield
-        return
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 def _normalised(keypoints: torch.Tensor, camera: PinholeCamera) -> tuple[torch.Tensor, float]:
@@ -468,7 +453,7 @@ def essential_check(
     for name, cam in (("camera_kf", camera_kf), ("camera_query", camera_query)):
         if cam.batch_shape != torch.Size([]):
             raise ValueError(f"{name} must be one camera, got batch {tuple(cam.batch_shape)}")
-    with _intra_op_threads(config.num_threads):
+    with intra_op_threads(config.num_threads):
         return _essential_check(uv_kf, uv_q, camera_kf, camera_query, config, generator)
 
 

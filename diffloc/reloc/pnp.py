@@ -58,10 +58,8 @@ Example:
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import torch
@@ -72,6 +70,7 @@ from diffloc.geometry.se3 import invert
 from diffloc.optim.lm import cayley_rotation
 from diffloc.reloc.epnp import epnp_flat
 from diffloc.reloc.p3p import p3p_flat
+from diffloc.threads import intra_op_threads
 
 __all__ = [
     "PnPRansacConfig",
@@ -661,7 +660,7 @@ def solve_pnp_ransac(
             f"solve_pnp_ransac takes one camera, got batch {tuple(camera.batch_shape)}"
         )
     n = points_world.shape[0]
-    with _intra_op_threads(config.num_threads):
+    with intra_op_threads(config.num_threads):
         # RANSAC is not differentiable: inference mode saves autograd bookkeeping on every
         # one of its many small operations. The outputs are made outside it, as ordinary
         # tensors.
@@ -691,20 +690,6 @@ def solve_pnp_ransac(
             success=best.num_inliers >= config.min_inliers,
             reprojection_errors=err2.sqrt(),
         )
-
-
-@contextlib.contextmanager
-def _intra_op_threads(count: int | None) -> Iterator[None]:
-    """Run the body with ``count`` torch intra-op threads (``None``: unchanged)."""
-    previous = torch.get_num_threads()
-    if count is None or count == previous:
-        yield
-        return
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 def _solve(
