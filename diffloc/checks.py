@@ -8,6 +8,8 @@ a number must match exactly.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -57,3 +59,34 @@ def check_positive_int(value: object, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int | np.integer) or value <= 0:
         raise ValueError(f"{name} must be a positive integer, got {value!r}")
     return int(value)
+
+
+def check_ransac_settings(config: object, min_sample: int) -> None:
+    """Validate the settings every RANSAC config of diffloc shares (PnP, essential check).
+
+    Reads ``threshold_px``, ``confidence``, ``min_iterations``, ``max_iterations``,
+    ``batch_size``, ``min_inliers``, ``lo_rounds``, ``refine_iterations``, ``bailout_points``
+    and ``num_threads`` from ``config``.
+
+    Args:
+        config: the settings object.
+        min_sample: the minimal sample size (``min_inliers`` may not be smaller).
+
+    Raises:
+        ValueError: the first out-of-range setting, named.
+    """
+    c = config
+    if not (math.isfinite(c.threshold_px) and c.threshold_px > 0):
+        raise ValueError(f"threshold_px must be positive, got {c.threshold_px}")
+    if not 0.0 < c.confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {c.confidence}")
+    if c.batch_size < 1 or c.max_iterations < 1:
+        raise ValueError("batch_size and max_iterations must be positive")
+    if not 0 <= c.min_iterations <= c.max_iterations:
+        raise ValueError("min_iterations must be in [0, max_iterations]")
+    if c.min_inliers < min_sample:
+        raise ValueError(f"min_inliers must be at least {min_sample}, got {c.min_inliers}")
+    if min(c.lo_rounds, c.refine_iterations, c.bailout_points) < 0:
+        raise ValueError("lo_rounds, refine_iterations and bailout_points must be >= 0")
+    if c.num_threads is not None and c.num_threads < 1:
+        raise ValueError(f"num_threads must be None or positive, got {c.num_threads}")

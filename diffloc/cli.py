@@ -90,6 +90,15 @@ def _results_dir(cfg: DictConfig) -> Path:
     return Path(cfg.dataset) / "reloc"
 
 
+def _print_results(results: dict, out: Path) -> None:
+    """The metrics table, the plot paths and where ``results.json`` is."""
+    print(results["table"])
+    for name, entry in results["sequences"].items():
+        for kind, path in entry["plots"].items():
+            print(f"{name} {kind}: {path}")
+    print(f"results: {out / 'results.json'}")
+
+
 def run_relocalize(cfg: DictConfig) -> dict:
     """``task=relocalize``: relocalise the query sequences; print the table and plot paths."""
     out = _results_dir(cfg)
@@ -100,11 +109,7 @@ def run_relocalize(cfg: DictConfig) -> dict:
         out,
         show_progress=cfg.progress,
     )
-    print(results["table"])
-    for name, entry in results["sequences"].items():
-        for kind, path in entry["plots"].items():
-            print(f"{name} {kind}: {path}")
-    print(f"results: {out / 'results.json'}")
+    _print_results(results, out)
     return results
 
 
@@ -146,11 +151,8 @@ def run_main(cfg: DictConfig) -> dict:
     results["peak_rss_mb"] = peak_rss_mb()
     results["wall_s"] = round(time.perf_counter() - start, 1)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
-    print(results["table"])
-    for name, entry in results["sequences"].items():
-        for kind, path in entry["plots"].items():
-            print(f"{name} {kind}: {path}")
-    print(f"results: {out / 'results.json'} (peak memory {results['peak_rss_mb']:.0f} MB)")
+    _print_results(results, out)
+    print(f"peak memory {results['peak_rss_mb']:.0f} MB, {results['wall_s']:.0f} s")
     return results
 
 

@@ -65,7 +65,7 @@ import numpy as np
 import torch
 from kornia.geometry.epipolar import find_essential, sampson_epipolar_distance
 
-from diffloc.checks import ShapeError, check_finite, check_shape
+from diffloc.checks import ShapeError, check_finite, check_ransac_settings, check_shape
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import hat, so3_exp
 from diffloc.threads import intra_op_threads
@@ -127,22 +127,9 @@ class EssentialCheckConfig:
     num_threads: int | None = 1
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.threshold_px) and self.threshold_px > 0):
-            raise ValueError(f"threshold_px must be positive, got {self.threshold_px}")
-        if not 0.0 < self.confidence < 1.0:
-            raise ValueError(f"confidence must be in (0, 1), got {self.confidence}")
-        if self.batch_size < 1 or self.max_iterations < 1:
-            raise ValueError("batch_size and max_iterations must be positive")
-        if not 0 <= self.min_iterations <= self.max_iterations:
-            raise ValueError("min_iterations must be in [0, max_iterations]")
-        if self.min_inliers < _SAMPLE_SIZE:
-            raise ValueError(f"min_inliers must be at least 5, got {self.min_inliers}")
-        if min(self.lo_rounds, self.refine_iterations, self.bailout_points) < 0:
-            raise ValueError("lo_rounds, refine_iterations and bailout_points must be >= 0")
+        check_ransac_settings(self, _SAMPLE_SIZE)
         if self.lo_candidates < 1:
             raise ValueError(f"lo_candidates must be >= 1, got {self.lo_candidates}")
-        if self.num_threads is not None and self.num_threads < 1:
-            raise ValueError(f"num_threads must be None or positive, got {self.num_threads}")
 
 
 @dataclass(frozen=True)
