@@ -19,7 +19,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +29,7 @@ from scipy.spatial import cKDTree
 
 from diffloc.checks import ShapeError, check_finite, check_positive_int, check_shape
 from diffloc.io.atomic import atomic_write_bytes
+from diffloc.io.npz import read_npz_archive
 
 __all__ = ["BACKENDS", "INDEX_FORMAT_VERSION", "INDEX_KIND", "RetrievalIndex"]
 
@@ -203,20 +203,11 @@ class RetrievalIndex:
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise FileNotFoundError(f"retrieval index not found: {path}")
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, EOFError, ValueError, zipfile.BadZipFile) as exc:
-        raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise ValueError(f"{path}: not an .npz archive (a single array)")
-    with data:
-        missing = [name for name in _ARRAYS if name not in data.files]
-        if missing:
-            raise ValueError(f"{path}: not a retrieval index (missing arrays {missing})")
-        try:
-            return {name: data[name] for name in _ARRAYS}
-        except (OSError, EOFError, ValueError, zipfile.BadZipFile) as exc:
-            raise ValueError(f"{path}: unreadable array in the archive ({exc})") from exc
+    arrays = read_npz_archive(path)
+    missing = [name for name in _ARRAYS if name not in arrays]
+    if missing:
+        raise ValueError(f"{path}: not a retrieval index (missing arrays {missing})")
+    return {name: arrays[name] for name in _ARRAYS}
 
 
 def _parse_metadata(path: Path, raw: np.ndarray) -> dict[str, Any]:

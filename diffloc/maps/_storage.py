@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import zipfile
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,6 +17,7 @@ import numpy as np
 import torch
 
 from diffloc.io.atomic import atomic_open
+from diffloc.io.npz import read_npz_archive
 from diffloc.io.ply import PointCloudData
 
 EXACT_COLOR_PROPERTIES = ("red_f32", "green_f32", "blue_f32")
@@ -49,21 +48,6 @@ def write_npz(
         np.savez(handle, format_version=np.array(version, np.int64), kind=np.array(kind), **arrays)
 
 
-def _read_archive(path: Path) -> dict[str, np.ndarray]:
-    """All arrays of an ``.npz`` file; any unreadable content becomes a ``ValueError``."""
-    try:
-        loaded = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
-    if not isinstance(loaded, np.lib.npyio.NpzFile):
-        raise ValueError(f"{path}: not an .npz archive (it holds a single .npy array)")
-    try:
-        with loaded:
-            return {name: loaded[name] for name in loaded.files}
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
-        raise ValueError(f"{path}: corrupt .npz archive ({exc})") from exc
-
-
 def read_npz(
     path: str | os.PathLike,
     kind: str,
@@ -92,7 +76,7 @@ def read_npz(
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"map file not found: {path}")
-    arrays = _read_archive(path)
+    arrays = read_npz_archive(path)
     if "format_version" not in arrays or "kind" not in arrays:
         raise ValueError(
             f"{path}: no 'format_version'/'kind' entries, so not a diffloc {kind} file "

@@ -16,7 +16,6 @@ Example:
 
 from __future__ import annotations
 
-import io
 import json
 import os
 from collections.abc import Iterable, Sequence
@@ -32,7 +31,8 @@ from diffloc.features.dense import DenseXFeat
 from diffloc.features.global_ import BagOfWords, NetVLAD
 from diffloc.features.index import RetrievalIndex
 from diffloc.features.local import Features
-from diffloc.io.atomic import atomic_write_bytes, atomic_write_text
+from diffloc.io.atomic import atomic_open, atomic_write_text
+from diffloc.io.npz import read_npz_archive
 
 __all__ = [
     "BowConfig",
@@ -98,16 +98,10 @@ class BowConfig:
 
 def _write_folder(path: Path, meta: dict, arrays: dict[str, torch.Tensor]) -> Path:
     path.mkdir(parents=True, exist_ok=True)
-    buffer = _npz_bytes({k: v.detach().cpu().numpy() for k, v in arrays.items()})
-    atomic_write_bytes(path / "arrays.npz", buffer)
+    with atomic_open(path / "arrays.npz", "wb") as handle:
+        np.savez(handle, **{k: v.detach().cpu().numpy() for k, v in arrays.items()})
     atomic_write_text(path / "retriever.json", json.dumps(meta, indent=2) + "\n")
     return path
-
-
-def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
-    stream = io.BytesIO()
-    np.savez(stream, **arrays)
-    return stream.getvalue()
 
 
 def _read_folder(path: Path) -> tuple[dict, dict[str, torch.Tensor]]:
@@ -121,12 +115,8 @@ def _read_folder(path: Path) -> tuple[dict, dict[str, torch.Tensor]]:
         raise ValueError(f"{meta_path} is not valid JSON: {error}") from error
     if not isinstance(meta, dict) or meta.get("format_version") != FORMAT_VERSION:
         raise ValueError(f"{meta_path}: not a diffloc retriever (format {FORMAT_VERSION})")
-    try:
-        with np.load(array_path, allow_pickle=False) as data:
-            arrays = {k: torch.from_numpy(data[k].copy()) for k in data.files}
-    except (OSError, ValueError) as error:
-        raise ValueError(f"{array_path} is not a readable .npz archive: {error}") from error
-    return meta, arrays
+    arrays = read_npz_archive(array_path)
+    return meta, {k: torch.from_numpy(v) for k, v in arrays.items()}
 
 
 class NetVLADRetriever:
