@@ -113,9 +113,10 @@ def _retriever(
 ) -> NetVLADRetriever | BowRetriever:
     """Load the cached retriever of this database (same settings, newer than the database),
     or fit and cache it."""
-    folder = database_dir(dataset, db_cfg) / f"retriever_{cfg.retriever}"
+    db_folder = database_dir(dataset, db_cfg)
+    folder = db_folder / f"retriever_{cfg.retriever}"
     settings = asdict(cfg.netvlad if cfg.retriever == "netvlad" else cfg.bow)
-    built_path = database_dir(dataset, db_cfg) / "build_db.json"
+    built_path = db_folder / "build_db.json"
     saved = folder / "retriever.json"
     if saved.is_file() and saved.stat().st_mtime >= built_path.stat().st_mtime:
         retriever = load_retriever(folder)
@@ -297,7 +298,7 @@ def relocalize_dataset(
     results["database"] = str(database_dir(dataset, db_cfg) / cfg.database)
     results["config"] = asdict(cfg)
     table = markdown_table(
-        [{"sequence": r["sequence"], **r} for r in rows],
+        rows,
         [
             Column("sequence"),
             Column("queries"),
