@@ -8,13 +8,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from diffloc.database.builder import BuilderConfig, DatabaseBuilder
+from diffloc.database.builder import ASSOCIATIONS, BuilderConfig, DatabaseBuilder
 from diffloc.database.database import VisualDatabase
 from diffloc.features.local import XFeatConfig, make_extractor
 from diffloc.geometry.se3 import invert, transform_points
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.pipeline.database_stage import perturb_positions
 
 FINE = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
 EXTRACTOR = XFeatConfig(max_keypoints=512)
@@ -103,3 +104,64 @@ def test_update_with_a_second_sequence_matches_existing_points(
     old_points = torch.unique(obs[obs[:, 0] < before, 2])
     matched_old = torch.isin(new_keyframe_obs[:, 2], old_points)
     assert int(matched_old.sum()) > 20
+
+
+def true_world_points(db: VisualDatabase, seq, truth: torch.Tensor) -> torch.Tensor:
+    """(N, 3) world point of every keypoint: lifted with the true depth at the true pose
+    (keyframe ``k`` is frame ``k``: nothing is culled on the tiny scene); NaN without depth."""
+    keyframes = db.keypoint_keyframes()
+    world = torch.full((len(keyframes), 3), float("nan"), dtype=torch.float64)
+    for k in range(db.num_keyframes):
+        rows = keyframes == k
+        camera = db.camera(k)
+        uv = db.keypoints[rows].double()
+        depth = seq.load_depth(k).double().reshape(camera.height, camera.width)
+        u = uv[:, 0].round().long().clamp(0, camera.width - 1)
+        v = uv[:, 1].round().long().clamp(0, camera.height - 1)
+        z = torch.where(depth[v, u] > 0, depth[v, u], torch.nan)
+        world[rows] = transform_points(truth[k], camera.unproject(uv, z))
+    return world
+
+
+def track_errors_px(db: VisualDatabase, seq, truth: torch.Tensor) -> torch.Tensor:
+    """(M,) reprojection error (pixels) under the true geometry of every observation of a map
+    point except its first: the first observer's keypoint, lifted with the true depth at its
+    true pose, projected at the observing keyframe's true pose."""
+    assert db.num_keyframes == len(truth)
+    world = true_world_points(db, seq, truth)
+    obs = db.observations()
+    first = torch.full((db.num_points,), len(world)).scatter_reduce(
+        0, obs[:, 2], obs[:, 1], reduce="amin"
+    )
+    later = obs[obs[:, 1] != first[obs[:, 2]]]
+    errors = []
+    for k in range(db.num_keyframes):
+        rows = later[later[:, 0] == k]
+        uv, _ = db.camera(k).project_world(world[first[rows[:, 2]]], truth[k])
+        errors.append((uv - db.keypoints[rows[:, 1]].double()).norm(dim=-1))
+    errors = torch.cat(errors)
+    return errors[errors.isfinite()]
+
+
+def test_epipolar_association_is_not_steered_by_noisy_poses(scene: Path, surfels: SurfelMap):
+    """With 0.3 m noise on the positions the guided search around the (wrong) projections
+    makes wrong tracks; descriptor matching verified by essential matrices does not use the
+    poses, so its tracks stay as accurate as when built at the true poses."""
+    seq = read_sequence(scene, "mapping")
+    truth = seq.T_wc.double().clone()
+    noisy = perturb_positions(truth, 0.3, torch.Generator().manual_seed(0))
+    median_px, tracks = {}, {}
+    for association in ASSOCIATIONS:
+        for name, poses in (("true", truth), ("noisy", noisy)):
+            seq.T_wc = poses
+            config = BuilderConfig(association=association)
+            db = DatabaseBuilder(config, surfels, make_extractor(EXTRACTOR)).build(
+                seq, show_progress=False
+            )
+            errors = track_errors_px(db, seq, truth)
+            median_px[association, name], tracks[association, name] = errors.median(), len(errors)
+    assert tracks["epipolar", "true"] > 50
+    assert tracks["epipolar", "noisy"] >= 0.8 * tracks["epipolar", "true"]
+    assert median_px["epipolar", "noisy"] < 3.0
+    assert median_px["epipolar", "noisy"] < 1.25 * median_px["epipolar", "true"]
+    assert median_px["projection", "noisy"] > 2 * median_px["epipolar", "noisy"]

@@ -5,9 +5,12 @@ For every image (keyframe) with its pose ``T_wc``:
 1. extract local features and render the global surfel index map at the pose;
 2. associate every keypoint with the surfel at its (rounded) pixel and store its neighbouring
    surfel set (surfels within the keypoint's radius, ``size / 2``);
-3. collect the covisible keyframes (those observing any of this image's surfels), project
-   their map points into the image (dropping points behind the rendered surface) and match
-   them to the keypoints in a local window with Lowe's ratio test;
+3. collect the covisible keyframes (those observing any of this image's surfels) and match
+   their map points to the keypoints: ``association="projection"`` projects them into the
+   image (dropping points behind the rendered surface) and matches in a local window with
+   Lowe's ratio test (seed 1); ``association="epipolar"`` matches by descriptor alone and
+   keeps the matches two-view essential checks agree with, so noisy poses do not steer the
+   tracks (:mod:`diffloc.database.epipolar_matching`);
 4. matched keypoints become observations of the map points, whose descriptors are re-fused
    (the observation descriptor with the smallest median distance to the others);
 5. unmatched keypoints on a surfel create new map points at the surfel centre (a later
@@ -37,6 +40,7 @@ from diffloc.database.culling import (
     cull_unconfirmed_points,
 )
 from diffloc.database.database import VisualDatabase
+from diffloc.database.epipolar_matching import EpipolarMatchingConfig, match_epipolar
 from diffloc.features.local import Features, LocalFeatureExtractor
 from diffloc.features.matching import match_guided
 from diffloc.geometry.camera import PinholeCamera
@@ -46,7 +50,9 @@ from diffloc.maps.surfel import SurfelMap
 from diffloc.progress import progress
 from diffloc.render.splat import SurfelRender, neighbour_surfels, render_surfel_index
 
-__all__ = ["BuilderConfig", "DatabaseBuilder"]
+__all__ = ["ASSOCIATIONS", "BuilderConfig", "DatabaseBuilder"]
+
+ASSOCIATIONS = ("projection", "epipolar")
 
 
 @dataclass
@@ -54,6 +60,10 @@ class BuilderConfig:
     """Thresholds of the database builder.
 
     Attributes:
+        association: how a new keyframe finds the map points it observes: ``"projection"``
+            (guided search around the projections at the given pose, seed 1) or
+            ``"epipolar"`` (descriptor matching verified by essential matrices, independent
+            of the poses; use it when the poses are noisy).
         guided_radius_px: search radius (pixels) around each projected map point in which
             keypoints are match candidates (the "local grid" of seed 1 / ORB-SLAM).
         ratio: Lowe's ratio test threshold (best / second-best distance), or ``None``.
@@ -64,16 +74,23 @@ class BuilderConfig:
         occlusion_tolerance_m: a projected map point farther than the rendered surface at its
             pixel by more than this (metres) is hidden and not matched.
         culling: thresholds of the culling rules.
+        epipolar: settings of the ``"epipolar"`` association.
+        seed: seed of the random source of the essential checks.
     """
 
+    association: str = "projection"
     guided_radius_px: float = 8.0
     ratio: float | None = 0.8
     max_descriptor_distance: float | None = None
     max_keypoints: int | None = None
     occlusion_tolerance_m: float = 0.1
     culling: CullingConfig = field(default_factory=CullingConfig)
+    epipolar: EpipolarMatchingConfig = field(default_factory=EpipolarMatchingConfig)
+    seed: int = 0
 
     def __post_init__(self) -> None:
+        if self.association not in ASSOCIATIONS:
+            raise ValueError(f"association must be one of {ASSOCIATIONS}, got {self.association!r}")
         if not self.guided_radius_px > 0:
             raise ValueError(f"guided_radius_px must be positive, got {self.guided_radius_px}")
         if self.max_keypoints is not None and self.max_keypoints <= 0:
@@ -121,6 +138,7 @@ class DatabaseBuilder:
         self.surfel_map = surfel_map
         self.extractor = extractor
         self.database = database
+        self.generator = torch.Generator().manual_seed(config.seed)
         self.timings_ms: dict[str, float] = {"features": 0.0, "database": 0.0}
         """Accumulated wall time of :meth:`add_image`: feature extraction and the rest."""
 
@@ -234,11 +252,40 @@ class DatabaseBuilder:
         render: SurfelRender,
     ) -> torch.Tensor:
         """Match the covisible map points; returns (N,) bool keypoints that got a point."""
-        keyframe = db.num_keyframes - 1
+        if self.config.association == "epipolar":
+            keypoint_ids, point_ids = match_epipolar(
+                db,
+                covisible,
+                features,
+                camera,
+                self.config.epipolar,
+                self.generator,
+                ratio=self.config.ratio,
+                max_descriptor_distance=self.config.max_descriptor_distance,
+            )
+        else:
+            keypoint_ids, point_ids = self._match_projected(
+                db, covisible, features, T_wc, camera, render
+            )
+        db.add_observations(db.num_keyframes - 1, keypoint_ids, point_ids)
+        db.fuse_descriptors(point_ids)
         matched = torch.zeros(len(features), dtype=torch.bool)
+        matched[keypoint_ids] = True
+        return matched
+
+    def _match_projected(
+        self,
+        db: VisualDatabase,
+        covisible: torch.Tensor,
+        features: Features,
+        T_wc: torch.Tensor,
+        camera: PinholeCamera,
+        render: SurfelRender,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Guided search around the projected map points: ``(keypoint_ids, point_ids)``."""
         points = db.points_observed_by(covisible)
         if len(points) == 0:
-            return matched
+            return points, points
         points_cam = transform_points(invert(T_wc.to(torch.float64)), db.point_positions[points])
         uv, valid = camera.to(torch.float64).project(points_cam)
         valid &= camera.in_image(uv)
@@ -256,11 +303,7 @@ class DatabaseBuilder:
             ratio=self.config.ratio,
             max_distance=self.config.max_descriptor_distance,
         )
-        point_ids, keypoint_ids = points[matches.indices[:, 0]], matches.indices[:, 1]
-        db.add_observations(keyframe, keypoint_ids, point_ids)
-        db.fuse_descriptors(point_ids)
-        matched[keypoint_ids] = True
-        return matched
+        return matches.indices[:, 1], points[matches.indices[:, 0]]
 
     def _create_points(
         self, db: VisualDatabase, keyframe: int, surfels: torch.Tensor, matched: torch.Tensor

@@ -1,0 +1,131 @@
+"""Pose-independent association of a new keyframe with the map points of covisible keyframes.
+
+The builder's guided search (:func:`diffloc.features.matching.match_guided`) looks for each map
+point near its projection at the new keyframe's pose. When the database poses are noisy (seed 1
+Table III) the projection is off by tens of pixels; the search then either misses the true
+keypoint or accepts a wrong one near the wrong projection, and these wrong tracks pull the
+surfel optimisation towards the noisy poses. This module associates without using any
+position:
+
+1. every keypoint of the new keyframe is matched to the fused descriptors of the candidate map
+   points (those of the covisible keyframes) by mutual nearest neighbours and Lowe's ratio test;
+2. the matches are verified two-view: for the ``verify_keyframes`` covisible keyframes that
+   observe most matched points, an essential matrix between that keyframe's detected keypoints
+   and the new keypoints is fitted by RANSAC (:func:`diffloc.reloc.essential.essential_check`,
+   which needs only the intrinsics); a match is kept when it is an inlier of every successful
+   check whose keyframe observes its point, and at least one such check exists.
+
+A wrong match that happens to lie on one keyframe's epipolar line is unlikely to lie on the
+line of another keyframe with a different baseline, hence "every" rather than "any".
+
+Example:
+    >>> g = torch.Generator().manual_seed(0)
+    >>> config = EpipolarMatchingConfig()
+    >>> kp, pts = match_epipolar(db, covisible, features, camera, config, g)  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from diffloc.database.database import VisualDatabase
+from diffloc.features.local import Features
+from diffloc.features.matching import match_descriptors
+from diffloc.geometry.camera import PinholeCamera
+from diffloc.reloc.essential import EssentialCheckConfig, essential_check
+
+__all__ = ["EpipolarMatchingConfig", "match_epipolar"]
+
+
+@dataclass
+class EpipolarMatchingConfig:
+    """Settings of :func:`match_epipolar`.
+
+    Attributes:
+        verify_keyframes: how many covisible keyframes (most matched points first) check the
+            matches with an essential matrix.
+        essential: RANSAC settings of the check (its ``min_inliers`` is the fewest matches
+            a keyframe must share to verify anything).
+    """
+
+    verify_keyframes: int = 3
+    essential: EssentialCheckConfig = field(
+        default_factory=lambda: EssentialCheckConfig(
+            threshold_px=2.0, min_iterations=64, lo_rounds=0, refine_iterations=0
+        )
+    )
+
+    def __post_init__(self) -> None:
+        if self.verify_keyframes < 1:
+            raise ValueError(f"verify_keyframes must be >= 1, got {self.verify_keyframes}")
+
+
+def match_epipolar(
+    db: VisualDatabase,
+    covisible: torch.Tensor,
+    features: Features,
+    camera: PinholeCamera,
+    config: EpipolarMatchingConfig,
+    generator: torch.Generator,
+    ratio: float | None = 0.8,
+    max_descriptor_distance: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Associate keypoints of a new keyframe with map points of covisible keyframes.
+
+    Args:
+        db: the database (the new keyframe need not be in it yet).
+        covisible: (C,) int64 covisible keyframe indices (the new keyframe excluded).
+        features: the new keyframe's N keypoints and descriptors.
+        camera: the new keyframe's camera.
+        config: matching and verification settings.
+        generator: the RANSAC random source.
+        ratio: Lowe's ratio test over all candidate map points (``None`` to skip).
+        max_descriptor_distance: largest accepted descriptor distance, or ``None``.
+
+    Returns:
+        ``(keypoint_ids, point_ids)``: (M,) int64 indices into ``features`` and the (M,)
+        distinct map points they observe.
+    """
+    empty = torch.zeros(0, dtype=torch.int64)
+    points = db.points_observed_by(covisible)
+    if len(points) == 0 or len(features) == 0:
+        return empty, empty
+    matches = match_descriptors(
+        features.descriptors,
+        db.point_descriptors[points],
+        metric=db.metric,
+        mutual=True,
+        ratio=ratio,
+        max_distance=max_descriptor_distance,
+    )
+    keypoint_ids, point_ids = matches.indices[:, 0], points[matches.indices[:, 1]]
+    # Observations (keyframe, keypoint row, match index) of the matched points in covisible
+    # keyframes; a point has at most one keypoint per keyframe.
+    obs = db.observations()
+    slot = torch.full((db.num_points,), -1, dtype=torch.int64)
+    slot[point_ids] = torch.arange(len(point_ids))
+    obs = obs[(slot[obs[:, 2]] >= 0) & torch.isin(obs[:, 0], covisible)]
+    counts = torch.bincount(obs[:, 0], minlength=db.num_keyframes)
+    verifiers = torch.argsort(counts, descending=True, stable=True)[: config.verify_keyframes]
+    verifiers = verifiers[counts[verifiers] >= config.essential.min_inliers]
+    checked = torch.zeros(len(point_ids), dtype=torch.bool)
+    rejected = torch.zeros(len(point_ids), dtype=torch.bool)
+    for keyframe in verifiers.tolist():
+        rows = obs[obs[:, 0] == keyframe]
+        match = slot[rows[:, 2]]
+        result = essential_check(
+            db.keypoints[rows[:, 1]].double(),
+            features.keypoints[keypoint_ids[match]].double(),
+            db.camera(keyframe),
+            camera.to(torch.float64),
+            config.essential,
+            generator,
+        )
+        if not result.success:
+            continue
+        checked[match] = True
+        rejected[match] |= ~result.inliers
+    keep = checked & ~rejected
+    return keypoint_ids[keep], point_ids[keep]
