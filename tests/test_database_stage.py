@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from diffloc.cli import run
+from diffloc.database.builder import BuilderConfig
 from diffloc.database.database import VisualDatabase
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMapConfig
@@ -57,12 +58,15 @@ def test_build_db_without_noise_keeps_the_true_poses(mapped: Path):
 
 
 def test_build_then_optimize_with_noisy_poses(mapped: Path):
-    built = _run("build_db", mapped, "db.noise_sigma=0.05")
+    overrides = ("db.noise_sigma=0.05", "db.builder.association=epipolar")
+    built = _run("build_db", mapped, *overrides)
     assert built["kf_pos_rmse_m"] > 0.01
-    optimized = _run("optimize_db", mapped, "db.noise_sigma=0.05")
+    optimized = _run("optimize_db", mapped, *overrides)
     assert optimized["kf_pos_rmse_before_m"] == pytest.approx(built["kf_pos_rmse_m"])
     assert torch.isfinite(torch.tensor(optimized["kf_pos_rmse_after_m"]))
-    out = database_dir(mapped, DatabaseConfig(noise_sigma=0.05))
+    cfg = DatabaseConfig(noise_sigma=0.05, builder=BuilderConfig(association="epipolar"))
+    out = database_dir(mapped, cfg)
+    assert out.name == "xfeat_sigma_0.05_epipolar"
     assert json.loads((out / "optimize_db.json").read_text()) == optimized
     assert VisualDatabase.load(out / "optimized").num_keyframes == built["keyframes"]
 
