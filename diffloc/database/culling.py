@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from diffloc.checks import check_positive_int
-from diffloc.database.database import VisualDatabase
+from diffloc.database.database import VisualDatabase, member_mask
 
 __all__ = ["CullingConfig", "cull_redundant_keyframes", "cull_unconfirmed_points"]
 
@@ -137,7 +137,7 @@ def cull_unconfirmed_points(
     confirmed[point[in_window]] = True
     judged = first + config.new_point_window < db.num_keyframes
     if first_keyframes is not None:
-        judged &= torch.isin(first, first_keyframes.long())
+        judged &= member_mask(first, first_keyframes, db.num_keyframes + 1)
     removed = torch.nonzero(judged & ~confirmed).flatten()
     db.remove_points(removed)
     return removed

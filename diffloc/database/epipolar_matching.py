@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from diffloc.database.database import VisualDatabase
+from diffloc.database.database import VisualDatabase, member_mask
 from diffloc.features.local import Features
 from diffloc.features.matching import match_descriptors
 from diffloc.geometry.camera import PinholeCamera
@@ -106,7 +106,7 @@ def match_epipolar(
     obs = db.observations()
     slot = torch.full((db.num_points,), -1, dtype=torch.int64)
     slot[point_ids] = torch.arange(len(point_ids))
-    obs = obs[(slot[obs[:, 2]] >= 0) & torch.isin(obs[:, 0], covisible)]
+    obs = obs[(slot[obs[:, 2]] >= 0) & member_mask(obs[:, 0], covisible, db.num_keyframes)]
     counts = torch.bincount(obs[:, 0], minlength=db.num_keyframes)
     verifiers = torch.argsort(counts, descending=True, stable=True)[: config.verify_keyframes]
     verifiers = verifiers[counts[verifiers] >= config.essential.min_inliers]
