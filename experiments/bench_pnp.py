@@ -166,8 +166,9 @@ def make_ours(threads: int | None) -> Solver:
         result = solve_pnp_ransac(
             torch.from_numpy(X), torch.from_numpy(uv), camera, config, generator
         )
-        T_cw = torch.linalg.inv(result.T_wc).numpy()
-        return T_cw[:3, :3], T_cw[:3, 3]
+        T_wc = result.T_wc.numpy()
+        R_cw = T_wc[:3, :3].T
+        return R_cw, -R_cw @ T_wc[:3, 3]
 
     return solve
 

@@ -102,6 +102,40 @@ def test_hamming_ratio_and_ties() -> None:
     torch.testing.assert_close(matches.scores, torch.tensor([-1.0]))
 
 
+def mnn_reference(distances: np.ndarray, ratio: float | None) -> np.ndarray:
+    """Mutual nearest neighbours the obvious way, with match_descriptors' tie rules: a row's
+    nearest neighbour is its first column at the smallest distance; a column at the same
+    smallest distance from several rows goes to the first whose nearest neighbour it is."""
+    found, taken = [], set()
+    for i, row in enumerate(distances):
+        j = int(np.argmin(row))
+        if row[j] != distances[:, j].min() or j in taken:
+            continue
+        taken.add(j)
+        second = np.sort(row)[1] if len(row) > 1 else np.inf
+        if ratio is None or row[j] < ratio * second:
+            found.append((i, j))
+    return np.array(found, dtype=np.int64).reshape(-1, 2)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("ratio", [None, 0.9])
+def test_mnn_equals_reference_with_many_ties(seed: int, ratio: float | None) -> None:
+    # 6-bit descriptors: distances 0..6, so rows and columns tie all the time.
+    rng = np.random.default_rng(seed)
+    a = rng.integers(0, 64, (60, 1), dtype=np.uint8)
+    b = rng.integers(0, 64, (45, 1), dtype=np.uint8)
+    matches = match_descriptors(torch.from_numpy(a), torch.from_numpy(b), ratio=ratio)
+    expected = mnn_reference(numpy_hamming(a, b), ratio)
+    assert len(expected) > 5
+    np.testing.assert_array_equal(matches.indices.numpy(), expected)
+    float_a, float_b = rng.normal(size=(70, 8)), rng.normal(size=(50, 8))
+    matches = match_descriptors(torch.from_numpy(float_a), torch.from_numpy(float_b), ratio=ratio)
+    np.testing.assert_array_equal(
+        matches.indices.numpy(), mnn_reference(numpy_distances(float_a, float_b), ratio)
+    )
+
+
 def test_empty_descriptor_sets() -> None:
     assert len(match_descriptors(torch.zeros(0, 8), torch.rand(4, 8))) == 0
     assert len(match_descriptors(torch.rand(4, 8), torch.zeros(0, 8), ratio=0.8)) == 0

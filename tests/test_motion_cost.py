@@ -15,7 +15,7 @@ from diffloc.geometry.se3 import invert, se3_exp, se3_log, transform_points
 from diffloc.optim import motion_cost
 from diffloc.optim.lm import LMConfig, autodiff_linearize, levenberg_marquardt_single_pose
 from diffloc.optim.motion_cost import MotionOnlyCost, MotionRefineConfig, refine_pose
-from diffloc.optim.robust import RobustKernel
+from diffloc.optim.robust import RobustKernel, make_robust_kernel
 from diffloc.testing import assert_close, gradcheck, random_points, random_se3
 
 # torch's forward-mode AD loads its decompositions with the deprecated torch.jit.script.
@@ -118,6 +118,39 @@ def test_cost_gradcheck_keypoints_points_pose_tangent() -> None:
         return cost(T @ se3_exp(xi), points, keypoints, s)
 
     assert gradcheck(fn, [torch.zeros(2, 6, dtype=F64), X, kp, sigmas])
+
+
+@pytest.mark.parametrize("distortion", [None, (-0.2, 0.05, 1e-3, -2e-3)], ids=["pinhole", "rt"])
+def test_solver_linearization_matches_the_cost_module(distortion) -> None:
+    """The solver's normal equations (normalised coordinates, left twist of T_cw) equal the
+    ones assembled from MotionOnlyCost (pixels, right step of T_wc: the gradient flips)."""
+    g = torch.Generator().manual_seed(9)
+    camera = CAM if distortion is None else PinholeCamera(
+        fx=CAM.fx, fy=CAM.fy, cx=CAM.cx, cy=CAM.cy, width=CAM.width, height=CAM.height,
+        distortion=torch.tensor(distortion, dtype=F64),
+    )  # fmt: skip
+    queries = [make_query(g, num_points=30, outlier_fraction=0.2) for _ in range(2)]
+    T = torch.stack([q.T_init for q in queries])
+    X = torch.stack([q.points_world for q in queries])
+    kp = torch.stack([q.keypoints for q in queries])
+    X[1, 0, 2] = -X[1, 0, 2]  # one point behind the camera (world and camera roughly agree)
+    sigmas = 0.5 + torch.rand(2, 30, generator=g, dtype=F64)
+    valid = torch.rand(2, 30, generator=g) > 0.1
+    used = valid & (torch.rand(2, 30, generator=g) > 0.2)
+    kernel = RobustKernel("huber", 2.0)
+    problem = motion_cost._Problem.make(camera, X, kp, sigmas, valid)
+    lin = problem.linearize(invert(T)[:, :3], used, make_robust_kernel(kernel))
+
+    cost = MotionOnlyCost(camera)
+    residuals, jacobian = cost.linearize(T, X, kp, sigmas, used)
+    rho, weight = make_robust_kernel(kernel)((residuals * residuals).sum(-1))
+    keep = cost.chi2(T, X, kp, sigmas, used).isfinite()
+    weight = torch.where(keep, weight, 0.0)[..., None, None]
+    assert_close(lin.cost, 0.5 * torch.where(keep, rho, 0.0).sum(-1))
+    assert_close(lin.hessian, (jacobian * weight).flatten(1, 2).mT @ jacobian.flatten(1, 2))
+    grad = ((jacobian * weight).flatten(1, 2).mT @ residuals.flatten(1, 2)[..., None])[..., 0]
+    assert_close(lin.grad, -grad)
+    assert_close(lin.projection.chi2, cost.chi2(T, X, kp, sigmas, valid))
 
 
 # ---------------------------------------------------------------------------- refine_pose
@@ -283,7 +316,10 @@ def test_zero_points_and_bad_sigmas_raise() -> None:
         refine_pose(CAM, T, X, kp_nan)
 
 
-@pytest.mark.parametrize("kwargs", [{"rounds": 0}, {"robust_rounds": 5}, {"chi2_threshold": -1.0}])
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"rounds": 0}, {"robust_rounds": 5}, {"chi2_threshold": -1.0}, {"round_cost_tolerance": 0.0}],
+)
 def test_bad_config_raises(kwargs: dict) -> None:
     with pytest.raises(ValueError):
         MotionRefineConfig(**kwargs)

@@ -14,6 +14,7 @@ Example:
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -43,6 +44,10 @@ _POPCOUNT = _BITS.sum(1)
 """(256,) number of set bits of every byte value."""
 _NEIGHBOUR_CELLS = torch.tensor([(du, dv) for dv in (-1, 0, 1) for du in (-1, 0, 1)])
 """(9, 2) offsets of a grid cell and its eight neighbours."""
+_ROW_BLOCK = 128
+"""Columns per block of :func:`_row_min`."""
+_CELLS_PER_KEYPOINT = 4.0
+"""Bound on the grid cells per keypoint of the guided search's dense cell table."""
 _XFEAT_LIGHTERGLUE = {
     "input_dim": 64,
     "descriptor_dim": 96,
@@ -94,7 +99,9 @@ def _check_descriptors(desc0: torch.Tensor, desc1: torch.Tensor, metric: Metric)
         check_shape(desc, "N,D", name)
         if desc.dtype != torch.uint8 and not desc.is_floating_point():
             raise ValueError(f"{name} must be uint8 (binary) or floating point, got {desc.dtype}")
-        if desc.is_floating_point():
+        # One cheap test (a sum is NaN or infinite if any term is); the named check only when
+        # it fails, which includes the harmless case of an overflowing sum of finite values.
+        if desc.is_floating_point() and not math.isfinite(float(desc.sum())):
             check_finite(desc, name)
     if desc0.shape[1] != desc1.shape[1]:
         raise ShapeError(f"descriptor sizes differ: {desc0.shape[1]} and {desc1.shape[1]}")
@@ -115,15 +122,30 @@ def _unpack_bits(desc: torch.Tensor) -> torch.Tensor:
     return _BITS.to(desc.device)[desc.long()].flatten(-2)
 
 
+def _squared_l2(desc0: torch.Tensor, desc1: torch.Tensor) -> torch.Tensor:
+    """(N, M) squared Euclidean distances of float descriptors (N, D), (M, D) by one GEMM.
+
+    ``|a - b|^2 = |a|^2 + |b|^2 - 2 a.b`` as one product of the augmented rows
+    ``[-2 a, |a|^2, 1]`` and ``[b, 1, |b|^2]`` (what :func:`torch.cdist` does before its
+    square root); values may be slightly negative from rounding.
+    """
+    desc0, desc1 = desc0.float(), desc1.float()
+    norm0 = (desc0 * desc0).sum(1, keepdim=True)
+    norm1 = (desc1 * desc1).sum(1, keepdim=True)
+    left = torch.cat((desc0 * -2.0, norm0, torch.ones_like(norm0)), dim=1)
+    right = torch.cat((desc1, torch.ones_like(norm1), norm1), dim=1)
+    return left @ right.T
+
+
 def _all_pairs(desc0: torch.Tensor, desc1: torch.Tensor, metric: Metric) -> torch.Tensor:
     if metric == "hamming":
         # |a xor b| = |a| + |b| - 2 a.b on bit vectors: one matmul, exact in float32.
         bits0, bits1 = _unpack_bits(desc0), _unpack_bits(desc1)
         return bits0.sum(1)[:, None] + bits1.sum(1)[None, :] - 2.0 * bits0 @ bits1.T
-    desc0, desc1 = desc0.float(), desc1.float()
     if metric == "cosine":
+        desc0, desc1 = desc0.float(), desc1.float()
         return 1.0 - F.normalize(desc0, dim=1) @ F.normalize(desc1, dim=1).T
-    return torch.cdist(desc0, desc1)
+    return _squared_l2(desc0, desc1).clamp_min_(0.0).sqrt_()
 
 
 def _aligned_pairs(desc0: torch.Tensor, desc1: torch.Tensor, metric: Metric) -> torch.Tensor:
@@ -134,6 +156,30 @@ def _aligned_pairs(desc0: torch.Tensor, desc1: torch.Tensor, metric: Metric) -> 
     if metric == "cosine":
         return 1.0 - (F.normalize(desc0, dim=1) * F.normalize(desc1, dim=1)).sum(1)
     return torch.linalg.vector_norm(desc0 - desc1, dim=1)
+
+
+def _row_min(values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``values.min(dim=1)`` of (N, M) values: each row's smallest value and its first column.
+
+    torch's min with indices is a slow reduction on wide rows while ``amin`` is vectorised:
+    the rows are cut into blocks of ``_ROW_BLOCK`` columns, the block minima found by amin,
+    and the index searched only inside the first block holding the row's minimum (and in the
+    partial block at the end).
+    """
+    N, M = values.shape
+    full = M - M % _ROW_BLOCK
+    if full == 0:
+        return values.min(dim=1)
+    blocks = values[:, :full].unflatten(1, (full // _ROW_BLOCK, _ROW_BLOCK))
+    best, block = blocks.amin(dim=2).min(dim=1)
+    rows = torch.arange(N, device=values.device)
+    index = blocks[rows, block].argmin(dim=1).add_(block * _ROW_BLOCK)
+    if full < M:
+        tail_best, tail_index = values[:, full:].min(dim=1)
+        later = tail_best < best
+        best = torch.where(later, tail_best, best)
+        index = torch.where(later, tail_index + full, index)
+    return best, index
 
 
 def descriptor_distances(
@@ -179,7 +225,10 @@ def match_descriptors(
 ) -> Matches:
     """Match every descriptor of ``desc0`` to its nearest neighbour in ``desc1``, then filter.
 
-    Filters: ``mutual`` keeps a pair only if each is the other's nearest neighbour; ``ratio``
+    Filters: ``mutual`` keeps a pair only if each is the other's nearest neighbour (ties: a
+    row's nearest neighbour is its first column at the smallest distance; among rows at the
+    same smallest distance to a column, the column goes to the first whose nearest neighbour
+    it is); ``ratio``
     (Lowe's test) keeps it only if ``best < ratio * second_best`` over ``desc1`` (so exact
     ties are rejected; with a single candidate the test passes); ``max_distance`` keeps
     ``best <= max_distance``.
@@ -210,18 +259,30 @@ def match_descriptors(
     _check_ratio(ratio, max_distance)
     if desc0.shape[0] == 0 or desc1.shape[0] == 0:
         return _empty_matches(desc0.device)
-    distances = _all_pairs(desc0, desc1, metric)
-    best, nearest = distances.min(dim=1)
+    # L2 works on squared distances (no square root over the whole matrix), with the
+    # thresholds squared too; the other metrics on the distances themselves.
+    power = 2 if metric == "l2" else 1
+    values = _squared_l2(desc0, desc1) if metric == "l2" else _all_pairs(desc0, desc1, metric)
+    best, nearest = _row_min(values)
     keep = torch.ones_like(best, dtype=torch.bool)
     if mutual:
-        keep &= distances.argmin(dim=0)[nearest] == torch.arange(len(best), device=best.device)
-    if ratio is not None and distances.shape[1] > 1:
-        second = distances.topk(2, dim=1, largest=False).values[:, 1]
-        keep &= best < ratio * second
+        # Row i and its nearest column j are mutual when no row is nearer to j (amin over the
+        # rows is a fast reduction, unlike the argmin); among rows tied for the minimum of j,
+        # the first one whose nearest neighbour is j keeps it.
+        tied = torch.nonzero(best == values.amin(dim=0)[nearest]).squeeze(1)
+        first = torch.full_like(values[0], desc0.shape[0], dtype=torch.int64)
+        first.scatter_reduce_(0, nearest[tied], tied, "amin")
+        keep = torch.zeros_like(keep).index_fill_(0, first[first < desc0.shape[0]], True)
+    best = best.clamp(min=0.0)
+    if ratio is not None and values.shape[1] > 1:
+        # The second smallest of each row: the smallest once the nearest is masked (in
+        # place: the matrix is not needed any more).
+        second = values.scatter_(1, nearest[:, None], torch.inf).amin(dim=1).clamp(min=0.0)
+        keep &= best < ratio**power * second
     if max_distance is not None:
-        keep &= best <= max_distance
+        keep &= best <= max_distance**power
     query = torch.nonzero(keep).squeeze(1)
-    return Matches(torch.stack([query, nearest[query]], dim=1), -best[query].float())
+    return Matches(torch.stack([query, nearest[query]], dim=1), -best[query].pow(1.0 / power))
 
 
 def _check_points(points: torch.Tensor, name: str) -> None:
@@ -247,28 +308,36 @@ def _candidate_pairs(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """All (point, keypoint) pairs within each point's radius, through a grid index.
 
-    Keypoints are bucketed into square cells with the side of the largest radius, so every
-    keypoint within a point's radius lies in the point's cell or one of its eight neighbours.
-    Occupied cells are found by binary search in the sorted cell ids (no dense grid).
+    Keypoints are bucketed into square cells with a side of at least the largest radius, so
+    every keypoint within a point's radius lies in the point's cell or one of its eight
+    neighbours. The cells are also large enough for at most about ``_CELLS_PER_KEYPOINT``
+    cells per keypoint over the keypoints' bounding box, so that a dense table of per-cell
+    counts and offsets (one bincount) finds the keypoints of any cell; larger cells only add
+    candidates that the final radius test removes.
 
     Returns:
         ``(point_index, keypoint_index)``: (P,) int64 each, grouped by point.
     """
-    cell = radius.max()
     origin = keypoints.min(dim=0).values
+    extent = keypoints.max(dim=0).values - origin
+    cell = torch.maximum(
+        radius.max(), (extent.prod() / (_CELLS_PER_KEYPOINT * len(keypoints))).sqrt()
+    )
+    columns, rows = (torch.floor(extent / cell).long() + 1).tolist()
     keypoint_cells = torch.floor((keypoints - origin) / cell).long()
-    columns, rows = (keypoint_cells.max(dim=0).values + 1).tolist()
     cell_ids = keypoint_cells[:, 1] * columns + keypoint_cells[:, 0]
-    sorted_ids, order = torch.sort(cell_ids, stable=True)
+    order = torch.argsort(cell_ids, stable=True)
+    per_cell = torch.bincount(cell_ids, minlength=columns * rows)
+    offsets = torch.cumsum(per_cell, 0) - per_cell
 
     point_cells = torch.floor((points - origin) / cell).long()
     neighbours = point_cells[:, None, :] + _NEIGHBOUR_CELLS.to(points.device)  # (M, 9, 2)
     inside = (
         (neighbours >= 0).all(-1) & (neighbours[..., 0] < columns) & (neighbours[..., 1] < rows)
-    )
+    ).flatten()
     query = (neighbours[..., 1] * columns + neighbours[..., 0]).flatten()
-    start = torch.searchsorted(sorted_ids, query, side="left")
-    count = (torch.searchsorted(sorted_ids, query, side="right") - start) * inside.flatten()
+    query = torch.where(inside, query, 0)
+    start, count = offsets[query], per_cell[query] * inside
 
     # Ragged expansion: cell c contributes count[c] pairs starting at sorted position start[c].
     point_index = torch.arange(len(points), device=points.device).repeat_interleave(9)

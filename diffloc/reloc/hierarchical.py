@@ -226,8 +226,9 @@ class HierarchicalRelocalizer:
         self._keyframe_points = observations[order, 2]
         counts = torch.bincount(observations[:, 0], minlength=database.num_keyframes)
         self._keyframe_offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)])
-        self._surfel_order = torch.argsort(database.point_surfels)
-        self._sorted_surfels = database.point_surfels[self._surfel_order]
+        # Surfel ids index a mask with one more slot, which -1 ("no surfel") indexes.
+        surfel_ids = (database.point_surfels, database.keypoint_surfels, database.neighbour_surfels)
+        self._surfel_slots = 2 + max(int(ids.max()) if len(ids) else -1 for ids in surfel_ids)
 
     # ------------------------------------------------------------------ public API
 
@@ -316,17 +317,20 @@ class HierarchicalRelocalizer:
         co = torch.topk(weights, min(self.config.n_co, len(weights))).indices
         local = torch.cat([torch.tensor([canonical]), co[weights[co] > 0]])
         rows = _concat_ranges(self._keyframe_offsets[local], self._keyframe_offsets[local + 1])
-        points_f = torch.unique(self._keyframe_points[rows])
+        # Sets of ids as masks: a scatter and a nonzero (sorted ids) instead of sorting.
+        in_f = torch.zeros(db.num_points, dtype=torch.bool)
+        in_f[self._keyframe_points[rows]] = True
+        points_f = torch.nonzero(in_f).squeeze(1)
         if self.config.points != "FN":
             return points_f, points_f[:0]
         kp = db.keyframe_slice(canonical)
         start, stop = int(db.neighbour_offsets[kp.start]), int(db.neighbour_offsets[kp.stop])
         surfels = torch.cat([db.neighbour_surfels[start:stop], db.keypoint_surfels[kp]])
-        surfels = torch.unique(surfels[surfels >= 0])
-        lo = torch.searchsorted(self._sorted_surfels, surfels)
-        hi = torch.searchsorted(self._sorted_surfels, surfels, right=True)
-        near = torch.unique(self._surfel_order[_concat_ranges(lo, hi)])
-        return points_f, near[~torch.isin(near, points_f)]
+        near = torch.zeros(self._surfel_slots, dtype=torch.bool)
+        near[surfels] = True
+        near[-1] = False  # the slot of "no surfel" (-1)
+        in_n = near[db.point_surfels] & ~in_f
+        return points_f, torch.nonzero(in_n).squeeze(1)
 
     def _match(self, features: Features, points: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
         """(M, 2) int64 ``(keypoint, point)`` descriptor matches of the ``free`` keypoints."""

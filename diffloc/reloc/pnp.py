@@ -404,9 +404,17 @@ def _normal_equations(
     u = proj.monomials
     B, N = u.shape[0], u.shape[-1]
     outer = (u[:, :, None] * u[:, None]).view(B, 16, N)
-    J = pose_jacobian_map(u.dtype, u.device).T @ outer  # (B, 12, N), row 2 k + c
+    J = _jacobian_map_t(u.dtype, u.device) @ outer  # (B, 12, N), row 2 k + c
     Jw = (J.view(B, 6, 2, N) * weights[:, None]).view(B, 6, 2 * N)
     return Jw @ J.view(B, 6, 2 * N).transpose(-1, -2), Jw @ proj.residuals.view(B, 2 * N, 1)
+
+
+@functools.lru_cache(maxsize=8)
+def _jacobian_map_t(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(12, 16) transposed :func:`~diffloc.geometry.camera.pose_jacobian_map`, contiguous
+    (never modified in place)."""
+    with torch.inference_mode(False):  # an ordinary tensor even if first made in RANSAC
+        return pose_jacobian_map(dtype, device).T.contiguous()
 
 
 def _step(H: torch.Tensor, g: torch.Tensor, damping: torch.Tensor | None) -> torch.Tensor:
@@ -414,13 +422,15 @@ def _step(H: torch.Tensor, g: torch.Tensor, damping: torch.Tensor | None) -> tor
     ``H`` (B, 6, 6) and ``g`` (B, 6, 1) from :func:`_normal_equations`.
 
     ``D = damping diag(H) + 1e-12 max(diag(H)) + 1e-300``: the relative and absolute floors
-    keep rank-deficient systems (too few or degenerate inliers) solvable, with a zero step
-    for directions the data do not constrain. ``H`` is overwritten.
+    keep rank-deficient systems (too few or degenerate inliers) positive definite, with a
+    zero step for directions the data do not constrain, so a Cholesky solve suffices (a
+    non-finite ``H`` gives a non-finite step, which the callers' cost tests reject). ``H`` is
+    overwritten.
     """
     diag = H.diagonal(dim1=-2, dim2=-1)
     floor = diag.amax(-1, keepdim=True).mul_(1e-12).add_(1e-300)
     diag.add_(floor if damping is None else torch.addcmul(floor, damping[:, None], diag))
-    return torch.linalg.solve(H, g)[..., 0]
+    return torch.cholesky_solve(g, torch.linalg.cholesky_ex(H)[0])[..., 0]
 
 
 def _retract(
