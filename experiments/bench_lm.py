@@ -2,6 +2,7 @@
 
 Usage:
     python experiments/bench_lm.py [--threads 1] [--repeats 7] [--repeats-large 1]
+        [--surfel-data data/indoor_seed0] [--surfel-only]
         [--out experiments/results/bench_lm.json]
 
 Times are medians over ``--repeats`` calls after one warm-up call, in milliseconds, with
@@ -27,12 +28,22 @@ Keys:
     times 0.25) and ``*_error`` (largest twist-norm error to the truth) for each. With only
     pose 0 fixed the chain drifts along weakly observed directions, so the error grows with
     the number of poses even at the least-squares optimum: compare solvers by the cost.
-    ``lm_1000_poses_dense_hessian_mb``: memory of the dense normal equations (5994^2 float64).
+    ``lm_1000_poses_dense_matrix_mb``: memory of the dense damped normal matrix the Cholesky
+    solver factors (5994^2 float32; its factor takes as much again).
+    ``surfel_<association>_sigma_<s>_ms`` (and ``_ms_per_keyframe``):
+    :func:`optimize_keyframe_poses` (seed 1 Eq. 4) with the settings of the database stage on
+    the database of ``--surfel-data`` built with position noise ``s`` (0.2 and 0.4 m) and
+    ``projection`` or ``epipolar`` association (each skipped when missing), ``_iterations``,
+    ``_reason``, ``_pairs``, ``_keyframes``, and the keyframe position RMSE against ground
+    truth before and after (``_kf_pos_rmse_before_m``, ``_kf_pos_rmse_after_m``). Goal
+    (issue): at most 5 ms per keyframe on 2 threads with the RMSE no worse than before.
+    ``--surfel-only`` runs just these.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import os
@@ -42,10 +53,16 @@ import poselib
 import torch
 
 from diffloc.benchmark import median_ms
+from diffloc.database.builder import ASSOCIATIONS, BuilderConfig
+from diffloc.database.database import VisualDatabase
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, se3_log, transform_points
+from diffloc.io.dataset import read_sequence
+from diffloc.maps.surfel import SurfelMap
 from diffloc.optim.lm import LMConfig, LMResult, levenberg_marquardt
 from diffloc.optim.motion_cost import MotionRefineConfig, refine_pose
+from diffloc.optim.surfel_cost import optimize_keyframe_poses, pairs_from_database
+from diffloc.pipeline.database_stage import DatabaseConfig, database_dir, keyframe_position_rmse
 from diffloc.testing import TransferBlocks, random_rotation, random_se3
 
 F64 = torch.float64
@@ -180,11 +197,48 @@ def bench_multi_pose(num_poses: int, repeats: int, generator: torch.Generator) -
     return result
 
 
+# ---------------------------------------------------------------------------- surfel database
+
+
+def bench_surfel(data: Path, sigmas: tuple[float, ...], repeats: int) -> dict:
+    """Seed 1 Eq. 4 on the databases of ``data`` of each noise level and association (if
+    present)."""
+    surfels = SurfelMap.load(data / "map" / "surfel_map.ply")
+    centers, normals = surfels.centers.double(), surfels.normals.double()
+    result: dict[str, float | int | str] = {}
+    for association, sigma in itertools.product(ASSOCIATIONS, sigmas):
+        cfg = DatabaseConfig(noise_sigma=sigma, builder=BuilderConfig(association=association))
+        folder = database_dir(data, cfg)
+        if not (folder / "build_db.json").is_file():
+            continue
+        built = json.loads((folder / "build_db.json").read_text())
+        db = VisualDatabase.load(folder / "database")
+        truth = read_sequence(data, cfg.sequence).T_wc[torch.tensor(built["keyframe_frames"])]
+        T_wc, out = optimize_keyframe_poses(db, centers, normals, cfg.optim)  # the warm-up
+        key = f"surfel_{association}_sigma_{sigma:g}"
+        ms = median_ms(
+            lambda db=db, cfg=cfg: optimize_keyframe_poses(db, centers, normals, cfg.optim),
+            repeats,
+            warm_up=False,
+        )
+        result[f"{key}_ms"] = ms
+        result[f"{key}_ms_per_keyframe"] = round(ms / db.num_keyframes, 2)
+        result[f"{key}_iterations"] = int(out.iterations)
+        result[f"{key}_reason"] = out.reason[0]
+        result[f"{key}_pairs"] = len(pairs_from_database(db, centers, normals))
+        result[f"{key}_keyframes"] = db.num_keyframes
+        result[f"{key}_kf_pos_rmse_before_m"] = round(keyframe_position_rmse(db.T_wc, truth), 4)
+        result[f"{key}_kf_pos_rmse_after_m"] = round(keyframe_position_rmse(T_wc, truth), 4)
+    return result
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=1, choices=(1, 2))
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--repeats-large", type=int, default=1, help="for the 1000-pose runs")
+    parser.add_argument("--surfel-data", type=Path, default=Path("data/indoor_seed0"))
+    parser.add_argument("--surfel-only", action="store_true", help="only the surfel section")
     parser.add_argument("--out", type=Path, default=Path("experiments/results/bench_lm.json"))
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -192,10 +246,13 @@ def main() -> None:
     result: dict[str, float | int] = {"threads": args.threads, "repeats": args.repeats}
     result["repeats_large"] = args.repeats_large
     result["load_average_1min"] = round(os.getloadavg()[0], 2)  # other jobs slow timings down
-    result |= bench_motion_only(args.repeats, generator)
-    result |= bench_multi_pose(100, args.repeats, generator)
-    result |= bench_multi_pose(1000, args.repeats_large, generator)
-    result["lm_1000_poses_dense_hessian_mb"] = round(8 * (6 * 999) ** 2 / 2**20, 1)
+    if not args.surfel_only:
+        result |= bench_motion_only(args.repeats, generator)
+        result |= bench_multi_pose(100, args.repeats, generator)
+        result |= bench_multi_pose(1000, args.repeats_large, generator)
+        result["lm_1000_poses_dense_matrix_mb"] = round(4 * (6 * 999) ** 2 / 2**20, 1)
+    if (args.surfel_data / "map" / "surfel_map.ply").is_file():
+        result |= bench_surfel(args.surfel_data, (0.2, 0.4), args.repeats)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result))

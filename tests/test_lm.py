@@ -14,13 +14,14 @@ from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, se3_log, transform_points
 from diffloc.optim import lm
 from diffloc.optim.lm import (
+    BlockLinearization,
     LMConfig,
     autodiff_linearize,
     levenberg_marquardt,
     levenberg_marquardt_single_pose,
     solve_spd,
 )
-from diffloc.optim.robust import RobustKernel
+from diffloc.optim.robust import KernelFn, RobustKernel, make_robust_kernel
 from diffloc.testing import TransferBlocks, assert_close, random_points, random_rotation
 
 # torch's forward-mode AD loads its decompositions with the deprecated torch.jit.script.
@@ -275,6 +276,176 @@ def test_solve_spd_falls_back_for_singular_systems() -> None:
     assert_close(solve_spd(H, b), torch.tensor([[1.0, 0.5], [0.0, 0.0]], dtype=F64))
 
 
+# ---------------------------------------------------------------------------- normal equations
+
+
+def _random_blocks(
+    generator: torch.Generator, batch: int = 2, num_poses: int = 5, num_extra: int = 2
+) -> tuple[BlockLinearization, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Random two-pose blocks (R = 2) touching every case of the block structure.
+
+    Returns the linearization, ``index_a``, ``index_b`` (M,), the (B, M) mask and the (P,)
+    fixed-pose mask: pose 1 is fixed; blocks run in both index orders, on the same pose
+    twice, on the fixed pose, and some are masked (and NaN, which must not leak).
+    """
+    pairs = torch.tensor(
+        [(0, 2), (2, 0), (3, 4), (4, 3), (2, 2), (0, 1), (1, 3), (1, 1), (3, 0), (4, 2)]
+    ).repeat(3, 1)
+    M = pairs.shape[0]
+    lin = BlockLinearization(
+        residuals=torch.randn(batch, M, 2, generator=generator, dtype=F64) * 3.0,
+        jac_a=torch.randn(batch, M, 2, 6, generator=generator, dtype=F64),
+        jac_b=torch.randn(batch, M, 2, 6, generator=generator, dtype=F64),
+        jac_extra=torch.randn(batch, M, 2, num_extra, generator=generator, dtype=F64),
+    )
+    mask = torch.rand(batch, M, generator=generator) > 0.2
+    for x in (lin.residuals, lin.jac_a, lin.jac_b, lin.jac_extra):
+        x[~mask] = float("nan")
+    is_fixed = torch.zeros(num_poses, dtype=torch.bool)
+    is_fixed[1] = True
+    return lin, pairs[:, 0], pairs[:, 1], mask, is_fixed
+
+
+def _dense_reference(
+    lin: BlockLinearization,
+    index_a: torch.Tensor,
+    index_b: torch.Tensor,
+    mask: torch.Tensor,
+    is_fixed: torch.Tensor,
+    kernel: KernelFn,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Cost (B,), H (B, D, D), g (B, D) and support (B, P_free) from the full Jacobian."""
+    B, M, R = lin.residuals.shape
+    P, E = is_fixed.shape[0], lin.jac_extra.shape[-1]
+    J = torch.zeros(B, M, R, 6 * P + E, dtype=F64)
+    rows = torch.arange(M)
+    for index, J_pose in ((index_a, lin.jac_a), (index_b, lin.jac_b)):
+        columns = 6 * index[:, None] + torch.arange(6)  # (M, 6)
+        J[:, rows[:, None], :, columns] += torch.nan_to_num(J_pose).permute(1, 3, 0, 2)
+    J[..., 6 * P :] = lin.jac_extra
+    free = torch.cat((~is_fixed.repeat_interleave(6), torch.ones(E, dtype=torch.bool)))
+    J = torch.where(mask[..., None, None], J[..., free], 0.0)
+    r = torch.where(mask[..., None], lin.residuals, 0.0)
+    rho, weight = kernel((r * r).sum(-1))
+    weight = torch.where(mask, weight, 0.0)
+    H = torch.einsum("bmri,bm,bmrj->bij", J, weight, J)
+    g = torch.einsum("bmri,bm,bmr->bi", J, weight, r)
+    slots = torch.cumsum(~is_fixed, 0) - 1
+    support = torch.zeros(B, int((~is_fixed).sum()), dtype=F64)
+    for index in (index_a, torch.where(index_a == index_b, -1, index_b)):
+        use = (index >= 0) & ~is_fixed[index.clamp(min=0)]
+        support.index_add_(1, slots[index[use]], R * weight[:, use])
+    return 0.5 * torch.where(mask, rho, 0.0).sum(-1), H, g, support
+
+
+def test_assembly_matches_dense_reference() -> None:
+    """The component-major block assembly against ``J^T W J`` of the full Jacobian."""
+    g = torch.Generator().manual_seed(11)
+    lin, index_a, index_b, mask, is_fixed = _random_blocks(g)
+    kernel = make_robust_kernel(RobustKernel("cauchy", 2.0))
+    structure = lm._Structure.from_blocks(5, index_a, index_b, is_fixed, num_extra=2)
+    system = lm._assemble(lin, mask, kernel, structure)
+    cost, H, grad, support = _dense_reference(lin, index_a, index_b, mask, is_fixed, kernel)
+    assert_close(system.cost, cost, rtol=1e-12, atol=0.0)
+    assert_close(system.grad, grad, rtol=1e-12, atol=1e-12)
+    assert_close(system.support, support, rtol=1e-12, atol=1e-12)
+    assert_close(system.dense(torch.ones_like(grad), F64), H, rtol=1e-12, atol=1e-12)
+    assert_close(system.diagonal(), H.diagonal(dim1=-2, dim2=-1), rtol=1e-12, atol=1e-12)
+    x = torch.randn(grad.shape, generator=g, dtype=F64)
+    assert_close(system.matvec(x), (H @ x[..., None])[..., 0], rtol=1e-12, atol=1e-12)
+    scale = torch.rand(grad.shape, generator=g, dtype=F64) + 0.5
+    scaled = system.dense(scale, torch.float32)
+    assert scaled.dtype == torch.float32
+    assert_close(scaled, (scale[:, :, None] * H * scale[:, None, :]).float())
+
+
+@pytest.mark.parametrize("conditioning", ["well", "ill"])
+def test_mixed_precision_solve_matches_float64(
+    conditioning: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A float32 factor plus float64 refinement gives the float64 step; systems too
+    ill-conditioned for float32 fall back to a float64 factorization."""
+    g = torch.Generator().manual_seed(12)
+    lin, index_a, index_b, mask, is_fixed = _random_blocks(g)
+    if conditioning == "ill":  # two nearly equal columns: cond(H) ~ 1e9, even Jacobi-scaled
+        for J in (lin.jac_a, lin.jac_b):
+            J[..., 5] = J[..., 4] + 3e-5 * torch.randn(J.shape[:-1], generator=g, dtype=F64)
+    kernel = make_robust_kernel(RobustKernel())
+    structure = lm._Structure.from_blocks(5, index_a, index_b, is_fixed, num_extra=2)
+    system = lm._assemble(lin, mask, kernel, structure)
+    damping = torch.tensor([1e-9, 1e-3], dtype=F64)
+    scaled = damping[:, None] * system.diagonal().clamp(min=1e-30)
+    H = system.dense(torch.ones_like(system.grad), F64) + torch.diag_embed(scaled)
+    expected = torch.linalg.solve(H, -system.grad)
+    float64_solves = []
+    monkeypatch.setattr(
+        lm, "solve_spd", lambda A, b: float64_solves.append(len(b)) or solve_spd(A, b)
+    )
+    config = LMConfig(min_diagonal=1e-30)
+    delta, float64 = system.solve(damping, config)
+    rtol = 1e-8 if conditioning == "well" else 1e-5  # float64 itself: cond * eps ~ 1e-6
+    assert_close(delta, expected, rtol=rtol, atol=rtol * float(expected.abs().max()))
+    assert float64 == (conditioning == "ill")
+    assert float64_solves == ([1] if conditioning == "ill" else [])  # only the failed problem
+    delta, float64 = system.solve(damping, config, mixed_precision=False)
+    assert_close(delta, expected, rtol=rtol, atol=rtol * float(expected.abs().max()))
+    assert float64
+
+
+def test_step_expansions_skip_weakly_supported_poses() -> None:
+    """Supported poses and the extra parameters get 2, 4, 8 times the step while the cost
+    falls; a pose held mostly by down-weighted blocks keeps its plain step."""
+    g = torch.Generator().manual_seed(13)
+    lin, index_a, index_b, mask, is_fixed = _random_blocks(g, batch=2)
+    structure = lm._Structure.from_blocks(5, index_a, index_b, is_fixed, num_extra=2)
+    system = lm._assemble(lin, mask, make_robust_kernel(RobustKernel()), structure)
+    system.support = torch.tensor([[10.0, 10.0, 5.9, 10.0], [10.0, 10.0, 10.0, 10.0]], dtype=F64)
+    T = torch.eye(4, dtype=F64).repeat(2, 5, 1, 1)
+    extra = torch.zeros(2, 2, dtype=F64)
+    delta = torch.randn(2, structure.size, generator=g, dtype=F64)
+
+    def farther_is_cheaper(T_new: torch.Tensor, extra_new: torch.Tensor | None) -> torch.Tensor:
+        return -(T_new[:, :, :3, 3].square().sum((1, 2)) + extra_new.square().sum(-1))
+
+    cost = farther_is_cheaper(*lm._retract(T, extra, delta, structure)).tolist()
+    config = LMConfig(step_expansions=3)
+    step, best = lm._expand_step(
+        T, extra, delta, system, cost, [True, False], farther_is_cheaper, config
+    )
+    expected = 8.0 * delta[0]
+    expected[12:18] = delta[0, 12:18]  # slot 2 (pose 3) is below the support of 6
+    assert_close(step[0], expected, rtol=0.0, atol=0.0)
+    assert_close(step[1], delta[1], rtol=0.0, atol=0.0)  # not expanded at all
+    assert best == farther_is_cheaper(*lm._retract(T, extra, step, structure)).tolist()
+
+
+def test_step_expansions_converge_to_the_same_optimum_in_fewer_iterations() -> None:
+    g = torch.Generator().manual_seed(14)
+    problem = make_transfer(g, num_poses=6, per_pair=12, noise_px=0.5)
+    problem.keypoints_b[::7] += 40.0  # outliers for the redescending kernel
+    T0 = _perturb(problem.T_true, g, 0.05)
+    results = [
+        levenberg_marquardt(
+            T0,
+            problem.residual_fn,
+            problem.index_a,
+            problem.index_b,
+            jacobian_fn=problem.jacobian_fn,
+            fixed=[0],
+            kernel=RobustKernel("cauchy", 1.0),
+            config=LMConfig(step_expansions=expansions),
+        )
+        for expansions in (0, 3)
+    ]
+    plain, expanded = results
+    assert bool(plain.converged) and bool(expanded.converged), (plain.reason, expanded.reason)
+    assert_close(expanded.cost, plain.cost, rtol=1e-10, atol=0.0)
+    assert float(_pose_error(expanded.T_wc, plain.T_wc).max()) < 1e-6
+    assert int(expanded.iterations) < int(plain.iterations)
+    history = expanded.cost_history
+    assert bool((history[1:] <= history[:-1]).all())
+
+
 # ---------------------------------------------------------------------------- bad inputs
 
 
@@ -325,6 +496,8 @@ def test_non_finite_initial_residuals_raise() -> None:
         {"step_tolerance": 0.0},
         {"solver": "qr"},
         {"initial_damping": 1e13},
+        {"step_expansions": -1},
+        {"expansion_min_support": 0.0},
     ],
 )
 def test_bad_config_raises(kwargs: dict) -> None:

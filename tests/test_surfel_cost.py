@@ -11,7 +11,7 @@ import torch
 
 from diffloc.checks import ShapeError
 from diffloc.database.database import VisualDatabase
-from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, se3_log
 from diffloc.optim import surfel_cost
 from diffloc.optim.lm import autodiff_linearize, levenberg_marquardt
@@ -287,6 +287,18 @@ def test_database_functions_reject_bad_surfels(scene: Scene) -> None:
         pairs_from_database(db, scene.centers, scene.normals[:5])
     with pytest.raises(ValueError, match="surfels beyond"):
         replace_map_points(db, scene.centers[:5], scene.normals[:5])
+    nan = torch.full((1, 3), float("nan"), dtype=F64)
+    bad = scene.centers.clone()
+    bad[int(db.point_surfels.max())] = nan  # a surfel map points use
+    with pytest.raises(ValueError, match="surfel_centers"):
+        pairs_from_database(db, bad, scene.normals)
+    with pytest.raises(ValueError, match="surfel_normals"):
+        replace_map_points(db, scene.centers, torch.where(bad.isnan(), bad, scene.normals))
+    # A bad surfel no map point uses does not matter.
+    unused = pairs_from_database(
+        db, torch.cat((scene.centers, nan)), torch.cat((scene.normals, nan))
+    )
+    assert len(unused) == len(pairs_from_database(db, scene.centers, scene.normals))
 
 
 @pytest.mark.parametrize("fix_first", [True, False])
@@ -440,6 +452,25 @@ def test_linearize_matches_autodiff(M: int, batch: tuple[int, ...]) -> None:
     for J in (lin.jac_a, lin.jac_b, lin.residuals[..., None]):
         assert bool(torch.where(invalid, J, 0.0).eq(0).all())
         assert bool(torch.isfinite(J).all())
+
+
+@pytest.mark.parametrize(("M", "batch"), [(64, ()), (40, (1, 2))])
+def test_residuals_match_lift_and_projection_reference(M: int, batch: tuple[int, ...]) -> None:
+    """The component-major residuals against :func:`lift_to_surfel` and a row-wise pinhole
+    projection (the obviously-correct reference)."""
+    cost, T_a, T_b = _random_pairs(M, batch, seed=100 + M)
+    residuals, valid = cost.residuals_and_valid(T_a, T_b)
+    K_a, K_b = cost.intrinsics_alpha, cost.intrinsics_beta
+    points_world, lifted = lift_to_surfel(
+        cost.keypoints_alpha, T_a, *K_a.unbind(-1), cost.centers, cost.normals
+    )
+    points_b = (T_b[..., :3, :3].mT @ (points_world - T_b[..., :3, 3])[..., None])[..., 0]
+    in_front = points_b[..., 2] > MIN_DEPTH
+    xy = points_b[..., :2] / torch.where(in_front, points_b[..., 2], 1.0)[..., None]
+    expected = (xy * K_b[:, :2] + K_b[:, 2:] - cost.keypoints_beta) / cost.sigma[:, None]
+    assert torch.equal(valid, lifted & in_front)
+    assert_close(residuals, torch.where(valid[..., None], expected, 0.0), rtol=1e-12, atol=1e-9)
+    assert_close(cost(T_a, T_b), residuals, rtol=0.0, atol=0.0)
 
 
 def test_linearize_bad_shapes_raise() -> None:
