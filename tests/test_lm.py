@@ -5,6 +5,7 @@ from __future__ import annotations
 import doctest
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -270,6 +271,45 @@ def test_max_iterations_reports_not_converged() -> None:
     assert result.cost_history.shape == (2,)
 
 
+def _translation_problem(goal: torch.Tensor, calls: list[str]) -> lm._PoseProblem:
+    """One-pose problems ``t(T) - goal`` (goal (B, 1, 3)) that log their linearizations."""
+
+    def jacobian_fn(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        calls.append("linearize")
+        J = torch.cat((T[:, :3, :3], torch.zeros(len(T), 3, 3, dtype=F64)), -1)[:, None]
+        return T[:, None, :3, 3] - goal, J
+
+    kernel = make_robust_kernel(RobustKernel())
+    return lm._PoseProblem(lambda T: T[:, None, :3, 3] - goal, jacobian_fn, None, kernel)
+
+
+def test_minimize_leaves_inactive_problems_untouched() -> None:
+    goal = torch.tensor([[[1.0, 2.0, 3.0]], [[-1.0, 0.5, 2.0]]], dtype=F64)
+    T0 = torch.eye(4, dtype=F64).repeat(2, 1, 1)
+    run = lm.minimize(_translation_problem(goal, []), T0, LMConfig(), active=[True, False])
+    assert run.reason[1] == "inactive" and run.iterations[1] == 0
+    assert torch.equal(run.params[1], T0[1])
+    assert_close(run.params[0, :3, 3], goal[0, 0])
+    assert run.converged == [True, False]
+
+
+def test_steps_too_small_to_matter_are_not_evaluated() -> None:
+    """A step whose predicted decrease is below ``cost_tolerance`` of the cost stops the
+    problem without a linearization at the candidate, and the step is not taken."""
+    goal = torch.tensor([[[1.0, 2.0, 3.0]]], dtype=F64)
+    T0 = torch.eye(4, dtype=F64)[None].clone()
+    T0[0, :3, 3] = goal[0, 0] + 1e-4
+    calls: list[str] = []
+    run = lm.minimize(_translation_problem(goal, calls), T0, LMConfig(cost_tolerance=1.5))
+    assert run.reason == ("cost",) and run.iterations == [1]
+    assert calls == ["linearize"]  # the initial linearization only
+    assert torch.equal(run.params, T0)
+    calls.clear()
+    run = lm.minimize(_translation_problem(goal, calls), T0, LMConfig())  # a step that matters
+    assert len(calls) > 1 and run.converged == [True]
+    assert_close(run.params[0, :3, 3], goal[0, 0], rtol=0.0, atol=1e-12)
+
+
 def test_solve_spd_falls_back_for_singular_systems() -> None:
     H = torch.stack((torch.diag(torch.tensor([2.0, 4.0])), torch.zeros(2, 2))).to(F64)
     b = torch.tensor([[2.0, 2.0], [0.0, 0.0]], dtype=F64)
@@ -382,12 +422,12 @@ def test_mixed_precision_solve_matches_float64(
         lm, "solve_spd", lambda A, b: float64_solves.append(len(b)) or solve_spd(A, b)
     )
     config = LMConfig(min_diagonal=1e-30)
-    delta, float64 = system.solve(damping, config)
+    delta, _, float64 = system.solve(damping, config)
     rtol = 1e-8 if conditioning == "well" else 1e-5  # float64 itself: cond * eps ~ 1e-6
     assert_close(delta, expected, rtol=rtol, atol=rtol * float(expected.abs().max()))
     assert float64 == (conditioning == "ill")
     assert float64_solves == ([1] if conditioning == "ill" else [])  # only the failed problem
-    delta, float64 = system.solve(damping, config, mixed_precision=False)
+    delta, _, float64 = system.solve(damping, config, mixed_precision=False)
     assert_close(delta, expected, rtol=rtol, atol=rtol * float(expected.abs().max()))
     assert float64
 
@@ -407,11 +447,13 @@ def test_step_expansions_skip_weakly_supported_poses() -> None:
     def farther_is_cheaper(T_new: torch.Tensor, extra_new: torch.Tensor | None) -> torch.Tensor:
         return -(T_new[:, :, :3, 3].square().sum((1, 2)) + extra_new.square().sum(-1))
 
+    problem = SimpleNamespace(
+        evaluate=lambda params: farther_is_cheaper(*params),
+        retract=lambda params, d: lm._retract(*params, d, structure),
+    )
     cost = farther_is_cheaper(*lm._retract(T, extra, delta, structure)).tolist()
     config = LMConfig(step_expansions=3)
-    step, best = lm._expand_step(
-        T, extra, delta, system, cost, [True, False], farther_is_cheaper, config
-    )
+    step, best = lm._expand_step(problem, (T, extra), delta, system, cost, [True, False], config)
     expected = 8.0 * delta[0]
     expected[12:18] = delta[0, 12:18]  # slot 2 (pose 3) is below the support of 6
     assert_close(step[0], expected, rtol=0.0, atol=0.0)

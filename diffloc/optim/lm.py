@@ -33,9 +33,22 @@ Algorithm
     measured change (which is noise there), so problems with non-zero residuals still converge
     to full precision; the cost history may then rise by rounding noise. Every
     problem of the batch has its own ``lambda`` and stops on its own: small gradient
-    (``max |g|``), small step (``||delta||``, mixed metres/radians), small relative cost
-    decrease, ``max_iterations`` linear solves, or ``lambda > max_damping`` (failure). The
-    pose gauge is fixed by holding chosen poses constant (their rows and columns are removed).
+    (``max |g|``); a step whose length (``||delta||``, mixed metres/radians) or predicted
+    decrease (relative to the cost) is below ``step_tolerance`` / ``cost_tolerance``, which is
+    then not evaluated nor taken (the parameters are within about that much of the optimum);
+    an accepted step that lowered the cost by at most ``cost_tolerance`` of it;
+    ``max_iterations`` linear solves; or ``lambda > max_damping`` (failure). A damped system
+    Cholesky cannot factor (one-pose problems) counts as a failed step. The pose gauge is
+    fixed by holding chosen poses constant (their rows and columns are removed).
+
+One loop, several problems
+    :func:`minimize` is the loop; a problem (:class:`LMProblem`) linearizes, evaluates and
+    retracts its own parameters, and its normal equations (:class:`LinearSystem`) solve the
+    damped step. :func:`levenberg_marquardt` (block-sparse poses and extra parameters) and
+    :func:`levenberg_marquardt_single_pose` (batched 6x6 :class:`PoseSystem`) are its front
+    ends; :func:`diffloc.optim.motion_cost.refine_pose` plugs in its own lean reprojection
+    problem (world-to-camera poses, matches innermost) with :class:`PoseSystem` normal
+    equations.
 
 Step expansions (``LMConfig.step_expansions``, off by default)
     Under a redescending kernel (Cauchy) the IRLS model overestimates the curvature of the
@@ -87,10 +100,12 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
+from typing import Any, Protocol
 
 import torch
 
@@ -99,18 +114,23 @@ from diffloc.geometry.se3 import se3_exp
 from diffloc.optim.robust import KernelFn, RobustKernel, make_robust_kernel
 
 __all__ = [
-    "SOLVERS",
     "BlockJacobianFn",
     "BlockLinearization",
     "BlockResidualFn",
     "LMConfig",
+    "LMProblem",
     "LMResult",
+    "LMRun",
+    "LinearSystem",
     "PoseJacobianFn",
     "PoseResidualFn",
+    "PoseSystem",
+    "SOLVERS",
     "autodiff_linearize",
     "cayley_rotation",
     "levenberg_marquardt",
     "levenberg_marquardt_single_pose",
+    "minimize",
     "solve_spd",
 ]
 
@@ -118,9 +138,9 @@ SOLVERS = ("cholesky", "cg")
 """Linear solvers accepted by :class:`LMConfig`."""
 
 # Stop reasons, indexed by the per-problem status code used inside the solver loop.
-_RUNNING, _GRADIENT, _STEP, _COST, _MAX_ITERATIONS, _DAMPING = range(6)
-_REASONS = ("running", "gradient", "step", "cost", "max_iterations", "damping")
-_CONVERGED = (_GRADIENT, _STEP, _COST)
+_RUNNING, _GRADIENT, _STEP, _COST, _MAX_ITERATIONS, _DAMPING, _INACTIVE = range(7)
+_REASONS = ("running", "gradient", "step", "cost", "max_iterations", "damping", "inactive")
+_CONVERGED_REASONS = ("gradient", "step", "cost")
 _ROUNDOFF_EPS = 16.0
 """Cost changes below this many machine epsilons of the cost are rounding noise."""
 _REFINE_TOLERANCE = 1e-10
@@ -418,20 +438,18 @@ class _Structure:
     are the slots of its poses (``b_slot`` is ``P_free`` for a block whose two poses are the
     same: its Jacobians add up on ``a``), ``off_index`` its upper block (``K``: none),
     ``swap`` whether pose ``a`` is that block's column, ``same`` whether both poses are one.
-    ``None``: one-pose blocks (``b_slot``, ``off_index``), all false (``swap``, ``same``), or
-    all slot 0 (``a_slot`` of the single-pose case).
+    ``None``: one-pose blocks (``b_slot``, ``off_index``) or all false (``swap``, ``same``).
     """
 
     free: torch.Tensor  # (P_free,) pose index of each slot
     num_extra: int
     off_rows: torch.Tensor  # (K,)
     off_cols: torch.Tensor  # (K,)
-    a_slot: torch.Tensor | None
+    a_slot: torch.Tensor
     b_slot: torch.Tensor | None = None
     off_index: torch.Tensor | None = None
     swap: torch.Tensor | None = None
     same: torch.Tensor | None = None
-    single: bool = False  # one free pose, every block on it, no extra parameters
 
     @property
     def num_free(self) -> int:
@@ -451,11 +469,6 @@ class _Structure:
         upper = _block_flat_index(rows, cols, size)
         lower = _block_flat_index(cols, rows, size).view(-1, 6, 6).mT.flatten()
         return _block_flat_index(diag, diag, size), upper, lower
-
-    @classmethod
-    def single_pose(cls, device: torch.device) -> _Structure:
-        zero, empty = (torch.zeros(n, dtype=torch.long, device=device) for n in (1, 0))
-        return cls(zero, 0, empty, empty, None, single=True)
 
     @classmethod
     def from_blocks(
@@ -540,8 +553,6 @@ class _System:
     def diagonal(self) -> torch.Tensor:
         """(B, D) diagonal of ``H``."""
         pose = self.diag_blocks.diagonal(dim1=-2, dim2=-1).flatten(1)
-        if self.structure.single:
-            return pose
         return torch.cat((pose, self.H_ee.diagonal(dim1=-2, dim2=-1)), dim=1)
 
     def dense(self, scale: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -573,8 +584,6 @@ class _System:
     def matvec(self, x: torch.Tensor) -> torch.Tensor:
         """(B, D) product ``H x`` from the blocks, ``x``: (B, D)."""
         s = self.structure
-        if s.single:
-            return torch.bmm(self.diag_blocks[:, 0], x[..., None])[..., 0]
         n6 = 6 * s.num_free
         x_p = x[:, :n6].reshape(x.shape[0], s.num_free, 6, 1)
         y_p = (self.diag_blocks @ x_p)[..., 0]
@@ -589,28 +598,36 @@ class _System:
         y_e = y_e + (self.H_ee @ x_e[..., None])[..., 0]
         return torch.cat((y_p.flatten(1), y_e), dim=1)
 
+    def model_change(self, delta: torch.Tensor) -> torch.Tensor:
+        """(B,) change of the quadratic model, ``g.delta + delta.H.delta / 2``, delta (B, D)."""
+        return (torch.add(self.grad, self.matvec(delta), alpha=0.5) * delta).sum(-1)
+
+    def expandable(self, min_support: float) -> torch.Tensor:
+        """(B, D) bool: the unknowns step expansions may scale (well-supported poses and the
+        extra parameters)."""
+        supported = (self.support >= min_support).repeat_interleave(6, dim=1)
+        return torch.cat((supported, supported.new_ones(len(supported), self.H_ee.shape[-1])), 1)
+
     def solve(
         self, damping: torch.Tensor, config: LMConfig, mixed_precision: bool = True
-    ) -> tuple[torch.Tensor, bool]:
+    ) -> tuple[torch.Tensor, None, bool]:
         """Step of ``(H + damping * diag(clamp(diag H))) delta = -g``, damping (B,).
 
         Returns:
-            ``(delta, float64)``: the (B, D) step and whether the dense solver factored in
-            float64 (``mixed_precision=False``, or a fallback of :meth:`_solve_dense`).
+            ``(delta, None, float64)``: the (B, D) step, no failure flags (the dense solver
+            falls back to float64 and least squares, CG always returns a step) and whether
+            the dense solver factored in float64 (``mixed_precision=False``, or a fallback of
+            :meth:`_solve_dense`).
         """
         diagonal = self.diagonal()
         scaled = damping[:, None] * diagonal.clamp(min=config.min_diagonal)
-        if config.solver == "cholesky" and self.structure.single:  # 6x6: float64 throughout
-            H = self.diag_blocks[:, 0].clone()
-            H.diagonal(dim1=-2, dim2=-1).add_(scaled)
-            return solve_spd(H, -self.grad), True
         if config.solver == "cholesky":
             return self._solve_dense(diagonal + scaled, scaled, mixed_precision)
-        return self._solve_cg(scaled, config), False
+        return self._solve_cg(scaled, config), None, False
 
     def _solve_dense(
         self, damped_diagonal: torch.Tensor, scaled: torch.Tensor, mixed_precision: bool
-    ) -> tuple[torch.Tensor, bool]:
+    ) -> tuple[torch.Tensor, None, bool]:
         """Dense Cholesky solve, ``damped_diagonal`` and ``scaled`` (B, D), see :meth:`solve`.
 
         With the Jacobi scaling ``S = diag(damped_diagonal)^(-1/2)`` the damped matrix
@@ -632,7 +649,7 @@ class _System:
             A = self.dense(scale, b.dtype)[failed]
             A.diagonal(dim1=-2, dim2=-1).fill_(1.0)  # (H_ii + scaled_i) * scale_i^2
             delta[failed] = solve_spd(A, b[failed] * scale[failed]) * scale[failed]
-        return delta, bool(failed.any())
+        return delta, None, bool(failed.any())
 
     def _solve_refined_float32(
         self, b: torch.Tensor, scale: torch.Tensor, scaled: torch.Tensor
@@ -679,6 +696,64 @@ class _System:
             return self.matvec(x) + scaled * x
 
         return _pcg(matvec, precondition, -self.grad, config.cg_max_iterations, config.cg_tolerance)
+
+
+@dataclass(frozen=True)
+class PoseSystem:
+    """Normal equations of ``B`` one-pose problems (6 unknowns each) at their current poses.
+
+    What :func:`minimize` needs of a linearization with one pose per problem; a problem may
+    subclass it to carry what it computed along (more dataclass fields, tensors with the
+    leading dimension ``B`` or objects with a ``where`` method: :meth:`where` picks them too).
+
+    Attributes:
+        cost: (B,) cost ``0.5 * sum rho``.
+        grad: (B, 6) gradient w.r.t. the pose step.
+        hessian: (B, 6, 6) Gauss-Newton matrix ``sum w J^T J``.
+        support: (B, 1) robust weights on the pose summed over its residual components (see
+            :attr:`LMConfig.expansion_min_support`).
+    """
+
+    cost: torch.Tensor
+    grad: torch.Tensor
+    hessian: torch.Tensor
+    support: torch.Tensor
+
+    def where(self, mask: torch.Tensor, other: PoseSystem) -> PoseSystem:
+        """Per problem: ``other`` where ``mask`` (B,) is true, else ``self``."""
+        return dataclasses.replace(
+            self,
+            **{
+                f.name: _select(mask, getattr(other, f.name), getattr(self, f.name))
+                for f in fields(self)
+            },
+        )
+
+    def model_change(self, delta: torch.Tensor) -> torch.Tensor:
+        """(B,) change of the quadratic model, ``g.delta + delta.H.delta / 2``, delta (B, 6)."""
+        half = torch.baddbmm(self.grad[:, None], delta[:, None], self.hessian, alpha=0.5)
+        return half[:, 0].mul_(delta).sum(-1)
+
+    def expandable(self, min_support: float) -> torch.Tensor:
+        """(B, 6) bool: poses whose steps may be expanded."""
+        return (self.support >= min_support).expand(-1, 6)
+
+    def solve(
+        self, damping: torch.Tensor, config: LMConfig, mixed_precision: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor, bool]:
+        """Step of ``(H + damping * diag(clamp(diag H))) delta = -g`` in float64, damping (B,).
+
+        Returns:
+            ``(delta, failed, True)``: the (B, 6) steps and (B,) non-zero where Cholesky could
+            not factor the damped matrix (that step is meaningless and counts as failed).
+        """
+        H = self.hessian
+        damped = H.clone()
+        damped.diagonal(dim1=-2, dim2=-1).addcmul_(
+            H.diagonal(dim1=-2, dim2=-1).clamp(min=config.min_diagonal), damping[:, None]
+        )
+        L, info = torch.linalg.cholesky_ex(damped)
+        return torch.cholesky_solve(self.grad[..., None], L)[..., 0].neg_(), info, True
 
 
 def _robust_weights(
@@ -751,8 +826,6 @@ def _assemble(
     its destination blocks by ``index_add_``.
     """
     s = structure
-    if s.single:
-        return _assemble_single(lin.residuals, lin.jac_a, mask, kernel, s)
     keep, zero = mask[:, None, :], lin.residuals.new_zeros(())  # (B, 1, M)
     r = torch.where(keep, lin.residuals.transpose(1, 2), zero)  # (B, R, M)
     rho, weight = kernel((r * r).sum(1))
@@ -814,40 +887,32 @@ def _assemble(
     )
 
 
-def _assemble_single(
-    residuals: torch.Tensor,
-    jacobian: torch.Tensor,
-    mask: torch.Tensor,
-    kernel: KernelFn,
-    structure: _Structure,
-) -> _System:
-    """:func:`_assemble` for one pose and no extra parameters, in (B, ., M) layout.
+def _pose_system(
+    residuals: torch.Tensor, jacobian: torch.Tensor, mask: torch.Tensor, kernel: KernelFn
+) -> PoseSystem:
+    """Normal equations of one-pose problems from residuals (B, M, R) and Jacobians
+    (B, M, R, 6) of masked (B, M) blocks.
 
-    The residuals (B, M, R) and Jacobians (B, M, R, 6) are read through permuted views with
-    the blocks innermost (free when the residual function produced them in that layout),
-    where torch's element-wise and reduction kernels are several times faster than on
-    (..., R) rows. The products are summed over the R residual components one by one, so
-    every reduction runs over the blocks in order: padding blocks at the end of a batch
-    leave the sums bitwise unchanged.
+    Read through permuted views with the blocks innermost (free when the residual function
+    produced them in that layout), where torch's element-wise and reduction kernels are
+    several times faster than on (..., R) rows. The products are summed over the R residual
+    components one by one, so every reduction runs over the blocks in order: padding blocks at
+    the end of a batch leave the sums bitwise unchanged.
     """
     R = residuals.shape[2]
     keep, zero = mask[:, None, :], residuals.new_zeros(())  # (B, 1, M)
     r = torch.where(keep, residuals.transpose(1, 2), zero)  # (B, R, M)
     rho, weight = kernel((r * r).sum(1))
     cost = torch.where(mask, rho, zero).sum(-1).mul_(0.5)
+    weight = torch.where(mask, weight, zero)
     J = torch.where(keep[:, None], jacobian.permute(0, 3, 2, 1), zero)  # (B, 6, R, M)
-    WJ = J * torch.where(mask, weight, zero)[:, None, None]
+    WJ = J * weight[:, None, None]
     H = torch.bmm(WJ[:, :, 0], J[:, :, 0].mT)
     grad = torch.bmm(WJ[:, :, 0], r[:, 0, :, None])
     for i in range(1, R):
         H = torch.baddbmm(H, WJ[:, :, i], J[:, :, i].mT)
         grad = torch.baddbmm(grad, WJ[:, :, i], r[:, i, :, None])
-    B = r.shape[0]
-    H_pe, H_ee = r.new_zeros(B, 1, 6, 0), r.new_zeros(B, 0, 0)
-    support = torch.where(mask, weight, zero).sum(-1, keepdim=True).mul_(R)
-    return _System(
-        cost, grad[..., 0], H[:, None], r.new_zeros(B, 0, 6, 6), H_pe, H_ee, support, structure
-    )
+    return PoseSystem(cost, grad[..., 0], H, weight.sum(-1, keepdim=True).mul_(R))
 
 
 # ---------------------------------------------------------------------------- autodiff
@@ -906,6 +971,12 @@ def autodiff_linearize(
 # ---------------------------------------------------------------------------- solver core
 
 
+def _right_step(T: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """``T @ [[Cay(w), v], [0, 1]]`` for poses (..., 4, 4) and steps ``d = [v, w]`` (..., 6)."""
+    top = torch.cat((cayley_rotation(d[..., 3:]), d[..., :3, None]), dim=-1)  # (..., 3, 4)
+    return T @ torch.cat((top, T[..., 3:, :]), dim=-2)
+
+
 def _retract(
     T: torch.Tensor, extra: torch.Tensor | None, delta: torch.Tensor, structure: _Structure
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -914,9 +985,7 @@ def _retract(
     s = structure
     n6 = 6 * s.num_free
     d = delta[:, :n6].reshape(delta.shape[0], s.num_free, 6)
-    top = torch.cat((cayley_rotation(d[..., 3:]), d[..., :3, None]), dim=-1)  # (B, F, 3, 4)
-    step = torch.cat((top, T[:, :1, 3:].expand(*top.shape[:2], 1, 4)), dim=-2)
-    T_new = T @ step if s.single else T.index_copy(1, s.free, T[:, s.free] @ step)
+    T_new = T.index_copy(1, s.free, _right_step(T[:, s.free], d))
     return T_new, None if extra is None else extra + delta[:, n6:]
 
 
@@ -936,59 +1005,129 @@ def _check_linearization(lin: BlockLinearization, batch: int, num_blocks: int | 
         )
 
 
-@dataclass
-class _Problem:
-    """What the solver core needs to know about a problem, built by the two front ends."""
+class LinearSystem(Protocol):
+    """The normal equations of ``B`` problems at their current parameters, as :func:`minimize`
+    uses them (:class:`PoseSystem` for one pose per problem; the block-sparse system of
+    :func:`levenberg_marquardt` otherwise)."""
 
-    linearize: Callable[[torch.Tensor, torch.Tensor | None], BlockLinearization]
-    evaluate: Callable[[torch.Tensor, torch.Tensor | None], torch.Tensor]  # residuals alone
-    # Analytic Jacobians: linearize candidate steps directly, which saves the residual pass
-    # after every accepted step (unless step expansions evaluate several candidates).
-    analytic: bool
-    structure: _Structure | None  # None: single pose, built once M is known
-    num_blocks: int | None
-    mask: torch.Tensor | None  # (B, M)
+    cost: torch.Tensor  # (B,)
+    grad: torch.Tensor  # (B, D)
+
+    def where(self, mask: torch.Tensor, other: Any) -> Any: ...
+
+    def model_change(self, delta: torch.Tensor) -> torch.Tensor: ...
+
+    def expandable(self, min_support: float) -> torch.Tensor: ...
+
+    def solve(
+        self, damping: torch.Tensor, config: LMConfig, mixed_precision: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None, bool]: ...
 
 
-def _minimize(
-    T: torch.Tensor,
-    extra: torch.Tensor | None,
-    problem: _Problem,
-    kernel: KernelFn,
-    config: LMConfig,
-) -> LMResult:
-    """The shared batched LM loop on poses (B, P, 4, 4) and extra (B, E).
+class LMProblem(Protocol):
+    """A problem for :func:`minimize`: its parameters (any value: a pose tensor, a tuple of
+    tensors) are linearized, evaluated and updated by these.
 
-    The linear algebra is batched over the B problems; the per-problem scalars (damping,
-    gain ratio, stopping tests) are plain Python floats, read once per iteration, since a
-    torch operation on a (B,) tensor costs far more than the arithmetic itself.
+    Attributes:
+        analytic: ``linearize`` is cheap enough to call on every candidate step (analytic
+            Jacobians): it then replaces ``evaluate``, which saves a residual pass per
+            accepted step (unless step expansions evaluate several candidates).
     """
-    B = T.shape[0]
-    lin = problem.linearize(T, extra)
-    _check_linearization(lin, B, problem.num_blocks)
-    M = lin.residuals.shape[1]
-    structure = problem.structure or _Structure.single_pose(T.device)
-    mask = problem.mask if problem.mask is not None else torch.ones(B, M, dtype=torch.bool)
-    mask = mask.to(T.device).expand(B, M)
-    system = _assemble(lin, mask, kernel, structure)
+
+    analytic: bool
+
+    def linearize(self, params: Any) -> LinearSystem:
+        """The normal equations at ``params``."""
+        ...
+
+    def evaluate(self, params: Any) -> torch.Tensor:
+        """(B,) costs at ``params``."""
+        ...
+
+    def retract(self, params: Any, delta: torch.Tensor) -> Any:
+        """``params`` moved by the steps ``delta`` (B, D) (zero rows: unchanged)."""
+        ...
+
+
+@dataclass
+class LMRun:
+    """What :func:`minimize` returns.
+
+    Attributes:
+        params: the final parameters.
+        system: the normal equations at ``params``.
+        iterations: per problem, the linear solves (accepted, rejected or failed steps).
+        reason: per problem, why it stopped (``"gradient"``, ``"step"``, ``"cost"``:
+            converged; ``"max_iterations"``, ``"damping"``; ``"inactive"``: not optimised).
+        cost_history: the costs (B per entry) before the first and after every iteration.
+    """
+
+    params: Any
+    system: Any
+    iterations: list[int]
+    reason: tuple[str, ...]
+    cost_history: list[list[float]]
+
+    @property
+    def converged(self) -> list[bool]:
+        """Per problem, stopped by a gradient, step or cost tolerance."""
+        return [reason in _CONVERGED_REASONS for reason in self.reason]
+
+
+def _select(mask: torch.Tensor, new: Any, old: Any) -> Any:
+    """Per problem: ``new`` where ``mask`` (B,) is true, else ``old``. Values are tensors
+    (leading dimension ``B``), ``None``, tuples of those, or objects with a
+    ``where(mask, other)`` method (called on ``old``)."""
+    if new is None:
+        return None
+    if isinstance(new, tuple):
+        return tuple(_select(mask, n, o) for n, o in zip(new, old, strict=True))
+    if isinstance(new, torch.Tensor):
+        return torch.where(mask.view(-1, *[1] * (new.dim() - 1)), new, old)
+    return old.where(mask, new)
+
+
+def minimize(
+    problem: LMProblem,
+    params: Any,
+    config: LMConfig,
+    system: LinearSystem | None = None,
+    active: Sequence[bool] | None = None,
+) -> LMRun:
+    """Batched Levenberg-Marquardt: the loop every front end of this module shares.
+
+    Runs the damping schedule and the stopping rules of the module notes on ``B`` problems
+    at once. The linear algebra is batched; the per-problem scalars (damping, gain ratio,
+    stopping tests) are plain Python floats read once or twice per iteration, since a torch
+    operation on a (B,) tensor costs far more than the arithmetic itself. Call it under
+    ``torch.no_grad()``.
+
+    Args:
+        problem: linearizes, evaluates and updates the parameters.
+        params: the initial parameters.
+        config: solver settings.
+        system: the normal equations at ``params`` if already known (else linearized here).
+        active: per problem, whether to optimise it; the others keep their parameters and
+            report ``"inactive"``. Default all.
+
+    Returns:
+        The final parameters and normal equations, iterations and stop reasons.
+
+    Raises:
+        ValueError: a non-finite cost or gradient at the initial parameters.
+    """
+    if system is None:
+        system = problem.linearize(params)
     cost, grad_max = _cost_and_gradient_norm(system)
     if not all(map(math.isfinite, cost + grad_max)):
         raise ValueError("the residuals or Jacobians are not finite at the initial parameters")
-
-    dtype, device = system.cost.dtype, T.device
+    B, dtype, device = len(cost), system.cost.dtype, system.cost.device
     roundoff = _ROUNDOFF_EPS * torch.finfo(dtype).eps
-    damping = [config.initial_damping] * B
-    nu = [2.0] * B
-    status = [_RUNNING] * B
-    iterations = [0] * B
+    damping, nu, iterations = [config.initial_damping] * B, [2.0] * B, [0] * B
+    status = [_RUNNING if active is None or active[b] else _INACTIVE for b in range(B)]
     history = [list(cost)]
     linearize_candidates = problem.analytic and not config.step_expansions
     mixed_precision = True
-
-    def evaluate_cost(T_cur: torch.Tensor, extra_cur: torch.Tensor | None) -> torch.Tensor:
-        residuals = _masked(problem.evaluate(T_cur, extra_cur), mask)
-        return _robust_weights(residuals, mask, kernel)[0]
-
     for _ in range(config.max_iterations):
         for b in range(B):
             if status[b] == _RUNNING and grad_max[b] <= config.gradient_tolerance:
@@ -996,54 +1135,85 @@ def _minimize(
         running = [code == _RUNNING for code in status]
         if not any(running):
             break
-        delta, float64 = system.solve(
-            torch.tensor(damping, dtype=dtype, device=device), config, mixed_precision
-        )
+        damping_t = torch.tensor(damping, dtype=dtype, device=device)
+        delta, failed, float64 = system.solve(damping_t, config, mixed_precision)
         mixed_precision = mixed_precision and not float64  # fell back once: stay in float64
-        if not all(running):
-            delta = torch.where(torch.tensor(running, device=device)[:, None], delta, 0.0)
-        T_new, extra_new = _retract(T, extra, delta, structure)
-        candidate = None
-        if linearize_candidates:
-            candidate = _assemble(problem.linearize(T_new, extra_new), mask, kernel, structure)
-            new_cost = candidate.cost
-            # A non-finite gradient fails the step too: the cost plus the sum of the gradient
-            # is finite iff both are (or, harmlessly, when the sum overflows).
-            check = candidate.cost + candidate.grad.sum(-1)
-        else:
-            new_cost = check = evaluate_cost(T_new, extra_new)
-        # Minus the decrease of the quadratic model, g.delta + delta.H.delta / 2.
-        model_change = (torch.add(system.grad, system.matvec(delta), alpha=0.5) * delta).sum(-1)
-        step_norm = torch.linalg.vector_norm(delta, dim=-1)
-        new_cost_, check_, model_change_, step_norm_ = torch.stack(
-            (new_cost, check, model_change, step_norm)
-        ).tolist()
-
-        accept, gain, in_noise = [False] * B, [0.0] * B, [False] * B
+        scalars = [system.model_change(delta), torch.linalg.vector_norm(delta, dim=-1)]
+        if failed is not None:
+            scalars.append(failed.to(dtype))
+        model_change, step_norm, *failed_ = torch.stack(scalars).tolist()
+        # Steps that cannot matter stop their problem before they are evaluated.
+        trying = list(running)
         for b in range(B):
             if not running[b]:
                 continue
             iterations[b] += 1
-            finite_b = math.isfinite(check_[b])
-            predicted = -model_change_[b]
-            # A step whose predicted decrease is below the rounding error of the cost cannot
-            # be judged by the measured (noisy) change, but it is harmlessly small and the
-            # quadratic model is exact at that scale: count it as ideal so LM reaches full
-            # precision.
-            in_noise[b] = finite_b and abs(predicted) <= roundoff * abs(cost[b])
-            ok = finite_b and predicted > 0
-            gain[b] = 1.0 if in_noise[b] else ((cost[b] - new_cost_[b]) / predicted if ok else -1.0)
-            accept[b] = in_noise[b] or (ok and gain[b] > 0)
-        expand = [a and not n for a, n in zip(accept, in_noise, strict=True)]
-        if config.step_expansions and any(expand):
-            expanded, new_cost_ = _expand_step(
-                T, extra, delta, system, new_cost_, expand, evaluate_cost, config
-            )
-            if expanded is not delta:
-                T_new, extra_new = _retract(T, extra, expanded, structure)
+            if failed_ and failed_[0][b]:
+                trying[b] = False
+            elif step_norm[b] <= config.step_tolerance:
+                status[b], trying[b] = _STEP, False
+            elif -model_change[b] <= config.cost_tolerance * cost[b]:
+                status[b], trying[b] = _COST, False
+        accept = [False] * B
+        if any(trying):
+            if not all(trying):
+                delta = torch.where(torch.tensor(trying, device=device)[:, None], delta, 0.0)
+            new_params = problem.retract(params, delta)
+            candidate = None
+            if linearize_candidates:
+                candidate = problem.linearize(new_params)
+                new_cost, new_grad_max = _cost_and_gradient_norm(candidate)
+            else:
+                new_cost = problem.evaluate(new_params).tolist()
+                new_grad_max = [0.0] * B
+            gain, expand = [0.0] * B, [False] * B
+            for b in range(B):
+                if not trying[b]:
+                    continue
+                finite = math.isfinite(new_cost[b]) and math.isfinite(new_grad_max[b])
+                predicted = -model_change[b]
+                # A step whose predicted decrease is below the rounding error of the cost
+                # cannot be judged by the measured (noisy) change, but the quadratic model is
+                # exact at that scale: it counts as ideal.
+                in_noise = finite and abs(predicted) <= roundoff * abs(cost[b])
+                if in_noise:
+                    gain[b] = 1.0
+                elif finite and predicted > 0:
+                    gain[b] = (cost[b] - new_cost[b]) / predicted
+                else:
+                    gain[b] = -1.0
+                accept[b] = gain[b] > 0
+                expand[b] = accept[b] and not in_noise
+            if config.step_expansions and any(expand):
+                expanded, new_cost = _expand_step(
+                    problem, params, delta, system, new_cost, expand, config
+                )
+                if expanded is not delta:
+                    new_params = problem.retract(params, expanded)
+            for b in range(B):  # an accepted step (outside rounding noise) that barely helped
+                if expand[b] and cost[b] - new_cost[b] <= config.cost_tolerance * cost[b]:
+                    status[b] = _COST
+            if any(accept):
+                accepted = torch.tensor(accept, device=device)
+                if candidate is None:  # residual-only evaluation: linearize the accepted
+                    params_lin = (
+                        new_params if all(accept) else _select(accepted, new_params, params)
+                    )
+                    candidate = problem.linearize(params_lin)
+                if all(accept):
+                    params, system = new_params, candidate
+                else:
+                    params = _select(accepted, new_params, params)
+                    system = system.where(accepted, candidate)
+                if linearize_candidates:
+                    for b in range(B):
+                        if accept[b]:
+                            cost[b], grad_max[b] = new_cost[b], new_grad_max[b]
+                else:
+                    cost, grad_max = _cost_and_gradient_norm(system)
         for b in range(B):
-            if not running[b]:
-                continue
+            if not running[b] or (status[b] != _RUNNING and not trying[b]):
+                continue  # stopped before evaluating its step
             if accept[b]:
                 damping[b] *= max(1.0 - (2.0 * gain[b] - 1.0) ** 3, 1.0 / 3.0)
                 nu[b] = 2.0
@@ -1051,82 +1221,52 @@ def _minimize(
                 damping[b] *= nu[b]
                 nu[b] *= 2.0
             damping[b] = max(damping[b], config.min_damping)
-            if step_norm_[b] <= config.step_tolerance:
-                status[b] = _STEP
-            elif expand[b] and cost[b] - new_cost_[b] <= config.cost_tolerance * cost[b]:
-                status[b] = _COST
-            elif damping[b] > config.max_damping:
+            if status[b] == _RUNNING and damping[b] > config.max_damping:
                 status[b] = _DAMPING
-
-        if any(accept):
-            if candidate is None:  # residual-only evaluation: linearize the accepted poses
-                T_lin = T_new if all(accept) else _pick(accept, T_new, T)
-                extra_lin = extra_new if all(accept) else _pick(accept, extra_new, extra)
-                candidate = _assemble(problem.linearize(T_lin, extra_lin), mask, kernel, structure)
-            if all(accept):
-                T, extra, system = T_new, extra_new, candidate
-            else:
-                accepted = torch.tensor(accept, device=device)
-                T, extra = _pick(accept, T_new, T), _pick(accept, extra_new, extra)
-                system = system.where(accepted, candidate)
-            cost, grad_max = _cost_and_gradient_norm(system)
         history.append(list(cost))
     status = [_MAX_ITERATIONS if code == _RUNNING else code for code in status]
-    return LMResult(
-        T_wc=T,
-        extra=extra,
-        cost_history=torch.tensor(history, dtype=dtype, device=device).T.contiguous(),
-        iterations=torch.tensor(iterations, dtype=torch.long, device=device),
-        converged=torch.tensor([code in _CONVERGED for code in status], device=device),
-        reason=tuple(_REASONS[code] for code in status),
-    )
+    return LMRun(params, system, iterations, tuple(_REASONS[code] for code in status), history)
 
 
 def _expand_step(
-    T: torch.Tensor,
-    extra: torch.Tensor | None,
+    problem: LMProblem,
+    params: Any,
     delta: torch.Tensor,
-    system: _System,
+    system: LinearSystem,
     cost: list[float],
     expand: list[bool],
-    evaluate_cost: Callable[[torch.Tensor, torch.Tensor | None], torch.Tensor],
     config: LMConfig,
 ) -> tuple[torch.Tensor, list[float]]:
     """Lengthen accepted steps while the cost keeps decreasing.
 
     The problems in ``expand`` scale their step by 2, 4, ... (at most
     ``config.step_expansions`` doublings, one batched residual evaluation each) and keep the
-    last scale that lowered the cost. Only the poses with ``system.support >=
-    config.expansion_min_support`` (and the extra parameters) are scaled: a pose whose blocks
-    are mostly down-weighted outliers sits on a nearly flat stretch of the robust cost, where
-    lengthened steps can carry it away from any sensible solution.
+    last scale that lowered the cost. Only the unknowns ``system.expandable`` allows are
+    scaled (poses with robust support of at least ``config.expansion_min_support``, and the
+    extra parameters): a pose whose blocks are mostly down-weighted outliers sits on a nearly
+    flat stretch of the robust cost, where lengthened steps can carry it away from any
+    sensible solution.
 
     Args:
-        T: (B, P, 4, 4) poses before the step.
-        extra: (B, E) extra parameters before the step, or ``None``.
+        problem: the problem (residual evaluations and retraction).
+        params: the parameters before the step.
         delta: (B, D) step.
-        system: normal equations at ``T`` (structure and support).
+        system: normal equations at ``params``.
         cost: per problem, the cost after the step ``delta``.
         expand: per problem, whether to try longer steps.
-        evaluate_cost: ``(T, extra) -> (B,)`` costs.
         config: solver settings.
 
     Returns:
         ``(step, cost)``: the (B, D) chosen steps (``delta`` itself when no scale helped) and
         their costs per problem.
     """
-    s = system.structure
-    supported = system.support >= config.expansion_min_support  # (B, P_free)
-    scalable = torch.cat(
-        (supported.repeat_interleave(6, dim=1), supported.new_ones(len(cost), s.num_extra)),
-        dim=1,
-    )
+    scalable = system.expandable(config.expansion_min_support)
     chosen, scale, best, active = delta, [1.0] * len(cost), list(cost), list(expand)
     for _ in range(config.step_expansions):
         trial = [2.0 * t if a else t for t, a in zip(scale, active, strict=True)]
         factor = torch.tensor(trial, dtype=delta.dtype, device=delta.device)[:, None]
         trial_delta = torch.where(scalable, delta * factor, delta)
-        trial_cost = evaluate_cost(*_retract(T, extra, trial_delta, s)).tolist()
+        trial_cost = problem.evaluate(problem.retract(params, trial_delta)).tolist()
         improved = [a and value < b for a, value, b in zip(active, trial_cost, best, strict=True)]
         if not any(improved):
             break
@@ -1140,19 +1280,11 @@ def _expand_step(
     return chosen, best
 
 
-def _cost_and_gradient_norm(system: _System) -> tuple[list[float], list[float]]:
-    """Per problem: the cost and ``max |g|``, as Python floats."""
-    norm = torch.linalg.vector_norm(system.grad, ord=math.inf, dim=-1)
+def _cost_and_gradient_norm(system: LinearSystem) -> tuple[list[float], list[float]]:
+    """Per problem: the cost and ``max |g|``, as Python floats (NaN if any entry is)."""
+    norm = system.grad.abs().amax(-1)
     cost, grad_max = torch.stack((system.cost, norm)).tolist()
     return cost, grad_max
-
-
-def _pick(accept: list[bool], new: torch.Tensor | None, old: torch.Tensor | None):
-    """Per problem (leading dimension): ``new`` where ``accept``, else ``old``."""
-    if new is None or old is None:
-        return new
-    mask = torch.tensor(accept, device=new.device).view(-1, *[1] * (new.dim() - 1))
-    return torch.where(mask, new, old)
 
 
 # ---------------------------------------------------------------------------- front ends
@@ -1194,6 +1326,60 @@ def _fixed_mask(fixed: torch.Tensor | Sequence[int] | None, num_poses: int) -> t
         raise ValueError(f"fixed pose indices must be in [0, {num_poses}), got {index.tolist()}")
     is_fixed[index] = True
     return is_fixed
+
+
+def _robust_cost(residuals: torch.Tensor, mask: torch.Tensor, kernel: KernelFn) -> torch.Tensor:
+    """(B,) robust cost of residuals (B, M, R) of the masked (B, M) blocks (NaN-safe)."""
+    return _robust_weights(_masked(residuals, mask), mask, kernel)[0]
+
+
+@dataclass
+class _BlockProblem:
+    """The :class:`LMProblem` of :func:`levenberg_marquardt`: parameters ``(T, extra)``."""
+
+    residual_fn: BlockResidualFn
+    jacobian_fn: BlockJacobianFn | None
+    index_a: torch.Tensor
+    index_b: torch.Tensor | None
+    mask: torch.Tensor  # (B, M)
+    kernel: KernelFn
+    structure: _Structure
+
+    @property
+    def analytic(self) -> bool:
+        return self.jacobian_fn is not None
+
+    def gather(self, T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The poses of every block, (B, M, 4, 4) views of (4, 4, B, M) tensors whose 16
+        entries are each contiguous over the blocks (a cheap gather, and what component-wise
+        residual functions such as SurfelReprojectionCost read without a transposing copy)."""
+        B, P = T.shape[:2]
+        M = self.index_a.shape[0]
+        T_cm = T.permute(2, 3, 0, 1).reshape(16 * B, P)  # a small copy
+
+        def take(index: torch.Tensor) -> torch.Tensor:
+            rows = torch.gather(T_cm, 1, index.expand(16 * B, M))
+            return rows.view(4, 4, B, M).permute(2, 3, 0, 1)
+
+        return take(self.index_a), None if self.index_b is None else take(self.index_b)
+
+    def linearize(self, params: tuple[torch.Tensor, torch.Tensor | None]) -> _System:
+        T, extra = params
+        if self.jacobian_fn is not None:
+            lin = self.jacobian_fn(*self.gather(T), extra)
+        else:
+            lin = autodiff_linearize(self.residual_fn, *self.gather(T), extra)
+        _check_linearization(lin, *self.mask.shape)
+        return _assemble(lin, self.mask, self.kernel, self.structure)
+
+    def evaluate(self, params: tuple[torch.Tensor, torch.Tensor | None]) -> torch.Tensor:
+        T, extra = params
+        return _robust_cost(self.residual_fn(*self.gather(T), extra), self.mask, self.kernel)
+
+    def retract(
+        self, params: tuple[torch.Tensor, torch.Tensor | None], delta: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        return _retract(*params, delta, self.structure)
 
 
 def levenberg_marquardt(
@@ -1267,46 +1453,61 @@ def levenberg_marquardt(
         if extra.shape[:-1] not in ((), (B,) if batched else ()):
             raise ShapeError(f"extra must have shape (E,) or (B, E), got {tuple(extra.shape)}")
         check_finite(extra, "extra")
-        extra = extra.to(T.dtype).expand(B, extra.shape[-1])
+        extra = extra.to(T.dtype).expand(B, extra.shape[-1]).detach()
     is_fixed = _fixed_mask(fixed, P)
     if bool(is_fixed.all()) and extra is None:
         raise ValueError("every pose is fixed and there are no extra parameters to optimise")
     num_extra = 0 if extra is None else extra.shape[-1]
     index_a, index_b = index_a.long(), None if index_b is None else index_b.long()
-    structure = _Structure.from_blocks(P, index_a, index_b, is_fixed, num_extra)
-
-    def gather(T_cur: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        # Component-major: (B, M, 4, 4) views of (4, 4, B, M) tensors, whose 16 entries are
-        # each contiguous over the blocks (a cheap gather, and what component-wise residual
-        # functions such as SurfelReprojectionCost read without a transposing copy).
-        T_cm = T_cur.permute(2, 3, 0, 1).reshape(16 * B, P)  # a small copy
-
-        def take(index: torch.Tensor) -> torch.Tensor:
-            rows = torch.gather(T_cm, 1, index.expand(16 * B, M))
-            return rows.view(4, 4, B, M).permute(2, 3, 0, 1)
-
-        return take(index_a), None if index_b is None else take(index_b)
-
-    def linearize(T_cur: torch.Tensor, e: torch.Tensor | None) -> BlockLinearization:
-        if jacobian_fn is not None:
-            return jacobian_fn(*gather(T_cur), e)
-        return autodiff_linearize(residual_fn, *gather(T_cur), e)
-
-    def evaluate(T_cur: torch.Tensor, e: torch.Tensor | None) -> torch.Tensor:
-        return residual_fn(*gather(T_cur), e)
-
-    problem = _Problem(
-        linearize, evaluate, jacobian_fn is not None, structure, M, _batched_mask(mask, B, M)
+    mask_b = _batched_mask(mask, B, M)
+    problem = _BlockProblem(
+        residual_fn,
+        jacobian_fn,
+        index_a,
+        index_b,
+        torch.ones(B, M, dtype=torch.bool) if mask_b is None else mask_b,
+        make_robust_kernel(kernel or RobustKernel()),
+        _Structure.from_blocks(P, index_a, index_b, is_fixed, num_extra),
     )
     with torch.no_grad():
-        result = _minimize(
-            T.detach(),
-            None if extra is None else extra.detach(),
-            problem,
-            make_robust_kernel(kernel or RobustKernel()),
-            config or LMConfig(),
-        )
-    return _unbatch(result, batched)
+        run = minimize(problem, (T.detach(), extra), config or LMConfig())
+    T_out, extra_out = run.params
+    return _lm_result(run, T_out, extra_out, batched)
+
+
+@dataclass
+class _PoseProblem:
+    """The :class:`LMProblem` of :func:`levenberg_marquardt_single_pose`: poses (B, 4, 4)."""
+
+    residual_fn: PoseResidualFn
+    jacobian_fn: PoseJacobianFn | None
+    mask: torch.Tensor | None  # (B, N), or None: all
+    kernel: KernelFn
+
+    @property
+    def analytic(self) -> bool:
+        return self.jacobian_fn is not None
+
+    def _mask(self, residuals: torch.Tensor) -> torch.Tensor:
+        if self.mask is not None:
+            return self.mask
+        return torch.ones(residuals.shape[:2], dtype=torch.bool, device=residuals.device)
+
+    def linearize(self, T: torch.Tensor) -> PoseSystem:
+        if self.jacobian_fn is not None:
+            lin = BlockLinearization(*self.jacobian_fn(T))
+        else:
+            lin = autodiff_linearize(lambda T_a, _b, _e: self.residual_fn(T_a), T)
+        num_blocks = None if self.mask is None else self.mask.shape[1]
+        _check_linearization(lin, T.shape[0], num_blocks)
+        return _pose_system(lin.residuals, lin.jac_a, self._mask(lin.residuals), self.kernel)
+
+    def evaluate(self, T: torch.Tensor) -> torch.Tensor:
+        residuals = self.residual_fn(T)
+        return _robust_cost(residuals, self._mask(residuals), self.kernel)
+
+    def retract(self, T: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        return _right_step(T, delta)
 
 
 def levenberg_marquardt_single_pose(
@@ -1320,8 +1521,8 @@ def levenberg_marquardt_single_pose(
 ) -> LMResult:
     """Solve ``B`` independent one-pose problems at once (batched 6x6 systems).
 
-    The same solver core as :func:`levenberg_marquardt` (one pose per problem, every residual
-    block depending on it), without gathering poses per block.
+    The loop of :func:`levenberg_marquardt` (:func:`minimize`) on :class:`PoseSystem`
+    normal equations, without gathering poses per block.
 
     Args:
         T_wc: (4, 4) or (B, 4, 4) initial camera-to-world poses (float64 advised).
@@ -1352,38 +1553,32 @@ def levenberg_marquardt_single_pose(
     if T_wc.dim() not in (2, 3):
         raise ShapeError(f"T_wc must have shape (4, 4) or (B, 4, 4), got {tuple(T_wc.shape)}")
     batched = T_wc.dim() == 3
-    T = (T_wc if batched else T_wc[None])[:, None]
-
-    def linearize(T_cur: torch.Tensor, _: torch.Tensor | None) -> BlockLinearization:
-        if jacobian_fn is not None:
-            return BlockLinearization(*jacobian_fn(T_cur[:, 0]))
-        return autodiff_linearize(lambda Ta, _b, _e: residual_fn(Ta), T_cur[:, 0])
-
-    def evaluate(T_cur: torch.Tensor, _: torch.Tensor | None) -> torch.Tensor:
-        return residual_fn(T_cur[:, 0])
-
+    T = T_wc if batched else T_wc[None]
     B = T.shape[0]
-    num_blocks = None if mask is None else mask.shape[-1]
-    mask_b = None if mask is None else _batched_mask(mask, B, num_blocks)
-    problem = _Problem(linearize, evaluate, jacobian_fn is not None, None, num_blocks, mask_b)
+    mask_b = None if mask is None else _batched_mask(mask, B, mask.shape[-1])
+    kernel_fn = make_robust_kernel(kernel or RobustKernel())
+    problem = _PoseProblem(residual_fn, jacobian_fn, mask_b, kernel_fn)
     with torch.no_grad():
-        result = _minimize(
-            T.detach(),
-            None,
-            problem,
-            make_robust_kernel(kernel or RobustKernel()),
-            config or LMConfig(),
-        )
-    result.T_wc = result.T_wc[:, 0]
-    return _unbatch(result, batched)
+        run = minimize(problem, T.detach(), config or LMConfig())
+    return _lm_result(run, run.params, None, batched)
 
 
-def _unbatch(result: LMResult, batched: bool) -> LMResult:
+def _lm_result(run: LMRun, T: torch.Tensor, extra: torch.Tensor | None, batched: bool) -> LMResult:
+    """The :class:`LMResult` of a run (batch dimension removed unless ``batched``)."""
+    device = T.device
+    result = LMResult(
+        T_wc=T,
+        extra=extra,
+        cost_history=torch.tensor(run.cost_history, dtype=T.dtype, device=device).T.contiguous(),
+        iterations=torch.tensor(run.iterations, dtype=torch.long, device=device),
+        converged=torch.tensor(run.converged, device=device),
+        reason=run.reason,
+    )
     if batched:
         return result
     return LMResult(
         T_wc=result.T_wc[0],
-        extra=None if result.extra is None else result.extra[0],
+        extra=None if extra is None else extra[0],
         cost_history=result.cost_history[0],
         iterations=result.iterations[0],
         converged=result.converged[0],

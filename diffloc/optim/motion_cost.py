@@ -17,13 +17,16 @@ from the previous round's pose rather than from the initial one. A query left wi
 localising is a normal result, never an exception. ``B`` queries are refined together (one
 batched LM of 6x6 systems); shorter queries are padded and their padding masked out.
 
-The solver is lean because a query has only a few hundred matches, so every tensor operation
-costs mostly its fixed overhead: the LM (:func:`_levenberg_marquardt`) linearises the cost in
-normalised image coordinates with the Jacobians of a constant map (:class:`_Problem`; the
-module :class:`MotionOnlyCost` is the reference implementation of the same cost), decides its
-scalars in Python, and skips evaluations that cannot matter: the rounds before the last stop
-at ``round_cost_tolerance`` (they only re-classify the matches), a converged step is not
-evaluated, and a round with the previous round's kernel and matches is skipped.
+Each round is solved by the LM of :mod:`diffloc.optim.lm` (:func:`~diffloc.optim.lm.minimize`,
+its damping schedule and stopping rules) on a lean problem of its own, because a query has only
+a few hundred matches and every tensor operation costs mostly its fixed overhead: the
+round's problem (:class:`_RoundProblem`) linearises the cost in normalised image coordinates
+with the Jacobians of a constant map (:class:`_Problem`; the module :class:`MotionOnlyCost` is
+the reference implementation of the same cost) into batched 6x6
+:class:`~diffloc.optim.lm.PoseSystem` normal equations, and evaluations that cannot matter are
+skipped: the rounds before the last stop at ``round_cost_tolerance`` (they only re-classify
+the matches), a step too small to matter is not evaluated, and a round with the previous
+round's kernel and matches is skipped.
 
 The refined pose is differentiable with respect to the keypoints, the map points and the
 sigmas by the implicit function theorem: at the optimum ``G(theta*, x) = dF/dtheta = 0``, so
@@ -45,7 +48,6 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
@@ -57,7 +59,7 @@ from torch import nn
 from diffloc.checks import ShapeError, check_finite, check_positive_int, check_shape
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera, pose_jacobian_map
 from diffloc.geometry.se3 import invert, se3_exp
-from diffloc.optim.lm import LMConfig, cayley_rotation, solve_spd
+from diffloc.optim.lm import LMConfig, PoseSystem, cayley_rotation, minimize, solve_spd
 from diffloc.optim.robust import KernelFn, RobustKernel, make_robust_kernel
 
 __all__ = ["MotionOnlyCost", "MotionRefineConfig", "RefineResult", "refine_pose"]
@@ -344,10 +346,6 @@ def _prepare_inputs(
     return batched, T, X, kp, sig, use
 
 
-_ROUNDOFF_EPS = 16.0
-"""Predicted cost changes below this many machine epsilons of the cost are rounding noise."""
-
-
 def _pick(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> torch.Tensor:
     """Per problem (leading dimension): ``new`` where ``mask`` (B,) is true, else ``old``."""
     return torch.where(mask.view(-1, *[1] * (new.dim() - 1)), new, old)
@@ -389,31 +387,13 @@ class _Projection:
 
 
 @dataclass(frozen=True)
-class _Linearization:
-    """Robust normal equations of ``B`` one-pose problems at their current poses.
-
-    Attributes:
-        projection: the projection they come from.
-        cost: (B,) ``0.5 * sum rho(chi2)`` over the used matches.
-        grad: (B, 6) gradient of the cost w.r.t. ``delta`` (:class:`_Projection`):
-            ``sum w J^T e`` with ``w = rho'(chi2)`` and ``J`` the Jacobian of the whitened
-            residuals ``e``.
-        hessian: (B, 6, 6) Gauss-Newton matrix ``sum w J^T J``.
-    """
+class _Linearization(PoseSystem):
+    """Robust normal equations of ``B`` one-pose problems at their current poses, in the
+    tangent ``delta`` of :class:`_Projection` (``grad = sum w J^T e`` with ``w = rho'(chi2)``
+    and ``J`` the Jacobian of the whitened residuals ``e``), with the projection they come
+    from."""
 
     projection: _Projection
-    cost: torch.Tensor
-    grad: torch.Tensor
-    hessian: torch.Tensor
-
-    def where(self, mask: torch.Tensor, other: _Linearization) -> _Linearization:
-        """Per problem: ``other`` where ``mask`` (B,) is true, else ``self``."""
-        return _Linearization(
-            self.projection.where(mask, other.projection),
-            _pick(mask, other.cost, self.cost),
-            _pick(mask, other.grad, self.grad),
-            _pick(mask, other.hessian, self.hessian),
-        )
 
 
 @dataclass(frozen=True)
@@ -495,7 +475,8 @@ class _Problem:
         """The normal equations of the robust cost of the ``used`` (B, N) matches."""
         rho, weight = kernel(projection.r2)
         used = projection.keep & used
-        omega = self.scale * torch.where(used, weight, 0.0)[:, None]  # (B, 2, N)
+        weight = torch.where(used, weight, 0.0)
+        omega = self.scale * weight[:, None]  # (B, 2, N)
         J = projection.jacobian
         J0, J1 = J.unbind(2)
         W0, W1 = (J * omega[:, None]).unbind(2)
@@ -506,10 +487,11 @@ class _Problem:
         H = torch.baddbmm(W0 @ J0.mT, W1, J1.mT)
         grad = torch.baddbmm(W0 @ r0[..., None], W1, r1[..., None], beta=-1.0, alpha=-1.0)
         return _Linearization(
-            projection=projection,
             cost=torch.where(used, rho, 0.0).sum(-1).mul_(0.5),
             grad=grad[..., 0],
             hessian=H,
+            support=weight.sum(-1, keepdim=True).mul_(2.0),
+            projection=projection,
         )
 
     def linearize(self, T_cw: torch.Tensor, used: torch.Tensor, kernel: KernelFn) -> _Linearization:
@@ -517,120 +499,31 @@ class _Problem:
         return self.normal_equations(self.project(T_cw), used, kernel)
 
 
-def _retract(T_cw: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-    """``[[Cay(w), v], [0, 1]] @ T_cw`` for left twists ``delta = [v, w]`` (B, 6) of the
-    poses ``T_cw`` (B, 3, 4); the Cayley map (:func:`~diffloc.optim.lm.cayley_rotation`)
-    agrees with ``se3_exp`` to first order, the convention of the Jacobians."""
-    T_new = cayley_rotation(delta[:, 3:]) @ T_cw
-    T_new[:, :, 3] += delta[:, :3]
-    return T_new
+@dataclass(frozen=True)
+class _RoundProblem:
+    """One round of :func:`refine_pose` as an :class:`~diffloc.optim.lm.LMProblem`: the
+    ``used`` (B, N) matches under ``kernel``; parameters: the poses ``T_cw`` (B, 3, 4).
 
-
-def _levenberg_marquardt(
-    evaluate: Callable[[torch.Tensor], _Linearization],
-    state: _Linearization,
-    running: list[bool],
-    config: LMConfig,
-) -> tuple[_Linearization, list[int]]:
-    """Levenberg-Marquardt on ``B`` one-pose problems (6x6 systems), each stopping on its own.
-
-    The rules of :func:`diffloc.optim.lm.levenberg_marquardt`: Marquardt damping
-    ``(H + lambda diag(clamp(diag(H), min_diagonal))) delta = -g`` and Nielsen's update of
-    ``lambda`` from the gain ratio (a step whose predicted decrease is within rounding error of
-    the cost counts as ideal; a system Cholesky cannot factor counts as a failed step). A
-    problem stops on a small gradient (``max |g|``), after an accepted step that lowered the
-    cost by at most ``cost_tolerance`` of it, on ``lambda > max_damping`` or after
-    ``max_iterations`` linear solves; and, before its evaluation, on a step whose length
-    (mixed metres / radians) or predicted decrease (relative to the cost) is below
-    ``step_tolerance`` or ``cost_tolerance``: that step is not taken, the pose being then
-    within about that much of the optimum, and the evaluation it would cost is saved.
-
-    The problems share the tensor work; their scalars (cost, gain, damping) are decided in
-    Python after a conversion or two per iteration, far cheaper than a dozen tiny tensor
-    operations.
-
-    Args:
-        evaluate: poses ``T_cw`` (B, 3, 4) -> their :class:`_Linearization`.
-        state: the linearization at the initial poses.
-        running: per problem, whether to optimise it (the others keep their poses).
-        config: LM settings (the linear-solver fields do not apply to 6x6 systems).
-
-    Returns:
-        The linearization at the final poses and the linear solves per problem.
+    Steps are left twists ``delta = [v, w]`` of ``T_cw``: ``[[Cay(w), v], [0, 1]] @ T_cw``
+    (the Cayley map :func:`~diffloc.optim.lm.cayley_rotation` agrees with ``se3_exp`` to first
+    order, the convention of the Jacobians).
     """
-    B = len(running)
-    running = list(running)
-    damping, nu, iterations = [config.initial_damping] * B, [2.0] * B, [0] * B
-    roundoff = _ROUNDOFF_EPS * torch.finfo(state.cost.dtype).eps
-    cost, grad_max = torch.stack((state.cost, state.grad.abs().amax(-1))).tolist()
-    for _ in range(config.max_iterations):
-        running = [
-            r and gm > config.gradient_tolerance for r, gm in zip(running, grad_max, strict=True)
-        ]
-        if not any(running):
-            break
-        H, g = state.hessian, state.grad
-        lam = torch.tensor(damping, dtype=H.dtype, device=H.device)[:, None]
-        damped = H.clone()
-        damped.diagonal(dim1=-2, dim2=-1).addcmul_(
-            H.diagonal(dim1=-2, dim2=-1).clamp(min=config.min_diagonal), lam
-        )
-        L, info = torch.linalg.cholesky_ex(damped)
-        delta = torch.cholesky_solve(g[..., None], L)[..., 0].neg_()
-        # Decrease of the quadratic model, -(g.delta + delta.H.delta / 2), and step length.
-        model = torch.baddbmm(g[:, None], delta[:, None], H, alpha=0.5)[:, 0].mul_(delta)
-        predicted, step, failed = torch.stack(
-            (model.sum(-1).neg_(), torch.linalg.vector_norm(delta, dim=-1), info.to(H.dtype))
-        ).tolist()
-        trying = list(running)
-        for b in range(B):
-            if not running[b]:
-                continue
-            iterations[b] += 1
-            if failed[b]:
-                trying[b] = False
-                damping[b] *= nu[b]
-                nu[b] *= 2.0
-                running[b] = damping[b] <= config.max_damping
-            elif step[b] <= config.step_tolerance or predicted[b] <= (
-                config.cost_tolerance * cost[b]
-            ):
-                running[b] = trying[b] = False
-        if not any(trying):
-            continue
-        if not all(trying):
-            delta = torch.where(torch.tensor(trying, device=H.device)[:, None], delta, 0.0)
-        new = evaluate(_retract(state.projection.T_cw, delta))
-        new_cost, new_grad_max = torch.stack((new.cost, new.grad.abs().amax(-1))).tolist()
-        accept = [False] * B
-        for b in range(B):
-            if not trying[b]:
-                continue
-            actual, finite = cost[b] - new_cost[b], math.isfinite(new_cost[b])
-            # A predicted decrease below the rounding error of the cost cannot be judged by
-            # the measured (noisy) change, but the quadratic model is exact at that scale.
-            in_noise = finite and abs(predicted[b]) <= roundoff * abs(cost[b])
-            gain = -1.0
-            if in_noise:
-                gain = 1.0
-            elif finite and predicted[b] > 0:
-                gain = actual / predicted[b]
-            accept[b] = gain > 0
-            if accept[b]:
-                running[b] = in_noise or actual > config.cost_tolerance * cost[b]
-                cost[b], grad_max[b] = new_cost[b], new_grad_max[b]
-                damping[b] *= max(1.0 - (2.0 * gain - 1.0) ** 3, 1.0 / 3.0)
-                nu[b] = 2.0
-            else:
-                damping[b] *= nu[b]
-                nu[b] *= 2.0
-            damping[b] = max(damping[b], config.min_damping)
-            running[b] = running[b] and damping[b] <= config.max_damping
-        if all(accept):
-            state = new
-        elif any(accept):
-            state = state.where(torch.tensor(accept, device=H.device), new)
-    return state, iterations
+
+    problem: _Problem
+    used: torch.Tensor
+    kernel: KernelFn
+    analytic: bool = True
+
+    def linearize(self, T_cw: torch.Tensor) -> _Linearization:
+        return self.problem.linearize(T_cw, self.used, self.kernel)
+
+    def evaluate(self, T_cw: torch.Tensor) -> torch.Tensor:
+        return self.linearize(T_cw).cost
+
+    def retract(self, T_cw: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        T_new = cayley_rotation(delta[:, 3:]) @ T_cw
+        T_new[:, :, 3] += delta[:, :3]
+        return T_new
 
 
 def refine_pose(
@@ -699,13 +592,18 @@ def refine_pose(
             if kernel == previous_kernel and not any(rerun):
                 continue
             kernel_fn = make_robust_kernel(kernel)
-            evaluate = functools.partial(problem.linearize, used=used, kernel=kernel_fn)
             # The previous round ended at these poses: only its weights change.
             state = problem.normal_equations(projection, used, kernel_fn)
             lm_config = config.lm if round_index == config.rounds - 1 else classify_lm
-            state, steps = _levenberg_marquardt(evaluate, state, rerun, lm_config)
-            projection = state.projection
-            iterations = [i + s for i, s in zip(iterations, steps, strict=True)]
+            run = minimize(
+                _RoundProblem(problem, used, kernel_fn),
+                projection.T_cw,
+                lm_config,
+                system=state,
+                active=rerun,
+            )
+            projection = run.system.projection
+            iterations = [i + s for i, s in zip(iterations, run.iterations, strict=True)]
             chi2 = projection.chi2
             inliers = chi2 <= config.chi2_threshold
         T_star = invert(torch.cat((projection.T_cw, T0[:, 3:]), dim=1))
