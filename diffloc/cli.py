@@ -7,6 +7,7 @@ Examples:
     diffloc task=build_map dataset=data/indoor_seed0 # surfel map + coloured point maps
     diffloc task=build_db db.noise_sigma=0.2         # visual database with noisy poses
     diffloc task=optimize_db db.noise_sigma=0.2      # surfel reprojection optimisation
+    diffloc task=calibrate_rig                      # camera extrinsic + time offset of a database
     diffloc task=relocalize reloc.method.points=F    # relocalise the query sequences
     diffloc task=main                               # all of the above, each stage cached
 """
@@ -14,6 +15,7 @@ Examples:
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -29,6 +31,7 @@ from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.database_stage import build_database, database_dir, optimize_database
 from diffloc.pipeline.reloc_stage import relocalize_dataset
+from diffloc.pipeline.rig_stage import calibrate_database_rig
 from diffloc.sim.dataset import simulate_dataset
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -78,6 +81,24 @@ def run_optimize_db(cfg: DictConfig) -> dict:
         f"optimized: {summary['database']} (keyframe position RMSE "
         f"{summary['kf_pos_rmse_before_m']:.3f} m -> {summary['kf_pos_rmse_after_m']:.3f} m)"
     )
+    return summary
+
+
+def run_calibrate_rig(cfg: DictConfig) -> dict:
+    """``task=calibrate_rig``: the camera extrinsic and time offset of the ``build_db`` database."""
+    summary = calibrate_database_rig(
+        Path(cfg.dataset), OmegaConf.to_object(cfg.db), OmegaConf.to_object(cfg.task.calibration)
+    )
+    std_cm = 100.0 * math.sqrt(sum(s * s for s in summary["std"][:3]))
+    print(
+        f"rig calibration: extrinsic correction {summary['correction_cm']:.2f} cm / "
+        f"{summary['correction_deg']:.3f} deg (translation std {std_cm:.2f} cm), time offset "
+        f"{summary['dt_s'] * 1e3:.2f} ms, {summary['num_pairs']} surfel pairs, "
+        f"{summary['iterations']} iterations ({summary['reason']})"
+    )
+    print(f"results: {Path(summary['database']).parent / 'rig_calibration.json'}")
+    if "urdf" in summary:
+        print(f"corrected rig: {summary['urdf']}")
     return summary
 
 
@@ -161,6 +182,7 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
     "build_map": run_build_map,
     "build_db": run_build_db,
     "optimize_db": run_optimize_db,
+    "calibrate_rig": run_calibrate_rig,
     "relocalize": run_relocalize,
     "main": run_main,
 }

@@ -13,6 +13,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 from diffloc.maps.surfel import SurfelMapConfig
+from diffloc.optim.rig_calibration import RigCalibrationConfig
 from diffloc.pipeline.build_map import BuildMapConfig
 from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.reloc_stage import RelocStageConfig
@@ -32,6 +33,18 @@ class DatabaseTaskConfig:
     """``task=build_db`` / ``task=optimize_db``: the settings live in the root ``db`` node."""
 
     name: str = "build_db"
+
+
+@dataclass
+class RigCalibrationTaskConfig:
+    """``task=calibrate_rig``: the database comes from the root ``db`` node.
+
+    Attributes:
+        calibration: settings of :func:`~diffloc.optim.rig_calibration.calibrate_rig`.
+    """
+
+    name: str = "calibrate_rig"
+    calibration: RigCalibrationConfig = field(default_factory=RigCalibrationConfig)
 
 
 @dataclass
@@ -91,6 +104,7 @@ def register_configs() -> None:
     store.store(group="task", name="schema_build_map", node=BuildMapConfig)
     store.store(group="task", name="schema_database", node=DatabaseTaskConfig)
     store.store(group="task", name="schema_relocalize", node=RelocalizeTaskConfig)
+    store.store(group="task", name="schema_calibrate_rig", node=RigCalibrationTaskConfig)
     store.store(group="task", name="schema_main", node=MainTaskConfig)
     store.store(group="surfel", name="schema_surfel", node=SurfelMapConfig)
     store.store(group="reloc", name="schema_reloc", node=RelocStageConfig)

@@ -8,12 +8,17 @@ from pathlib import Path
 
 import pytest
 import torch
+from torch.testing import assert_close
 
 from diffloc.cli import run
 from diffloc.database.builder import BuilderConfig
 from diffloc.database.database import VisualDatabase
+from diffloc.geometry.rig import SensorRig
+from diffloc.geometry.se3 import invert, se3_exp
+from diffloc.io.calib import read_calib, write_calib
 from diffloc.io.dataset import read_sequence
-from diffloc.maps.surfel import SurfelMapConfig
+from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
+from diffloc.optim.rig_calibration import calibrate_rig
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.pipeline.database_stage import (
     DatabaseConfig,
@@ -76,6 +81,8 @@ def test_missing_inputs_are_clear_errors(tmp_path: Path, mapped: Path):
         _run("build_db", tmp_path)
     with pytest.raises(FileNotFoundError, match="build_db"):
         _run("optimize_db", mapped, "db.noise_sigma=0.3")
+    with pytest.raises(FileNotFoundError, match="build_db"):
+        _run("calibrate_rig", mapped, "db.noise_sigma=0.3")
 
 
 def test_orb_databases_live_beside_the_xfeat_ones(mapped: Path):
@@ -89,3 +96,48 @@ def test_orb_databases_live_beside_the_xfeat_ones(mapped: Path):
 def test_unknown_local_features_are_refused():
     with pytest.raises(ValueError, match="local_features"):
         DatabaseConfig(local_features="superpoint")
+
+
+def test_calibrate_rig_stage_runs_the_calibration_and_writes_the_rig(mapped: Path):
+    """The stage calibrates the database against the sequence's body poses and writes the
+    summary and the corrected URDF. (Accuracy is tested on model data in
+    test_rig_calibration.py: the tiny scene's 5 keyframes leave the extrinsic unobservable.)"""
+    association = "db.builder.association=epipolar"  # a database no other test reads
+    _run("build_db", mapped, association)
+    folder = database_dir(mapped, DatabaseConfig(builder=BuilderConfig(association="epipolar")))
+    db = VisualDatabase.load(folder / "database")
+    E = se3_exp(torch.tensor([0.03, -0.02, 0.01, 0.005, -0.01, 0.008], dtype=torch.float64))
+    db.T_wc = db.T_wc @ E  # a wrong camera extrinsic
+    db.save(folder / "database")
+    summary = _run("calibrate_rig", mapped, association)
+    assert summary["cost"] < summary["initial_cost"] and summary["num_pairs"] > 0
+    assert json.loads((folder / "rig_calibration.json").read_text()) == summary
+    seq = read_sequence(mapped, "mapping")
+    T_bc = seq.T_body_camera.double()
+    frames = torch.tensor(json.loads((folder / "build_db.json").read_text())["keyframe_frames"])
+    surfels = SurfelMap.load(mapped / "map" / "surfel_map.ply")
+    direct = calibrate_rig(
+        db,
+        surfels.centers.double(),
+        surfels.normals.double(),
+        seq.T_wc.double() @ invert(T_bc),
+        torch.as_tensor(seq.timestamps, dtype=torch.float64),
+        frames,
+    )
+    assert summary["T_correction"] == direct.T_correction.tolist()
+    assert summary["dt_s"] == direct.dt
+    rig = SensorRig.from_urdf(Path(summary["urdf"]).read_text())
+    corrected = torch.tensor(summary["T_body_camera_corrected"], dtype=torch.float64)
+    assert_close(corrected, T_bc @ direct.T_correction, rtol=0.0, atol=1e-12)
+    assert_close(rig.T_body_sensor("camera").detach(), corrected, rtol=0.0, atol=1e-9)
+
+
+def test_calibrate_rig_needs_a_camera_extrinsic(mapped: Path, tmp_path: Path):
+    root = tmp_path / "no_rig"
+    shutil.copytree(mapped / "mapping", root / "mapping")
+    shutil.copy(mapped / "dataset.json", root / "dataset.json")
+    calib = read_calib(root / "mapping" / "calib.yaml")
+    calib.T_body_camera = None
+    write_calib(root / "mapping" / "calib.yaml", calib)
+    with pytest.raises(ValueError, match="rig.T_body_camera"):
+        _run("calibrate_rig", root)
