@@ -1256,23 +1256,25 @@ def _run_starts(
         first, last: (S,) int64 flat pixel bounds of non-empty segments.
 
     Returns:
-        segment: (E,) int64 segment of every run start, ascending.
-        pixel: (E,) int64 flat pixel index of every run start.
+        count: (S,) int64 number of run starts of every segment.
+        pixel: (E,) int64 flat pixel index of every run start, segment by segment.
     """
     change = torch.zeros_like(ids, dtype=torch.bool)
     change[..., 1:] = ids[..., 1:] != ids[..., :-1]
     change = change.reshape(-1)
     before = torch.zeros(change.numel() + 1, dtype=torch.int64, device=ids.device)
     torch.cumsum(change, 0, out=before[1:])  # before[f]: changes at flat pixels < f
-    positions = change.nonzero().squeeze(1)
+    # The changes in (first, last] are positions[skip:skip + count - 1]; a zero sentinel
+    # stands in for the segment's first pixel, written afterwards.
+    positions = torch.cat([change.nonzero().squeeze(1), before[:1]])
     skip = before[first + 1]
     count = before[last + 1] - skip + 1
-    segment = torch.repeat_interleave(torch.arange(len(count), device=ids.device), count)
-    rank = torch.arange(len(segment), device=ids.device) - (count.cumsum(0) - count)[segment]
-    pixel = first[segment]
-    later = rank > 0
-    pixel[later] = positions[skip[segment[later]] + rank[later] - 1]
-    return segment, pixel
+    start = count.cumsum(0) - count
+    index = torch.arange(int(count.sum()), device=ids.device)
+    index += torch.repeat_interleave(skip - 1 - start, count)
+    pixel = positions[index.clamp_min_(0)]
+    pixel[start] = first
+    return count, pixel
 
 
 def _padded_sets(owner: torch.Tensor, values: torch.Tensor, count: int) -> torch.Tensor:
@@ -1280,20 +1282,20 @@ def _padded_sets(owner: torch.Tensor, values: torch.Tensor, count: int) -> torch
 
     Args:
         owner: (E,) int64 owner of every value in ``[0, count)``.
-        values: (E,) int64 values; negative ones are ignored.
+        values: (E,) int64 values >= -1; -1 ones are ignored.
         count: number of owners.
     """
-    keep = values >= 0
-    owner, values = owner[keep], values[keep]
-    base = int(values.max()) + 1 if len(values) else 1
-    key = torch.unique(owner * base + values)
-    owner, values = key // base, key % base
+    base = int(values.max()) + 2 if len(values) else 1
+    key = (owner * base + (values + 1)).sort(stable=True).values  # stable: radix sort on CPU
+    first = torch.ones_like(key, dtype=torch.bool)
+    first[1:] = key[1:] != key[:-1]
+    key = key[first & (key % base != 0)]
+    owner, values = key // base, key % base - 1
     sizes = torch.bincount(owner, minlength=count)
     width = int(sizes.max()) if count else 0
     rank = torch.arange(len(key), device=key.device) - (sizes.cumsum(0) - sizes)[owner]
-    out = torch.full((count, width), -1, dtype=torch.int64, device=key.device)
-    out[owner, rank] = values
-    return out
+    out = torch.full((count * width,), -1, dtype=torch.int64, device=key.device)
+    return out.index_put_((owner * width + rank,), values).view(count, width)
 
 
 def _neighbours_flat(
@@ -1315,5 +1317,6 @@ def _neighbours_flat(
     keep = left <= right
     owner, rows, left, right = owner[keep], rows[keep], left[keep], right[keep]
     row_start = (owner // max(keypoints.shape[1], 1) * height + rows) * width
-    segment, pixel = _run_starts(ids, row_start + left, row_start + right)
-    return _padded_sets(owner[segment], ids.reshape(-1)[pixel], kp.shape[0])
+    count, pixel = _run_starts(ids, row_start + left, row_start + right)
+    found = ids.reshape(-1).index_select(0, pixel)
+    return _padded_sets(torch.repeat_interleave(owner, count), found, kp.shape[0])
