@@ -1230,9 +1230,9 @@ def _segment_end(
     """(R,) int64 last pixel column of each row's disk segment towards ``side`` (-1 left, +1
     right), clamped to ``[-1, width]``.
 
-    The square-root estimate is within one pixel of the float32 test of :func:`_inside`, which
-    decides: the segment end is the outermost of the estimate's neighbours inside the disk
-    (beyond the estimate on an empty row, so that the two ends cross).
+    At image-scale coordinates the square-root estimate is within one pixel of the float32
+    test of :func:`_inside`, which decides: the segment end is the outermost of the estimate's
+    neighbours inside the disk (beyond the estimate on an empty row, so that the ends cross).
     """
     half = (r2 - dv2).clamp_min(0).sqrt()
     estimate = torch.ceil(u - half) if side < 0 else torch.floor(u + half)
@@ -1316,7 +1316,8 @@ def _neighbours_flat(
     right = _segment_end(u, dv2, r2, width, 1).clamp_max(width - 1)
     keep = left <= right
     owner, rows, left, right = owner[keep], rows[keep], left[keep], right[keep]
-    row_start = (owner // max(keypoints.shape[1], 1) * height + rows) * width
+    camera = owner // max(keypoints.shape[1], 1)
+    row_start = (camera * height + rows) * width
     count, pixel = _run_starts(ids, row_start + left, row_start + right)
     found = ids.reshape(-1).index_select(0, pixel)
     return _padded_sets(torch.repeat_interleave(owner, count), found, kp.shape[0])
