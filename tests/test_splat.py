@@ -656,6 +656,44 @@ def test_neighbour_surfels_random_batched_against_brute_force():
     assert torch.equal(scalar, per_point)
 
 
+def float32_disk_neighbours(ids, keypoint, radius):
+    """Sorted distinct ids of the pixels passing the float32 disk test (exact boundaries)."""
+    h, w = ids.shape
+    v, u = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    ku, kv = keypoint.float()
+    inside = (u - ku).square() + (v - kv).square() <= radius.float().square()
+    return torch.unique(ids[inside & (ids >= 0)]).tolist()
+
+
+def test_neighbour_surfels_mixed_sizes_against_reference():
+    """ORB-like radii from 0 to beyond the image in one call: every keypoint gets the set of
+    its own disk, decided on the boundary exactly as the float32 test decides it."""
+    g = torch.Generator().manual_seed(11)
+    height, width = 30, 41
+    blobs = torch.randint(0, 9, (height // 3 + 1, width // 2 + 1), generator=g)
+    ids = blobs.repeat_interleave(3, 0).repeat_interleave(2, 1)[:height, :width].clone()
+    ids[torch.rand(height, width, generator=g) < 0.2] = -1  # holes and runs of equal ids
+    ids[ids >= 0] += torch.randint(0, 3, (int((ids >= 0).sum()),), generator=g) * 10
+    random_kp = torch.rand(40, 2, generator=g) * torch.tensor([width + 10.0, height + 10.0]) - 5
+    exact_kp = torch.tensor([[10.0, 10.0], [5.5, 20.5], [0.0, 0.0], [40.0, 29.0], [20.0, 14.5]])
+    keypoints = torch.cat([random_kp, exact_kp, torch.tensor([[-60.0, 5.0], [1e6, -1e6]])])
+    random_r = torch.rand(40, generator=g) * torch.tensor([0.5, 2, 8, 25]).repeat(10)
+    exact_r = torch.tensor([5.0, 2.5, 3.0, 13.0, 2.0])  # boundary pixels at exactly r
+    radii = torch.cat([random_r, exact_r, torch.tensor([61.0, 3.0])])
+    out = neighbour_surfels(ids, keypoints, radii)
+    expected = [float32_disk_neighbours(ids, kp, r) for kp, r in zip(keypoints, radii, strict=True)]
+    assert out.shape == (len(keypoints), max(len(e) for e in expected))
+    for row, e in zip(out.tolist(), expected, strict=True):
+        assert row == e + [-1] * (out.shape[1] - len(e))
+    batched = neighbour_surfels(
+        torch.stack([ids, ids.flip(1)]), torch.stack([keypoints, keypoints]), radii
+    )
+    flipped = neighbour_surfels(ids.flip(1), keypoints, radii)
+    assert torch.equal(batched[0, :, : out.shape[1]], out)
+    assert torch.equal(batched[1, :, : flipped.shape[1]], flipped)
+    assert (batched[0, :, out.shape[1] :] == -1).all()
+
+
 def test_neighbour_surfels_edge_cases():
     ids = torch.zeros(4, 5, dtype=torch.int64)
     assert neighbour_surfels(ids, torch.zeros(0, 2), 2.0).shape == (0, 0)

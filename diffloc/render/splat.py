@@ -1140,17 +1140,6 @@ def see_through_fraction(
 # ---------------------------------------------------------------------------- neighbours
 
 
-def _distinct_rows(values: torch.Tensor) -> torch.Tensor:
-    """(R, M) sorted distinct non-negative values of each row of (R, L), -1 padded."""
-    ordered = values.sort(dim=1).values
-    keep = ordered >= 0
-    keep[:, 1:] &= ordered[:, 1:] != ordered[:, :-1]
-    width = int(keep.sum(1).max()) if keep.numel() else 0
-    position = (keep.cumsum(1) - 1).masked_fill_(~keep, width)
-    out = torch.full((values.shape[0], width + 1), -1, dtype=values.dtype, device=values.device)
-    return out.scatter_(1, position, ordered.masked_fill(~keep, -1))[:, :width]
-
-
 def neighbour_surfels(
     ids: torch.Tensor, keypoints: torch.Tensor, radius_px: torch.Tensor | float
 ) -> torch.Tensor:
@@ -1204,33 +1193,131 @@ def neighbour_surfels(
     return result[0] if unbatched else result
 
 
+def _inside(pu: torch.Tensor, u: torch.Tensor, dv2: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
+    """Whether float pixel columns ``pu`` lie in the disks, given each row's squared offset
+    ``dv2`` and squared radius ``r2`` (all broadcast alike); the one float32 membership test."""
+    return (pu - u).square() + dv2 <= r2
+
+
+def _disk_rows(
+    keypoints: torch.Tensor, radius: torch.Tensor, height: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Image rows each keypoint's disk may cover.
+
+    Args:
+        keypoints: (N, 2) float32 pixel coordinates ``(u, v)``.
+        radius: (N,) float32 radii.
+        height: image height.
+
+    Returns:
+        owner: (R,) int64 keypoint of every row, ascending.
+        rows: (R,) int64 row index in ``[0, height)``: the rows within ``floor(radius) + 1`` of
+        the keypoint's nearest pixel row, which hold every pixel of the disk.
+    """
+    reach = torch.floor(radius) + 1
+    centre = torch.floor(keypoints[:, 1] + 0.5)
+    first = (centre - reach).clamp(0, height).long()
+    last = (centre + reach).clamp(-1, height - 1).long()
+    count = (last - first + 1).clamp_min(0)
+    owner = torch.repeat_interleave(torch.arange(len(count), device=count.device), count)
+    rank = torch.arange(len(owner), device=owner.device) - (count.cumsum(0) - count)[owner]
+    return owner, first[owner] + rank
+
+
+def _segment_end(
+    u: torch.Tensor, dv2: torch.Tensor, r2: torch.Tensor, width: int, side: int
+) -> torch.Tensor:
+    """(R,) int64 last pixel column of each row's disk segment towards ``side`` (-1 left, +1
+    right), clamped to ``[-1, width]``.
+
+    At image-scale coordinates the square-root estimate is within one pixel of the float32
+    test of :func:`_inside`, which decides: the segment end is the outermost of the estimate's
+    neighbours inside the disk (beyond the estimate on an empty row, so that the ends cross).
+    """
+    half = (r2 - dv2).clamp_min(0).sqrt()
+    estimate = torch.ceil(u - half) if side < 0 else torch.floor(u + half)
+    estimate = estimate.clamp(-1, width)
+    outer, inner = estimate + side, estimate - side
+    end = torch.where(_inside(estimate, u, dv2, r2), estimate, inner)
+    end = torch.where(_inside(outer, u, dv2, r2), outer, end)
+    return end.long().clamp(-1, width)
+
+
+def _run_starts(
+    ids: torch.Tensor, first: torch.Tensor, last: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat pixels that start a run of equal ids within each row segment.
+
+    A segment ``[first, last]`` (flat pixel indices within one image row) holds the same ids
+    as its first pixel plus the pixels that differ from their left neighbour.
+
+    Args:
+        ids: (B, H, W) surfel index map.
+        first, last: (S,) int64 flat pixel bounds of non-empty segments.
+
+    Returns:
+        count: (S,) int64 number of run starts of every segment.
+        pixel: (E,) int64 flat pixel index of every run start, segment by segment.
+    """
+    change = torch.zeros_like(ids, dtype=torch.bool)
+    change[..., 1:] = ids[..., 1:] != ids[..., :-1]
+    change = change.reshape(-1)
+    before = torch.zeros(change.numel() + 1, dtype=torch.int64, device=ids.device)
+    torch.cumsum(change, 0, out=before[1:])  # before[f]: changes at flat pixels < f
+    # The changes in (first, last] are positions[skip:skip + count - 1]; a zero sentinel
+    # stands in for the segment's first pixel, written afterwards.
+    positions = torch.cat([change.nonzero().squeeze(1), before[:1]])
+    skip = before[first + 1]
+    count = before[last + 1] - skip + 1
+    start = count.cumsum(0) - count
+    index = torch.arange(int(count.sum()), device=ids.device)
+    index += torch.repeat_interleave(skip - 1 - start, count)
+    pixel = positions[index.clamp_min_(0)]
+    pixel[start] = first
+    return count, pixel
+
+
+def _padded_sets(owner: torch.Tensor, values: torch.Tensor, count: int) -> torch.Tensor:
+    """(count, M) sorted distinct non-negative ``values`` of every owner, padded with -1.
+
+    Args:
+        owner: (E,) int64 owner of every value in ``[0, count)``.
+        values: (E,) int64 values >= -1; -1 ones are ignored.
+        count: number of owners.
+    """
+    base = int(values.max()) + 2 if len(values) else 1
+    key = (owner * base + (values + 1)).sort(stable=True).values  # stable: radix sort on CPU
+    first = torch.ones_like(key, dtype=torch.bool)
+    first[1:] = key[1:] != key[:-1]
+    key = key[first & (key % base != 0)]
+    owner, values = key // base, key % base - 1
+    sizes = torch.bincount(owner, minlength=count)
+    width = int(sizes.max()) if count else 0
+    rank = torch.arange(len(key), device=key.device) - (sizes.cumsum(0) - sizes)[owner]
+    out = torch.full((count * width,), -1, dtype=torch.int64, device=key.device)
+    return out.index_put_((owner * width + rank,), values).view(count, width)
+
+
 def _neighbours_flat(
     ids: torch.Tensor, keypoints: torch.Tensor, radius: torch.Tensor
 ) -> torch.Tensor:
-    """(B * K, M) neighbour sets; see :func:`neighbour_surfels`."""
+    """(B * K, M) neighbour sets; see :func:`neighbour_surfels`.
+
+    Every keypoint scans only its own disk, as ragged row segments (no padding to the largest
+    radius): the ids of a segment are those of its runs of equal ids, and one sort of
+    ``(keypoint, id)`` keys makes the sets distinct.
+    """
     batch, height, width = ids.shape
-    reach = math.floor(float(radius.max())) + 1 if radius.numel() else 0
-    offsets = torch.arange(-reach, reach + 1, device=ids.device)
-    ov, ou = torch.meshgrid(offsets, offsets, indexing="ij")
-    ou, ov = ou.reshape(1, -1), ov.reshape(1, -1)
-    cam = torch.arange(batch, device=ids.device).repeat_interleave(keypoints.shape[1])[:, None]
-    kp, rad = keypoints.reshape(-1, 2), radius.reshape(-1, 1)
-    flat_ids = ids.reshape(-1)
-    step = max(1, _CHUNK // ou.numel())
-    rows = []
-    for start in range(0, kp.shape[0], step):
-        part = slice(start, start + step)
-        u, v = kp[part, :1], kp[part, 1:]
-        # Nearest pixel centre, kept near the image so that far keypoints cannot overflow.
-        pu = torch.floor(u + 0.5).clamp(-reach - 1, width + reach).long() + ou
-        pv = torch.floor(v + 0.5).clamp(-reach - 1, height + reach).long() + ov
-        inside = (pu - u).square() + (pv - v).square() <= rad[part].square()
-        inside &= (pu >= 0) & (pu < width) & (pv >= 0) & (pv < height)
-        slot = (cam[part] * height + pv.clamp(0, height - 1)) * width + pu.clamp(0, width - 1)
-        found = flat_ids.index_select(0, slot.view(-1)).view(slot.shape)
-        rows.append(_distinct_rows(found.masked_fill_(~inside, -1)))
-    widest = max((r.shape[1] for r in rows), default=0)
-    padded = [torch.nn.functional.pad(r, (0, widest - r.shape[1]), value=-1) for r in rows]
-    if not padded:
-        return torch.empty(0, 0, dtype=torch.int64, device=ids.device)
-    return torch.cat(padded)
+    kp, rad = keypoints.reshape(-1, 2), radius.reshape(-1)
+    owner, rows = _disk_rows(kp, rad, height)
+    u, r2 = kp[owner, 0], rad[owner].square()
+    dv2 = (rows - kp[owner, 1]).square()
+    left = _segment_end(u, dv2, r2, width, -1).clamp_min(0)
+    right = _segment_end(u, dv2, r2, width, 1).clamp_max(width - 1)
+    keep = left <= right
+    owner, rows, left, right = owner[keep], rows[keep], left[keep], right[keep]
+    camera = owner // max(keypoints.shape[1], 1)
+    row_start = (camera * height + rows) * width
+    count, pixel = _run_starts(ids, row_start + left, row_start + right)
+    found = ids.reshape(-1).index_select(0, pixel)
+    return _padded_sets(torch.repeat_interleave(owner, count), found, kp.shape[0])
