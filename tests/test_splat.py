@@ -17,6 +17,7 @@ from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, transform_points
 from diffloc.render.splat import (
     PointSizes,
+    SurfelIndexRenderer,
     neighbour_surfels,
     render_points,
     render_surfel_index,
@@ -376,6 +377,76 @@ def test_bad_surfel_anywhere_in_the_map_raises(camera):
         render_surfel_index(
             centers, normals, radii.index_fill(0, torch.tensor([700]), 0.0), identity(), camera
         )
+
+
+def _assert_same_render(a, b):
+    assert torch.equal(a.ids, b.ids)
+    assert torch.equal(a.depth.view(torch.int32), b.depth.view(torch.int32))
+    assert torch.equal(a.normals.view(torch.int32), b.normals.view(torch.int32))
+
+
+@pytest.mark.parametrize("cell_size_m", [0.05, 0.3, 100.0])
+def test_renderer_with_cells_matches_the_plain_render(cell_size_m):
+    g = torch.Generator().manual_seed(5)
+    centers, normals, radii = random_surfel_scene(g, 3000)
+    centers[7, 1] = math.nan  # a missing entry
+    # A disk facing the first camera close in front of it, and its duplicate (a tie).
+    centers[3], normals[3], radii[3] = (
+        torch.tensor([0.2, -0.1, -2.0]),
+        torch.tensor([0, 0, -1]),
+        0.05,
+    )
+    centers[11], normals[11], radii[11] = centers[3], normals[3], radii[3]
+    T_wc = torch.stack(
+        (
+            look_at((0.2, -0.1, -2.6), (0.0, 0.0, 0.0)),
+            look_at((1.2, 0.4, -1.2), (0.0, 0.0, 0.3)),
+            look_at((-0.3, 0.2, -0.4), (0.1, 0.0, 1.0)),
+            look_at((0.0, 0.0, 4.0), (0.0, 0.0, 10.0)),  # looking away: nothing in view
+        )
+    ).float()
+    camera = PinholeCamera.from_fov(72, 56, math.radians(75.0))
+    renderer = SurfelIndexRenderer(centers, normals, radii, cell_size_m=cell_size_m)
+    assert len(renderer) == 3000
+    for cull_backfaces in (False, True):
+        plain = render_surfel_index(
+            centers, normals, radii, T_wc, camera, cull_backfaces=cull_backfaces
+        )
+        _assert_same_render(renderer.render(T_wc, camera, cull_backfaces=cull_backfaces), plain)
+    assert int((plain.ids == 3).sum()) > 0 and int((plain.ids == 11).sum()) == 0
+    assert int((plain.ids == 7).sum()) == 0
+    assert not bool(plain.mask[3].any())
+
+
+def test_cells_cull_the_same_surfels_as_the_plain_frustum_test():
+    from diffloc.render.splat import _frustum_candidates, _SurfelCells, _views
+
+    g = torch.Generator().manual_seed(8)
+    centers = torch.rand(20000, 3, generator=g) * 10.0 - 5.0
+    normals = torch.randn(20000, 3, generator=g)
+    radii = torch.rand(20000, generator=g) * 0.2 + 0.01
+    cells = _SurfelCells.build(centers, normals, radii, 0.5)
+    assert torch.equal(cells.ids.sort().values, torch.arange(20000))
+    camera = PinholeCamera.from_fov(80, 60, math.radians(70.0))
+    T_wc = torch.stack([look_at((0.0, 0.0, -1.0), (1.0, 0.5, 3.0)), look_at((4, 4, 4), (0, 0, 0))])
+    for view in _views(T_wc.float(), camera.to(torch.float32)):
+        expected = _frustum_candidates(centers, radii, view, 60, 80)
+        found = cells.ids.index_select(0, cells.cull(view, 60, 80))
+        assert 0 < len(expected) < 20000
+        assert torch.equal(found.sort().values, expected)
+
+
+def test_renderer_validates_once_and_checks_its_inputs(camera):
+    centers, normals = torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[0.0, 0.0, -1.0]])
+    with pytest.raises(ValueError, match="radii"):
+        SurfelIndexRenderer(centers, normals, torch.tensor([0.0]))
+    with pytest.raises(ValueError, match="cell_size_m"):
+        SurfelIndexRenderer(centers, normals, torch.tensor([0.1]), cell_size_m=0.0)
+    empty = SurfelIndexRenderer(torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0))
+    out = empty.render(identity(2), camera)
+    assert out.ids.shape == (2, camera.height, camera.width) and not bool(out.mask.any())
+    with pytest.raises(ShapeError):
+        empty.render(torch.eye(4), camera)
 
 
 def test_tie_breakers_survive_the_window_product():

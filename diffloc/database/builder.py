@@ -48,7 +48,7 @@ from diffloc.geometry.se3 import invert, transform_points
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.surfel import SurfelMap
 from diffloc.progress import progress
-from diffloc.render.splat import SurfelRender, neighbour_surfels, render_surfel_index
+from diffloc.render.splat import SurfelIndexRenderer, SurfelRender, neighbour_surfels
 
 __all__ = ["ASSOCIATIONS", "BuilderConfig", "DatabaseBuilder"]
 
@@ -136,6 +136,10 @@ class DatabaseBuilder:
             raise ValueError("the surfel map is empty")
         self.config = config
         self.surfel_map = surfel_map
+        self.renderer = SurfelIndexRenderer(
+            surfel_map.centers, surfel_map.normals, surfel_map.radii
+        )
+        """Renders the surfel index maps (validated and culled by cells once per map)."""
         self.extractor = extractor
         self.database = database
         self.generator = torch.Generator().manual_seed(config.seed)
@@ -193,13 +197,7 @@ class DatabaseBuilder:
         start = time.perf_counter()
         features = self._features(image)
         extracted = time.perf_counter()
-        render = render_surfel_index(
-            self.surfel_map.centers,
-            self.surfel_map.normals,
-            self.surfel_map.radii,
-            T_wc.to(torch.float32)[None],
-            camera.to(torch.float32),
-        )
+        render = self.renderer.render(T_wc.to(torch.float32)[None], camera.to(torch.float32))
         ids = render.ids[0]
         surfels = _pixel_lookup(ids, features.keypoints)
         neighbours = neighbour_surfels(ids, features.keypoints, features.sizes / 2)

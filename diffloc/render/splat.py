@@ -72,6 +72,7 @@ from diffloc.geometry.se3 import invert
 __all__ = [
     "PointRender",
     "PointSizes",
+    "SurfelIndexRenderer",
     "SurfelRender",
     "neighbour_surfels",
     "render_points",
@@ -343,11 +344,10 @@ def _gather_channels_first(values: torch.Tensor, ids: torch.Tensor) -> torch.Ten
 class _SurfelCandidates:
     """The surfels of one camera that pass the frustum cull, in the camera frame.
 
-    Their local numbers ``0 .. M - 1`` (the z-buffer's) follow the map index, so ties broken
-    towards the lower local number go to the lower map index.
+    They may come in any order: the z-buffer breaks ties with the map index, not the position.
     """
 
-    ids: torch.Tensor  # (M,) int64 increasing map indices
+    ids: torch.Tensor  # (M,) int64 distinct map indices
     centers: torch.Tensor  # (3, M) float32 camera-frame centres (coordinates as rows)
     normals: torch.Tensor  # (3, M) float32 unit camera-frame normals
     radii: torch.Tensor  # (M,) float32
@@ -373,17 +373,40 @@ class _Windows:
     buckets: list[tuple[int, int, bool, int, int]]  # size_u, size_v, near, start, count
 
 
+def _frustum_planes(view: _View, height: int, width: int) -> tuple[list[list[float]], float]:
+    """Camera-frame unit normals of the four side planes of the frustum, and the cull slack.
+
+    The planes pass through the camera centre and the outer pixel edges (e.g. ``u = -0.5``,
+    ``fx x + (cx + 0.5) z >= 0``); every disk point seen at a pixel centre lies strictly inside
+    all four half-spaces, which only meet in front of the camera. The slack (metres) absorbs the
+    float32 rounding of the distances.
+
+    Returns:
+        ``(planes, slack)``: four ``[a, b, c]`` normals pointing inwards and the slack.
+    """
+    planes = []
+    for a, b, axis in (
+        (view.fx, view.cx + 0.5, 0),
+        (-view.fx, width - 0.5 - view.cx, 0),
+        (view.fy, view.cy + 0.5, 1),
+        (-view.fy, height - 0.5 - view.cy, 1),
+    ):
+        norm = math.hypot(a, b)
+        normal = [0.0, 0.0, b / norm]
+        normal[axis] = a / norm
+        planes.append(normal)
+    return planes, _CULL_SLACK * (1.0 + float(view.t_cw.norm()))
+
+
 def _frustum_candidates(
     centers: torch.Tensor, radii: torch.Tensor, view: _View, height: int, width: int
 ) -> torch.Tensor:
     """(M,) int64 increasing indices of the surfels whose bounding sphere may be in view.
 
     One ``(4, 3) x (3, N)`` product gives, straight from the world-frame centres, the signed
-    distances to the four side planes of the frustum (through the camera centre and the outer
-    pixel edges, e.g. ``u = -0.5``); a surfel is kept when its radius (plus a float32 slack)
-    reaches into all four half-spaces, which every disk point seen at a pixel centre lies
-    strictly inside. The half-spaces only meet in front of the camera, so this also drops the
-    surfels behind it; the centre's ``z > MIN_DEPTH`` is tested on the survivors. Surfels with
+    distances to the four side planes of :func:`_frustum_planes`; a surfel is kept when its
+    radius (plus the slack) reaches into all four half-spaces. This also drops the surfels
+    behind the camera; the centre's ``z > MIN_DEPTH`` is tested on the survivors. Surfels with
     NaN coordinates or radii are dropped.
 
     Args:
@@ -396,47 +419,123 @@ def _frustum_candidates(
     Returns:
         (M,) int64 surfel indices, increasing.
     """
-    planes = []  # camera-frame unit normals, e.g. of fx x + (cx + 0.5) z >= 0 (u >= -0.5)
-    for a, b, axis in (
-        (view.fx, view.cx + 0.5, 0),
-        (-view.fx, width - 0.5 - view.cx, 0),
-        (view.fy, view.cy + 0.5, 1),
-        (-view.fy, height - 0.5 - view.cy, 1),
-    ):
-        norm = math.hypot(a, b)
-        normal = [0.0, 0.0, b / norm]
-        normal[axis] = a / norm
-        planes.append(tuple(normal))
+    planes, slack = _frustum_planes(view, height, width)
     normals = torch.tensor(planes, dtype=torch.float32, device=centers.device)  # (4, 3)
-    slack = _CULL_SLACK * (1.0 + float(view.t_cw.norm()))
     distances = torch.addmm(normals @ view.t_cw, normals @ view.R_cw, centers.T)  # (4, N)
     reach = distances.amin(0).add_(radii)
     return (reach >= -slack).nonzero().view(-1)
 
 
+def _concat_ranges(starts: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """(sum counts,) int64 concatenation of the ranges ``starts[i] + (0 .. counts[i] - 1)``."""
+    offsets = torch.cumsum(counts, 0).sub_(counts)
+    shift = torch.repeat_interleave(starts - offsets, counts)
+    return torch.arange(shift.shape[0], device=starts.device).add_(shift)
+
+
+def _cell_keys(cells: torch.Tensor) -> torch.Tensor:
+    """(N,) int64 keys, equal exactly for equal rows, of (N, 3) int64 cell coordinates."""
+    if cells.shape[0] == 0:
+        return cells[:, 0]
+    cells = cells - cells.amin(0)
+    extent = cells.amax(0).add_(1).tolist()
+    if extent[0] * extent[1] * extent[2] < 2**62:
+        return (cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]
+    return torch.unique(cells, dim=0, return_inverse=True)[1]  # slower, no overflow
+
+
+@dataclass(frozen=True)
+class _SurfelCells:
+    """The finite surfels of a map grouped by cubic cells, for frustum culling by cell.
+
+    Cell ``g`` holds the surfels ``ids[starts[g] : starts[g + 1]]`` (increasing map indices),
+    whose data are stored cell by cell in ``centers``, ``normals`` and ``radii``; its bounding
+    sphere (float64, slightly inflated) holds all their bounding spheres.
+    """
+
+    ids: torch.Tensor  # (N',) int64 map indices, cell by cell
+    centers: torch.Tensor  # (N', 3) float32
+    normals: torch.Tensor  # (N', 3) float32
+    radii: torch.Tensor  # (N',) float32
+    starts: torch.Tensor  # (G + 1,) int64
+    sphere_centres: torch.Tensor  # (G, 3) float64
+    sphere_radii: torch.Tensor  # (G,) float64
+
+    @classmethod
+    def build(
+        cls, centers: torch.Tensor, normals: torch.Tensor, radii: torch.Tensor, size: float
+    ) -> _SurfelCells:
+        """Group the finite surfels of (N, 3) ``centers``, ``normals``, (N,) ``radii`` by cells of
+        ``size`` metres. Non-finite surfels are never drawn and are left out."""
+        finite = torch.isfinite(centers).all(1) & torch.isfinite(normals).all(1)
+        ids = (finite & torch.isfinite(radii)).nonzero().view(-1)
+        cells = torch.floor(centers.index_select(0, ids).double() / size).long()
+        _, cell, counts = torch.unique(_cell_keys(cells), return_inverse=True, return_counts=True)
+        ids = ids.index_select(0, torch.sort(cell, stable=True).indices)
+        starts = torch.cat((counts.new_zeros(1), torch.cumsum(counts, 0)))
+        cell = torch.repeat_interleave(torch.arange(counts.shape[0], device=ids.device), counts)
+        c = centers.index_select(0, ids).double()
+        mean = torch.zeros(counts.shape[0], 3, dtype=torch.float64, device=ids.device)
+        mean = mean.index_add_(0, cell, c).div_(counts[:, None])
+        reach = (c - mean.index_select(0, cell)).norm(dim=1).add_(radii.index_select(0, ids))
+        bound = torch.zeros_like(counts, dtype=torch.float64).scatter_reduce_(
+            0, cell, reach, "amax"
+        )
+        return cls(
+            ids,
+            centers.index_select(0, ids),
+            normals.index_select(0, ids),
+            radii.index_select(0, ids),
+            starts,
+            mean,
+            bound.mul_(1.0 + 1e-6).add_(1e-6),
+        )
+
+    def cull(self, view: _View, height: int, width: int) -> torch.Tensor:
+        """(M,) int64 positions (into the cell-ordered data) of the surfels that may be in view.
+
+        Cells whose bounding sphere is inside all four frustum half-spaces (with a margin far
+        above the float32 rounding of :func:`_frustum_candidates`) keep all their surfels,
+        cells outside one of them none; the surfels of the others are tested one by one by
+        :func:`_frustum_candidates`. The result is the set that it would select on the whole
+        map.
+        """
+        planes, slack = _frustum_planes(view, height, width)
+        planes = torch.tensor(planes, dtype=torch.float64, device=self.starts.device)
+        R, t = view.R_cw.double(), view.t_cw.double()
+        distances = torch.addmm((planes @ t).T, self.sphere_centres, (planes @ R).T)  # (G, 4)
+        nearest = distances.amin(1)
+        margin = 100.0 * slack
+        inside = nearest - self.sphere_radii >= margin - slack
+        cut = ~inside & (nearest + self.sphere_radii >= -slack - margin)
+        counts = self.starts.diff()
+        kept = _concat_ranges(self.starts[:-1][inside], counts[inside])
+        tested = _concat_ranges(self.starts[:-1][cut], counts[cut])
+        centers, radii = self.centers.index_select(0, tested), self.radii.index_select(0, tested)
+        near = tested.index_select(0, _frustum_candidates(centers, radii, view, height, width))
+        return torch.cat((kept, near))
+
+
 def _surfel_candidates(
+    ids: torch.Tensor,
     centers: torch.Tensor,
     normals: torch.Tensor,
     radii: torch.Tensor,
     view: _View,
-    height: int,
-    width: int,
 ) -> _SurfelCandidates:
-    """Cull the map to the view frustum and move the survivors to the camera frame.
+    """Move the surfels that passed the frustum cull to the camera frame.
 
     Args:
-        centers: (N, 3) world-frame centres.
-        normals: (N, 3) world-frame normals (any non-zero length).
-        radii: (N,) radii.
+        ids: (M,) int64 map indices of the surfels.
+        centers: (M, 3) their world-frame centres.
+        normals: (M, 3) their world-frame normals (any non-zero length).
+        radii: (M,) their radii.
         view: the camera.
-        height: image height.
-        width: image width.
     """
-    ids = _frustum_candidates(centers, radii, view, height, width)
-    c = view.to_camera(centers.index_select(0, ids).T)
-    n = view.R_cw @ normals.index_select(0, ids).T
+    c = view.to_camera(centers.T)
+    n = view.R_cw @ normals.T
     n = n / (n * n).sum(0).sqrt_()
-    return _SurfelCandidates(ids, c, n, radii.index_select(0, ids))
+    return _SurfelCandidates(ids, c, n, radii)
 
 
 @dataclass(frozen=True)
@@ -454,6 +553,17 @@ class _Conics:
     g0: torch.Tensor  # (M,)
     g_uv: torch.Tensor  # (2, M) gu, gv
     centre: torch.Tensor  # (2, M) projected centre (u, v), pixels
+
+    def select(self, index: torch.Tensor) -> _Conics:
+        """The conics of the (K,) surfels ``index``."""
+        return _Conics(
+            self.AC.index_select(1, index),
+            self.B.index_select(0, index),
+            self.DE.index_select(1, index),
+            self.g0.index_select(0, index),
+            self.g_uv.index_select(1, index),
+            self.centre.index_select(1, index),
+        )
 
 
 def _surfel_conics(
@@ -522,7 +632,7 @@ def _surfel_windows(
         visible &= k < 0
     near = c[2] - r <= MIN_DEPTH
     lo, hi = _surfel_boxes(conics, near, r, c, view, height, width)
-    return _bucket_windows(conics, near, lo, hi, visible, height, width)
+    return _bucket_windows(conics, surfels.ids, near, lo, hi, visible, height, width)
 
 
 def _ellipse_box_offsets(conics: _Conics) -> tuple[torch.Tensor, torch.Tensor]:
@@ -555,7 +665,7 @@ def _surfel_boxes(
     height: int,
     width: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(2, M) int64 inclusive pixel box corners ``lo = (u_lo, v_lo)``, ``hi``, in the image.
+    """(2, M) int32 inclusive pixel box corners ``lo = (u_lo, v_lo)``, ``hi``, in the image.
 
     The box is the analytic bounding box of the projected ellipse, intersected with the
     projection bound of the surfel's bounding sphere ``f r sqrt(x^2 + z^2) / (z (z - r))``
@@ -574,7 +684,7 @@ def _surfel_boxes(
     hi = torch.fmin(hi, half).add_(conics.centre).add_(_BBOX_MARGIN_PX).floor_()
     lo = torch.clamp(lo, torch.zeros_like(size), size)
     hi = torch.clamp(hi, torch.full_like(size, -1.0), size - 1)
-    return lo.to(torch.int64), hi.to(torch.int64)
+    return lo.to(torch.int32), hi.to(torch.int32)
 
 
 def _bucket_sizes(limit: int) -> list[int]:
@@ -596,8 +706,8 @@ class _BucketLayout:
 
     levels: int
     shapes: tuple[tuple[int, int], ...]  # (G,)
-    level: torch.Tensor  # (max(W, H) + 1,) int64 level of a box extent
-    sizes: torch.Tensor  # (2, G + 1) int64 (size_u, size_v) of each group, then 1 (dropped)
+    level: torch.Tensor  # (max(W, H) + 1,) int32 level of a box extent
+    sizes: torch.Tensor  # (2, G + 1) int32 (size_u, size_v) of each group, then 1 (dropped)
 
 
 @functools.lru_cache(maxsize=16)
@@ -611,13 +721,14 @@ def _bucket_layout(width: int, height: int, device: torch.device) -> _BucketLayo
         for g in range(2 * levels**2)
     )
     table = torch.tensor(sizes, device=device)
-    level = torch.bucketize(torch.arange(limit + 1, device=device), table)
-    sizes = torch.tensor([*shapes, (1, 1)], device=device).T.contiguous()
+    level = torch.bucketize(torch.arange(limit + 1, device=device), table, out_int32=True)
+    sizes = torch.tensor([*shapes, (1, 1)], dtype=torch.int32, device=device).T.contiguous()
     return _BucketLayout(levels, shapes, level, sizes)
 
 
 def _bucket_windows(
     conics: _Conics,
+    ids: torch.Tensor,
     near: torch.Tensor,
     lo: torch.Tensor,
     hi: torch.Tensor,
@@ -630,42 +741,46 @@ def _bucket_windows(
     Each box widens to its bucket's size and shifts left / up to lie inside the image (extra
     pixels fail the exact test). Surfels that may reach the near plane get buckets of their own,
     which add a depth test. Sparse buckets join larger ones (see :func:`_merge_sparse_buckets`).
+    Only the visible surfels' windows are placed and given polynomials.
 
     Args:
         conics: the surfels' conics.
+        ids: (M,) int64 map indices of the surfels (their z-buffer tie-breakers).
         near: (M,) bool, the disk may reach the near plane.
-        lo: (2, M) int64 top-left pixel ``(u, v)`` of each box.
-        hi: (2, M) int64 bottom-right pixel (inclusive).
+        lo: (2, M) int32 top-left pixel ``(u, v)`` of each box.
+        hi: (2, M) int32 bottom-right pixel (inclusive).
         visible: (M,) bool, the surfels to draw.
         height: image height.
         width: image width.
     """
     layout = _bucket_layout(width, height, lo.device)
-    extent = hi - lo + 1
-    visible = visible & (torch.minimum(*extent) > 0)  # (int64 amin is slow on CPU)
-    level = layout.level.index_select(0, extent.clamp(0, layout.level.shape[0] - 1).view(-1))
+    extent = (hi - lo).add_(1)
+    visible = visible & (torch.minimum(*extent) > 0)  # (integer amin is slow on CPU)
+    level = layout.level.index_select(0, extent.clamp_(0, layout.level.shape[0] - 1).view(-1))
     level = level.view(2, -1)  # (2, M)
     group = level[0].mul_(layout.levels).add_(level[1]).mul_(2).add_(near)
     dropped = len(layout.shapes)
     group = group.masked_fill_(~visible, dropped)  # sorted last
     counts = torch.bincount(group, minlength=dropped + 1).tolist()
     target = _merge_sparse_buckets(counts[:-1], layout.shapes)
-    group = torch.tensor([*target, dropped], device=lo.device).index_select(0, group)
+    group = torch.tensor([*target, dropped], dtype=torch.int16, device=lo.device).index_select(
+        0, group
+    )
     buckets, start = [], 0
     for g, count in enumerate(torch.bincount(group, minlength=dropped + 1)[:-1].tolist()):
         if count:
             buckets.append((*layout.shapes[g], g % 2 == 1, start, count))
             start += count
-    size = layout.sizes.index_select(1, group)
-    corner = torch.minimum(lo, lo.new_tensor([[width], [height]]) - size)
-    order = torch.argsort(group.to(torch.int16))[:start]  # the local surfel numbers of the windows
-    inside, inverse_depth = _window_polynomials(conics, corner)
+    order = torch.argsort(group)[:start]  # the surfels of the windows, bucket by bucket
+    size = layout.sizes.index_select(1, group.index_select(0, order).to(torch.int32))
+    corner = torch.minimum(lo.index_select(1, order), lo.new_tensor([[width], [height]]) - size)
+    inside, inverse_depth = _window_polynomials(conics.select(order), corner)
     keys = inside.new_empty(3, start, 2)  # (tie-breaker, inverse depth) words of int64 keys
     keys[:2, :, 1 - _HIGH_WORD] = 0.0
-    keys[2, :, 1 - _HIGH_WORD] = _tie_breakers(order)
-    keys[:, :, _HIGH_WORD] = inverse_depth.index_select(1, order)
-    base = (corner[1] * width + corner[0]).index_select(0, order)
-    return _Windows(inside.index_select(1, order), keys.view(3, -1), base, buckets)
+    keys[2, :, 1 - _HIGH_WORD] = _tie_breakers(ids.index_select(0, order))
+    keys[:, :, _HIGH_WORD] = inverse_depth
+    base = corner[1].to(torch.int64).mul_(width).add_(corner[0])
+    return _Windows(inside, keys.view(3, -1), base, buckets)
 
 
 def _merge_sparse_buckets(counts: list[int], shapes: tuple[tuple[int, int], ...]) -> list[int]:
@@ -710,7 +825,7 @@ def _window_polynomials(conics: _Conics, corner: torch.Tensor) -> tuple[torch.Te
 
     Args:
         conics: the surfels' conics.
-        corner: (2, M) int64 top-left pixel ``(u0, v0)`` of each window.
+        corner: (2, M) int32 top-left pixel ``(u0, v0)`` of each window.
 
     Returns:
         ``(inside, inverse_depth)``: (6, M) coefficients of ``1 - q`` on the monomials
@@ -728,14 +843,14 @@ def _window_polynomials(conics: _Conics, corner: torch.Tensor) -> tuple[torch.Te
     return inside, inverse_depth
 
 
-def _tie_breakers(local: torch.Tensor) -> torch.Tensor:
-    """(K,) float32 z-buffer tie-breakers of (K,) int64 local surfel numbers.
+def _tie_breakers(ids: torch.Tensor) -> torch.Tensor:
+    """(K,) float32 z-buffer tie-breakers of (K,) int64 map indices (below :data:`_MAX_SURFELS`).
 
-    Their bits are ``_TIE_TOP - local``: positive normal floats, so a matrix product with one
-    non-zero (unit) term reproduces them bit for bit, decreasing with the surfel number, so
-    the max-reduced key of equal inverse depths holds the lowest.
+    Their bits are ``_TIE_TOP - ids``: positive normal floats, so a matrix product with one
+    non-zero (unit) term reproduces them bit for bit, decreasing with the map index, so the
+    max-reduced key of equal inverse depths holds the lowest.
     """
-    return (_TIE_TOP - local).to(torch.int32).view(torch.float32)
+    return (_TIE_TOP - ids).to(torch.int32).view(torch.float32)
 
 
 def _make_window_basis(
@@ -809,6 +924,7 @@ def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> Non
 def _resolve_surfel_keys(
     keys: torch.Tensor,
     surfels: _SurfelCandidates,
+    size: int,
     ids: torch.Tensor,
     depth: torch.Tensor,
     normals: torch.Tensor,
@@ -817,7 +933,8 @@ def _resolve_surfel_keys(
 
     Args:
         keys: (P,) int64 z-buffer (see :func:`_rasterise_surfels`).
-        surfels: the camera's candidate surfels (the local numbering).
+        surfels: the camera's candidate surfels.
+        size: number of surfels N in the map.
         ids: (P,) int64 output, map index or -1.
         depth: (P,) float32 output, z-depth or 0.
         normals: (3, P) float32 output, unit camera-frame normal or 0.
@@ -827,9 +944,12 @@ def _resolve_surfel_keys(
     inverse_depth = high.view(torch.float32)
     hit = inverse_depth > 0  # empty pixels: _NO_KEY or a miss, high word -0.0 or negative
     torch.reciprocal(torch.where(hit, inverse_depth, math.inf), out=depth)  # empty: 0
-    local = torch.sub(_TIE_TOP, torch.where(hit, low, _TIE_TOP - count))  # `count`: none
-    none = torch.full((1,), -1, dtype=torch.int64, device=keys.device)
-    torch.index_select(torch.cat((surfels.ids, none)), 0, local, out=ids)
+    found = torch.sub(_TIE_TOP, torch.where(hit, low, _TIE_TOP - size))  # `size`: none
+    ids.copy_(found).masked_fill_(~hit, -1)
+    position = torch.empty(size + 1, dtype=torch.int32, device=keys.device)  # map -> candidate
+    position[size] = count
+    position.index_copy_(0, surfels.ids, torch.arange(count, dtype=torch.int32, device=keys.device))
+    local = position.index_select(0, found)
     table = torch.cat((surfels.normals, surfels.normals.new_zeros(3, 1)), dim=1)  # (3, M + 1)
     for row, out in zip(table, normals, strict=True):
         torch.index_select(row, 0, local, out=out)
@@ -861,7 +981,108 @@ def _check_surfels(centers: torch.Tensor, normals: torch.Tensor, radii: torch.Te
         raise ValueError("surfel normals must be non-zero")
 
 
-@torch.no_grad()
+class SurfelIndexRenderer:
+    """Renders the global surfel index map (seed 1 Sec. III-A) of one surfel map, view by view.
+
+    For many renders of the same map: the map is validated and converted once and, with
+    ``cell_size_m``, its surfels are grouped into cubic cells whose bounding spheres are culled
+    against each view's frustum first, so only the surfels of the cells that the frustum cuts
+    are tested one by one. Renders are bit for bit those of :func:`render_surfel_index` (the
+    cells change the work, not the candidate set). The map tensors must not change afterwards.
+
+    Args:
+        centers: (N, 3) surfel centres, world frame (metres).
+        normals: (N, 3) surfel normals, world frame (any non-zero length).
+        radii: (N,) disk radii in metres (> 0).
+        cell_size_m: edge of the culling cells in metres, or ``None`` to test every surfel.
+
+    Raises:
+        ShapeError: wrong shapes.
+        ValueError: radii ``<= 0``, zero normals, a non-positive cell size.
+
+    Example:
+        >>> renderer = SurfelIndexRenderer(
+        ...     torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[0.0, 0.0, -1.0]]),
+        ...     torch.tensor([0.1]))
+        >>> out = renderer.render(torch.eye(4)[None], PinholeCamera.from_fov(64, 48, 1.0))
+        >>> int(out.ids[0, 24, 32]), float(out.depth[0, 24, 32])
+        (0, 2.0)
+    """
+
+    def __init__(
+        self,
+        centers: torch.Tensor,
+        normals: torch.Tensor,
+        radii: torch.Tensor,
+        *,
+        cell_size_m: float | None = 0.25,
+    ) -> None:
+        _check_surfels(centers, normals, radii)
+        if cell_size_m is not None and not (math.isfinite(cell_size_m) and cell_size_m > 0):
+            raise ValueError(f"cell_size_m must be positive, got {cell_size_m!r}")
+        self.centers = centers.to(torch.float32)
+        self.normals = normals.to(torch.float32)
+        self.radii = radii.to(torch.float32)
+        self.cells = (
+            None
+            if cell_size_m is None
+            else _SurfelCells.build(self.centers, self.normals, self.radii, cell_size_m)
+        )
+
+    def __len__(self) -> int:
+        return self.centers.shape[0]
+
+    def _candidates(self, view: _View, height: int, width: int) -> _SurfelCandidates:
+        """The surfels that may be visible in ``view``, in the camera frame."""
+        if self.cells is None:
+            ids = _frustum_candidates(self.centers, self.radii, view, height, width)
+            data, positions = (self.centers, self.normals, self.radii), ids
+        else:
+            positions = self.cells.cull(view, height, width)
+            ids = self.cells.ids.index_select(0, positions)
+            data = (self.cells.centers, self.cells.normals, self.cells.radii)
+        centers, normals, radii = (x.index_select(0, positions) for x in data)
+        return _surfel_candidates(ids, centers, normals, radii, view)
+
+    @torch.no_grad()
+    def render(
+        self, T_wc: torch.Tensor, camera: PinholeCamera, *, cull_backfaces: bool = False
+    ) -> SurfelRender:
+        """Render the map from a batch of poses; see :func:`render_surfel_index`.
+
+        Args:
+            T_wc: (B, 4, 4) camera-to-world poses.
+            camera: one ideal pinhole camera or a batch of ``B`` (same image size).
+            cull_backfaces: also drop surfels whose normal points away from the camera.
+
+        Returns:
+            A :class:`SurfelRender` with ids (B, H, W), depth (B, H, W), normals (B, 3, H, W).
+        """
+        batch = _check_poses(T_wc)
+        camera = _check_camera(camera, batch)
+        if camera.distortion is not None:
+            raise ValueError(
+                "render_surfel_index needs an ideal pinhole camera (distortion=None); undistort "
+                "the images and keypoints first (PinholeCamera.undistort_points)"
+            )
+        height, width = camera.height, camera.width
+        device = self.centers.device
+        ids = torch.empty((batch, height * width), dtype=torch.int64, device=device)
+        depth = torch.empty((batch, height * width), dtype=torch.float32, device=device)
+        normals_cam = torch.empty((batch, 3, height * width), dtype=torch.float32, device=device)
+        for b, view in enumerate(_views(T_wc, camera)):
+            surfels = self._candidates(view, height, width)
+            windows = _surfel_windows(surfels, view, height, width, cull_backfaces)
+            keys = torch.full((height * width,), _NO_KEY, dtype=torch.int64, device=device)
+            _rasterise_surfels(windows, keys, width)
+            _resolve_surfel_keys(keys, surfels, len(self), ids[b], depth[b], normals_cam[b])
+        return SurfelRender(
+            ids.view(batch, height, width),
+            depth.view(batch, height, width),
+            normals_cam.view(batch, 3, height, width),
+        )
+
+
 def render_surfel_index(
     centers: torch.Tensor,
     normals: torch.Tensor,
@@ -899,33 +1120,9 @@ def render_surfel_index(
         >>> int(out.ids[0, 24, 32]), float(out.depth[0, 24, 32])
         (0, 2.0)
     """
-    batch = _check_poses(T_wc)
-    _check_surfels(centers, normals, radii)
-    camera = _check_camera(camera, batch)
-    if camera.distortion is not None:
-        raise ValueError(
-            "render_surfel_index needs an ideal pinhole camera (distortion=None); undistort "
-            "the images and keypoints first (PinholeCamera.undistort_points)"
-        )
-    height, width = camera.height, camera.width
-    centers = centers.to(torch.float32)
-    normals = normals.to(torch.float32)
-    radii = radii.to(torch.float32)
-    device = centers.device
-    ids = torch.empty((batch, height * width), dtype=torch.int64, device=device)
-    depth = torch.empty((batch, height * width), dtype=torch.float32, device=device)
-    normals_cam = torch.empty((batch, 3, height * width), dtype=torch.float32, device=device)
-    for b, view in enumerate(_views(T_wc, camera)):
-        surfels = _surfel_candidates(centers, normals, radii, view, height, width)
-        windows = _surfel_windows(surfels, view, height, width, cull_backfaces)
-        keys = torch.full((height * width,), _NO_KEY, dtype=torch.int64, device=device)
-        _rasterise_surfels(windows, keys, width)
-        _resolve_surfel_keys(keys, surfels, ids[b], depth[b], normals_cam[b])
-    return SurfelRender(
-        ids.view(batch, height, width),
-        depth.view(batch, height, width),
-        normals_cam.view(batch, 3, height, width),
-    )
+    _check_poses(T_wc)
+    renderer = SurfelIndexRenderer(centers, normals, radii, cell_size_m=None)
+    return renderer.render(T_wc, camera, cull_backfaces=cull_backfaces)
 
 
 # ---------------------------------------------------------------------------- points
