@@ -1114,17 +1114,19 @@ def minimize(
         The final parameters and normal equations, iterations and stop reasons.
 
     Raises:
-        ValueError: a non-finite cost or gradient at the initial parameters.
+        ValueError: a non-finite cost or gradient at the initial parameters of an active
+            problem.
     """
     if system is None:
         system = problem.linearize(params)
     cost, grad_max = _cost_and_gradient_norm(system)
-    if not all(map(math.isfinite, cost + grad_max)):
-        raise ValueError("the residuals or Jacobians are not finite at the initial parameters")
     B, dtype, device = len(cost), system.cost.dtype, system.cost.device
+    status = [_RUNNING if active is None or active[b] else _INACTIVE for b in range(B)]
+    for b in range(B):
+        if status[b] == _RUNNING and not math.isfinite(cost[b] + grad_max[b]):
+            raise ValueError("the residuals or Jacobians are not finite at the initial parameters")
     roundoff = _ROUNDOFF_EPS * torch.finfo(dtype).eps
     damping, nu, iterations = [config.initial_damping] * B, [2.0] * B, [0] * B
-    status = [_RUNNING if active is None or active[b] else _INACTIVE for b in range(B)]
     history = [list(cost)]
     linearize_candidates = problem.analytic and not config.step_expansions
     mixed_precision = True

@@ -67,7 +67,7 @@ import torch
 from diffloc.checks import ShapeError, check_finite, check_ransac_settings, check_shape
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera, pose_jacobian_map
 from diffloc.geometry.se3 import invert
-from diffloc.optim.lm import cayley_rotation
+from diffloc.optim.lm import LMConfig, PoseSystem, cayley_rotation, minimize
 from diffloc.reloc.epnp import epnp_flat
 from diffloc.reloc.p3p import p3p_flat
 from diffloc.threads import intra_op_threads
@@ -82,8 +82,6 @@ __all__ = [
 
 _SAMPLE_SIZE = 3
 _BAILOUT_SIGMAS = 3.0  # keep candidates within this many binomial std of the best subset count
-_LM_INITIAL_DAMPING = 1e-4  # relative to the diagonal of J^T J (Marquardt scaling)
-_LM_STEP_TOL = 1e-10  # stop once every twist component of a step is below this (m, rad)
 _REFINE_STEP_TOL = 1e-6  # Gauss-Newton on inliers stops before a step this small (m, rad)
 _P3P_REFINE_ITERATIONS = 0  # Newton steps on the P3P depths inside RANSAC (models are refined)
 
@@ -417,19 +415,17 @@ def _jacobian_map_t(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
         return pose_jacobian_map(dtype, device).T.contiguous()
 
 
-def _step(H: torch.Tensor, g: torch.Tensor, damping: torch.Tensor | None) -> torch.Tensor:
-    """Solve ``(H + D) delta = g`` for (B, 6) steps (Levenberg-Marquardt when damped), with
-    ``H`` (B, 6, 6) and ``g`` (B, 6, 1) from :func:`_normal_equations`.
+def _step(H: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Solve ``(H + D) delta = g`` for (B, 6) Gauss-Newton steps, with ``H`` (B, 6, 6) and
+    ``g`` (B, 6, 1) from :func:`_normal_equations`.
 
-    ``D = damping diag(H) + 1e-12 max(diag(H)) + 1e-300``: the relative and absolute floors
-    keep rank-deficient systems (too few or degenerate inliers) positive definite, with a
-    zero step for directions the data do not constrain, so a Cholesky solve suffices (a
-    non-finite ``H`` gives a non-finite step, which the callers' cost tests reject). ``H`` is
-    overwritten.
+    ``D = 1e-12 max(diag(H)) + 1e-300``: the relative and absolute floors keep rank-deficient
+    systems (too few or degenerate inliers) positive definite, with a zero step for
+    directions the data do not constrain, so a Cholesky solve suffices (a non-finite ``H``
+    gives a non-finite step, which the callers' cost tests reject). ``H`` is overwritten.
     """
     diag = H.diagonal(dim1=-2, dim2=-1)
-    floor = diag.amax(-1, keepdim=True).mul_(1e-12).add_(1e-300)
-    diag.add_(floor if damping is None else torch.addcmul(floor, damping[:, None], diag))
+    diag.add_(diag.amax(-1, keepdim=True).mul_(1e-12).add_(1e-300))
     return torch.cholesky_solve(g, torch.linalg.cholesky_ex(H)[0])[..., 0]
 
 
@@ -446,6 +442,38 @@ def _retract(
     return C @ R, torch.baddbmm(delta[:, :3, None], C, t[..., None])[..., 0]
 
 
+@dataclass(frozen=True)
+class _WeightedReprojection:
+    """The :class:`~diffloc.optim.lm.LMProblem` of :func:`refine_pnp` and :func:`solve_pnp`:
+    half the weighted squared pixel error of B problems, parameters ``(R_cw (B, 3, 3),
+    t_cw (B, 3))`` updated by left twists (:func:`_retract`); points behind the camera weigh
+    nothing.
+
+    Attributes:
+        data: the B problems.
+        weights: (B, N) non-negative weights.
+    """
+
+    data: _Residuals
+    weights: torch.Tensor
+    analytic: bool = True
+
+    def linearize(self, params: tuple[torch.Tensor, torch.Tensor]) -> PoseSystem:
+        proj = _project(*params, self.data)
+        w = self.weights.masked_fill(proj.behind, 0.0)
+        H, Jr = _normal_equations(proj, w[:, None] * self.data.focal2)
+        cost = proj.err2.masked_fill(proj.behind, 0.0).mul_(w).sum(-1).mul_(0.5)
+        return PoseSystem(cost, Jr[..., 0].neg_(), H, w.sum(-1, keepdim=True).mul_(2.0))
+
+    def evaluate(self, params: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+        return self.linearize(params).cost
+
+    def retract(
+        self, params: tuple[torch.Tensor, torch.Tensor], delta: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        return _retract(*params, delta)
+
+
 def _lm(
     R: torch.Tensor,
     t: torch.Tensor,
@@ -453,40 +481,26 @@ def _lm(
     weights: torch.Tensor,
     iterations: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Levenberg-Marquardt on the weighted squared pixel error, batched over B problems.
+    """Levenberg-Marquardt (:func:`~diffloc.optim.lm.minimize`) on the weighted squared pixel
+    error, batched over B problems; problems with a non-finite start are left as they are.
 
     Args:
         R: (B, 3, 3) initial R_cw.
         t: (B, 3) initial t_cw.
         data: the B problems.
         weights: (B, N) non-negative weights.
-        iterations: most iterations; stops once every step is below ``_LM_STEP_TOL``.
+        iterations: most iterations (linear solves).
 
     Returns:
         Refined ``(R, t)`` (see :func:`_retract` for the update).
     """
-
-    def weighted_cost(proj: _Projection) -> torch.Tensor:  # points behind: weight 0
-        return proj.err2.masked_fill(proj.behind, 0.0).mul_(weights).sum(-1)
-
-    proj = _project(R, t, data)
-    cost = weighted_cost(proj)
-    damping = torch.full_like(cost, _LM_INITIAL_DAMPING)
-    for _ in range(iterations):
-        w = weights.masked_fill(proj.behind, 0.0)[:, None] * data.focal2
-        delta = _step(*_normal_equations(proj, w), damping)
-        R_new, t_new = _retract(R, t, delta)
-        if float(torch.linalg.vector_norm(delta, ord=math.inf)) < _LM_STEP_TOL:
-            return R_new, t_new
-        proj_new = _project(R_new, t_new, data)
-        cost_new = weighted_cost(proj_new)
-        accept = cost_new < cost
-        R = torch.where(accept[:, None, None], R_new, R)
-        t = torch.where(accept[:, None], t_new, t)
-        cost = torch.where(accept, cost_new, cost)
-        proj = proj.where(accept, proj_new)
-        damping = torch.where(accept, damping * 0.1, damping * 10.0)
-    return R, t
+    problem = _WeightedReprojection(data, weights)
+    system = problem.linearize((R, t))
+    finite = torch.isfinite(torch.cat((system.cost[:, None], system.grad), -1)).all(-1)
+    run = minimize(
+        problem, (R, t), LMConfig(max_iterations=iterations), system, active=finite.tolist()
+    )
+    return run.params
 
 
 # ---------------------------------------------------------------------------- RANSAC
@@ -529,7 +543,7 @@ def _optimise(
         model = _projected_model(model.R[None], model.t[None], data, threshold2, model.refined)
     for _ in range(steps):
         weights = torch.where((model.err2 < threshold2)[:, None], data.focal2, 0.0)
-        delta = _step(*_normal_equations(model.projection, weights), None)
+        delta = _step(*_normal_equations(model.projection, weights))
         if model.refined and float(torch.linalg.vector_norm(delta, ord=math.inf)) < step_tol:
             break
         R, t = _retract(model.R[None], model.t[None], delta)
