@@ -2,7 +2,8 @@
 
 For every image (keyframe) with its pose ``T_wc``:
 
-1. extract local features and render the global surfel index map at the pose;
+1. extract local features and render the global surfel index map at the pose (with the
+   epipolar association, only at the pixels the keypoints read: their disks);
 2. associate every keypoint with the surfel at its (rounded) pixel and store its neighbouring
    surfel set (surfels within the keypoint's radius, ``size / 2``);
 3. collect the covisible keyframes (those observing any of this image's surfels) and match
@@ -48,7 +49,12 @@ from diffloc.geometry.se3 import invert, transform_points
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.surfel import SurfelMap
 from diffloc.progress import progress
-from diffloc.render.splat import SurfelIndexRenderer, SurfelRender, neighbour_surfels
+from diffloc.render.splat import (
+    SurfelIndexRenderer,
+    SurfelRender,
+    keypoint_disk_mask,
+    neighbour_surfels,
+)
 
 __all__ = ["ASSOCIATIONS", "BuilderConfig", "DatabaseBuilder"]
 
@@ -101,12 +107,26 @@ class BuilderConfig:
             )
 
 
-def _pixel_lookup(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Values of an (H, W) image at the rounded, clamped pixels ``uv`` (N, 2)."""
-    height, width = image.shape
+def _rounded_pixels(uv: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N,) int64 columns and rows of the rounded pixels ``uv`` (N, 2), clamped to the image."""
     u = uv[:, 0].round().long().clamp(0, width - 1)
     v = uv[:, 1].round().long().clamp(0, height - 1)
+    return u, v
+
+
+def _pixel_lookup(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Values of an (H, W) image at the rounded, clamped pixels ``uv`` (N, 2)."""
+    u, v = _rounded_pixels(uv, *image.shape)
     return image[v, u]
+
+
+def _keypoint_pixels(features: Features, camera: PinholeCamera) -> torch.Tensor:
+    """(1, H, W) bool: the pixels the keypoints read in the index map, their rounded pixels
+    (:func:`_pixel_lookup`) and their disks of radius ``size / 2`` (:func:`neighbour_surfels`)."""
+    mask = keypoint_disk_mask(features.keypoints, features.sizes / 2, camera.height, camera.width)
+    u, v = _rounded_pixels(features.keypoints, camera.height, camera.width)
+    mask[v, u] = True
+    return mask[None]
 
 
 class DatabaseBuilder:
@@ -197,7 +217,13 @@ class DatabaseBuilder:
         start = time.perf_counter()
         features = self._features(image)
         extracted = time.perf_counter()
-        render = self.renderer.render(T_wc.to(torch.float32)[None], camera.to(torch.float32))
+        # The projection association reads depths anywhere; the other only at the keypoints.
+        pixels = (
+            None if self.config.association == "projection" else _keypoint_pixels(features, camera)
+        )
+        render = self.renderer.render(
+            T_wc.to(torch.float32)[None], camera.to(torch.float32), pixels=pixels
+        )
         ids = render.ids[0]
         surfels = _pixel_lookup(ids, features.keypoints)
         neighbours = neighbour_surfels(ids, features.keypoints, features.sizes / 2)

@@ -8,7 +8,8 @@ Three renderers share one z-buffer:
   seed 2 Sec. III-D1: a fixed size, the inverse-depth size of Eq. 2, or the multi-pass scheme
   with a few fixed sizes merged by nearest depth.
 - :func:`neighbour_surfels` lists the distinct surfel ids within each keypoint's radius (the
-  neighbouring surfel set of seed 1).
+  neighbouring surfel set of seed 1); :func:`keypoint_disk_mask` gives the pixels it reads, so
+  that only those are rendered.
 
 Design notes:
 
@@ -74,6 +75,7 @@ __all__ = [
     "PointSizes",
     "SurfelIndexRenderer",
     "SurfelRender",
+    "keypoint_disk_mask",
     "neighbour_surfels",
     "render_points",
     "render_surfel_index",
@@ -104,6 +106,11 @@ _MAX_SURFELS = _TIE_TOP - 0x00800000 + 1
 _MERGE_PIXELS = 4096
 """A bucket of windows joins a larger one when that adds at most this many candidate pixels
 (about the cost of the few tensor operations that every bucket takes)."""
+_GEMM_COLUMNS = 12
+"""Fewest windows per matrix product of :func:`_rasterise_surfels` (but for wider windows than
+``_CHUNK / 12`` pixels): from 12 columns on, the CPU sgemm (MKL, AVX2) rounds every output
+column alike, whatever the other columns; narrower products take other kernels whose
+roundings differ. Renders restricted to some pixels draw fewer windows and rely on this."""
 _BASIS_CACHE_AREA = 1024
 """Window bases up to this many pixels are memoised (a few MB at most)."""
 _PROBE_DIRECTION = (1.0, 0.7548776662466927, 0.5698402909980532)
@@ -610,7 +617,12 @@ def _surfel_conics(
 
 
 def _surfel_windows(
-    surfels: _SurfelCandidates, view: _View, height: int, width: int, cull_backfaces: bool
+    surfels: _SurfelCandidates,
+    view: _View,
+    height: int,
+    width: int,
+    cull_backfaces: bool,
+    pixel_sums: torch.Tensor | None = None,
 ) -> _Windows:
     """Conics and candidate windows of the surfels that may be visible in one camera.
 
@@ -620,6 +632,8 @@ def _surfel_windows(
         height: image height.
         width: image width.
         cull_backfaces: drop surfels whose normal points away from the camera.
+        pixel_sums: summed-area table of the pixels to render (see :func:`_summed_area`), or
+            ``None`` for all pixels.
     """
     c, n, r = surfels.centers, surfels.normals, surfels.radii
     cc = (c * c).sum(0)
@@ -632,7 +646,7 @@ def _surfel_windows(
         visible &= k < 0
     near = c[2] - r <= MIN_DEPTH
     lo, hi = _surfel_boxes(conics, near, r, c, view, height, width)
-    return _bucket_windows(conics, surfels.ids, near, lo, hi, visible, height, width)
+    return _bucket_windows(conics, surfels.ids, near, lo, hi, visible, height, width, pixel_sums)
 
 
 def _ellipse_box_offsets(conics: _Conics) -> tuple[torch.Tensor, torch.Tensor]:
@@ -708,6 +722,7 @@ class _BucketLayout:
     shapes: tuple[tuple[int, int], ...]  # (G,)
     level: torch.Tensor  # (max(W, H) + 1,) int32 level of a box extent
     sizes: torch.Tensor  # (2, G + 1) int32 (size_u, size_v) of each group, then 1 (dropped)
+    wide: torch.Tensor  # (G + 1,) bool, windows too large for _GEMM_COLUMNS per chunk
 
 
 @functools.lru_cache(maxsize=16)
@@ -723,7 +738,8 @@ def _bucket_layout(width: int, height: int, device: torch.device) -> _BucketLayo
     table = torch.tensor(sizes, device=device)
     level = torch.bucketize(torch.arange(limit + 1, device=device), table, out_int32=True)
     sizes = torch.tensor([*shapes, (1, 1)], dtype=torch.int32, device=device).T.contiguous()
-    return _BucketLayout(levels, shapes, level, sizes)
+    wide = [_chunk_windows(u * v) < _GEMM_COLUMNS for u, v in shapes]
+    return _BucketLayout(levels, shapes, level, sizes, torch.tensor([*wide, False], device=device))
 
 
 def _bucket_windows(
@@ -735,13 +751,19 @@ def _bucket_windows(
     visible: torch.Tensor,
     height: int,
     width: int,
+    pixel_sums: torch.Tensor | None = None,
 ) -> _Windows:
     """Sort the visible windows into buckets of one (width, height) and place them in the image.
 
     Each box widens to its bucket's size and shifts left / up to lie inside the image (extra
     pixels fail the exact test). Surfels that may reach the near plane get buckets of their own,
     which add a depth test. Sparse buckets join larger ones (see :func:`_merge_sparse_buckets`).
-    Only the visible surfels' windows are placed and given polynomials.
+    Only the visible surfels' windows are placed and given polynomials; with ``pixel_sums``,
+    only those whose box holds a pixel to render (the full render draws no pixel outside a
+    surfel's box, which bounds its disk with a margin against rounding), and all the windows
+    of the wide buckets, which :func:`_rasterise_surfels` evaluates in chunks of fewer than
+    :data:`_GEMM_COLUMNS`. The buckets are chosen from all visible windows in both cases and
+    keep their order, so every drawn window is evaluated bit for bit as without ``pixel_sums``.
 
     Args:
         conics: the surfels' conics.
@@ -752,6 +774,8 @@ def _bucket_windows(
         visible: (M,) bool, the surfels to draw.
         height: image height.
         width: image width.
+        pixel_sums: summed-area table of the pixels to render (see :func:`_summed_area`), or
+            ``None`` for all pixels.
     """
     layout = _bucket_layout(width, height, lo.device)
     extent = (hi - lo).add_(1)
@@ -766,12 +790,16 @@ def _bucket_windows(
     group = torch.tensor([*target, dropped], dtype=torch.int16, device=lo.device).index_select(
         0, group
     )
+    if pixel_sums is not None:  # after the merge, which sees all windows
+        untouched = _box_sums(pixel_sums, lo, hi, width) <= 0
+        wide = layout.wide.index_select(0, group.to(torch.int32))
+        group = group.masked_fill_(untouched & ~wide, dropped)
     buckets, start = [], 0
     for g, count in enumerate(torch.bincount(group, minlength=dropped + 1)[:-1].tolist()):
         if count:
             buckets.append((*layout.shapes[g], g % 2 == 1, start, count))
             start += count
-    order = torch.argsort(group)[:start]  # the surfels of the windows, bucket by bucket
+    order = torch.argsort(group, stable=True)[:start]  # the windows, bucket by bucket
     size = layout.sizes.index_select(1, group.index_select(0, order).to(torch.int32))
     corner = torch.minimum(lo.index_select(1, order), lo.new_tensor([[width], [height]]) - size)
     inside, inverse_depth = _window_polynomials(conics.select(order), corner)
@@ -781,6 +809,26 @@ def _bucket_windows(
     keys[:, :, _HIGH_WORD] = inverse_depth
     base = corner[1].to(torch.int64).mul_(width).add_(corner[0])
     return _Windows(inside, keys.view(3, -1), base, buckets)
+
+
+def _summed_area(pixels: torch.Tensor) -> torch.Tensor:
+    """((H + 1) * (W + 1),) int32 flat summed-area table of an (H, W) bool image: entry
+    ``(v, u)`` counts the true pixels above row ``v`` and left of column ``u``."""
+    height, width = pixels.shape
+    table = torch.zeros((height + 1, width + 1), dtype=torch.int32, device=pixels.device)
+    torch.cumsum(pixels.to(torch.int32).cumsum(0, dtype=torch.int32), 1, out=table[1:, 1:])
+    return table.view(-1)
+
+
+def _box_sums(sums: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, width: int) -> torch.Tensor:
+    """(M,) int32 counts of the true pixels in the boxes ``[lo, hi]`` ((2, M) int32 ``(u, v)``,
+    inclusive, in the image as :func:`_surfel_boxes` clips them; empty boxes count <= 0), from
+    a flat :func:`_summed_area` table of a ``width``-wide image: four lookups per box."""
+    first, last = lo.to(torch.int64), hi.to(torch.int64).add_(1)
+    top, bottom = first[1] * (width + 1), last[1] * (width + 1)
+    corners = torch.stack((bottom + last[0], top + first[0], top + last[0], bottom + first[0]))
+    value = sums.index_select(0, corners.view(-1)).view(4, -1)
+    return value[0] + value[1] - value[2] - value[3]
 
 
 def _merge_sparse_buckets(counts: list[int], shapes: tuple[tuple[int, int], ...]) -> list[int]:
@@ -886,6 +934,19 @@ def _window_basis(
     return _make_window_basis(size_u, size_v, width, device)
 
 
+def _chunk_windows(area: int) -> int:
+    """Windows of ``area`` pixels per chunk of :func:`_rasterise_surfels`."""
+    return max(1, _CHUNK // area)
+
+
+def _chunk_columns(start: int, stop: int, step: int) -> slice | torch.Tensor:
+    """The windows ``start .. stop - 1`` of a chunk, repeated up to :data:`_GEMM_COLUMNS` when
+    fewer and chunks of ``step`` windows allow it (repeats write the same keys again)."""
+    if stop - start >= _GEMM_COLUMNS or step < _GEMM_COLUMNS:
+        return slice(start, stop)
+    return torch.arange(_GEMM_COLUMNS).remainder_(stop - start).add_(start)
+
+
 def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> None:
     """Ray-disk test of all candidate pixels, z-buffered into ``keys`` in place.
 
@@ -895,29 +956,33 @@ def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> Non
     max-reduction keeps per pixel the largest inverse depth, i.e. the nearest hit, and of equal
     ones the lowest surfel; misses are negative keys and never win. A matrix product per chunk
     of windows writes the keys in place (the tie-breaker is a constant polynomial), a second
-    one ``1 - q``, and one ``copysign`` applies the test.
+    one ``1 - q``, and one ``copysign`` applies the test. Chunks of fewer than
+    :data:`_GEMM_COLUMNS` small windows repeat some, so that every window of a bucket takes the
+    same matrix product kernel, whatever other windows share its chunk.
 
     Args:
         windows: the candidate windows of one camera.
         keys: (H * W,) int64 flat z-buffer, in place (:data:`_NO_KEY` where empty).
         width: image width W.
     """
+    pairs = windows.keys.view(3, -1, 2)
     for size_u, size_v, near, first, count in windows.buckets:
         area = size_u * size_v
         basis, offsets = _window_basis(size_u, size_v, width, keys.device)
-        step = max(1, _CHUNK // area)
+        step = _chunk_windows(area)
         for start in range(first, first + count, step):
             stop = min(start + step, first + count)
-            keys_pairs = windows.keys[:, 2 * start : 2 * stop]
+            chunk = _chunk_columns(start, stop, step)
+            keys_pairs = pairs[:, chunk].reshape(3, -1)
             candidates = torch.mm(basis[:, 3:], keys_pairs)  # (area, 2 m)
-            inside = torch.mm(basis, windows.inside[:, start:stop])  # (area, m)
+            inside = torch.mm(basis, windows.inside[:, chunk])  # (area, m)
             inverse_depth = candidates[:, _HIGH_WORD::2]
             if near:  # hits must also be in front of the near plane
                 miss = (inside < 0) | (inverse_depth <= 0) | (inverse_depth >= 1.0 / MIN_DEPTH)
                 inverse_depth.masked_fill_(miss, -1.0)
             else:
                 inverse_depth.copysign_(inside)
-            slots = torch.add(windows.base[start:stop], offsets)
+            slots = torch.add(windows.base[chunk], offsets)
             keys.scatter_reduce_(0, slots.view(-1), candidates.view(torch.int64).view(-1), "amax")
 
 
@@ -1046,7 +1111,12 @@ class SurfelIndexRenderer:
 
     @torch.no_grad()
     def render(
-        self, T_wc: torch.Tensor, camera: PinholeCamera, *, cull_backfaces: bool = False
+        self,
+        T_wc: torch.Tensor,
+        camera: PinholeCamera,
+        *,
+        cull_backfaces: bool = False,
+        pixels: torch.Tensor | None = None,
     ) -> SurfelRender:
         """Render the map from a batch of poses; see :func:`render_surfel_index`.
 
@@ -1054,6 +1124,7 @@ class SurfelIndexRenderer:
             T_wc: (B, 4, 4) camera-to-world poses.
             camera: one ideal pinhole camera or a batch of ``B`` (same image size).
             cull_backfaces: also drop surfels whose normal points away from the camera.
+            pixels: (B, H, W) bool, the pixels to render, or ``None`` for all.
 
         Returns:
             A :class:`SurfelRender` with ids (B, H, W), depth (B, H, W), normals (B, 3, H, W).
@@ -1066,16 +1137,26 @@ class SurfelIndexRenderer:
                 "the images and keypoints first (PinholeCamera.undistort_points)"
             )
         height, width = camera.height, camera.width
+        if pixels is not None:
+            check_shape(pixels, f"{batch},{height},{width}", "pixels")
+            if pixels.dtype != torch.bool:
+                raise ValueError(f"pixels must be a bool mask, got {pixels.dtype}")
         device = self.centers.device
         ids = torch.empty((batch, height * width), dtype=torch.int64, device=device)
         depth = torch.empty((batch, height * width), dtype=torch.float32, device=device)
         normals_cam = torch.empty((batch, 3, height * width), dtype=torch.float32, device=device)
         for b, view in enumerate(_views(T_wc, camera)):
             surfels = self._candidates(view, height, width)
-            windows = _surfel_windows(surfels, view, height, width, cull_backfaces)
+            sums = None if pixels is None else _summed_area(pixels[b])
+            windows = _surfel_windows(surfels, view, height, width, cull_backfaces, sums)
             keys = torch.full((height * width,), _NO_KEY, dtype=torch.int64, device=device)
             _rasterise_surfels(windows, keys, width)
             _resolve_surfel_keys(keys, surfels, len(self), ids[b], depth[b], normals_cam[b])
+        if pixels is not None:  # other pixels saw only some of their surfels
+            skipped = ~pixels.reshape(batch, 1, -1)
+            ids.masked_fill_(skipped[:, 0], -1)
+            depth.masked_fill_(skipped[:, 0], 0.0)
+            normals_cam.masked_fill_(skipped, 0.0)
         return SurfelRender(
             ids.view(batch, height, width),
             depth.view(batch, height, width),
@@ -1091,11 +1172,18 @@ def render_surfel_index(
     camera: PinholeCamera,
     *,
     cull_backfaces: bool = False,
+    pixels: torch.Tensor | None = None,
 ) -> SurfelRender:
     """Render the global surfel index map (seed 1 Sec. III-A) of oriented disks.
 
     A pixel shows the nearest surfel whose disk the ray through the pixel centre hits; its
     depth is the exact z-depth of that hit. Disks are two-sided unless ``cull_backfaces``.
+
+    With ``pixels``, only the surfels whose candidate window holds one of those pixels are
+    drawn (each surfel's window is the one it has in the full render, so every surfel that
+    covers such a pixel is drawn): ids, depths and normals at those pixels are bit for bit
+    those of the full render, and -1, 0, 0 at the other pixels. Use it when only a few
+    regions are read (e.g. the keypoint disks of :func:`neighbour_surfels`).
 
     Args:
         centers: (N, 3) surfel centres, world frame (metres).
@@ -1104,13 +1192,16 @@ def render_surfel_index(
         T_wc: (B, 4, 4) camera-to-world poses.
         camera: one ideal pinhole camera or a batch of ``B`` (same image size).
         cull_backfaces: also drop surfels whose normal points away from the camera.
+        pixels: (B, H, W) bool, the pixels to render, or ``None`` for all.
 
     Returns:
         A :class:`SurfelRender` with ids (B, H, W), depth (B, H, W), normals (B, 3, H, W).
 
     Raises:
-        ShapeError: wrong shapes, ``B = 0`` or a camera batch that does not match ``T_wc``.
-        ValueError: non-finite poses, radii ``<= 0``, zero normals, a distorted camera.
+        ShapeError: wrong shapes, ``B = 0`` or a camera batch that does not match ``T_wc``,
+            ``pixels`` not (B, H, W).
+        ValueError: non-finite poses, radii ``<= 0``, zero normals, a distorted camera, a
+            ``pixels`` mask that is not bool.
 
     Example:
         >>> cam = PinholeCamera.from_fov(64, 48, 1.0)
@@ -1122,7 +1213,7 @@ def render_surfel_index(
     """
     _check_poses(T_wc)
     renderer = SurfelIndexRenderer(centers, normals, radii, cell_size_m=None)
-    return renderer.render(T_wc, camera, cull_backfaces=cull_backfaces)
+    return renderer.render(T_wc, camera, cull_backfaces=cull_backfaces, pixels=pixels)
 
 
 # ---------------------------------------------------------------------------- points
@@ -1440,6 +1531,73 @@ def _segment_end(
     return end.long().clamp(-1, width)
 
 
+def _disk_segments(
+    keypoints: torch.Tensor, radius: torch.Tensor, height: int, width: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The pixels of the keypoint disks as non-empty row segments, clipped to the image.
+
+    Args:
+        keypoints: (N, 2) float32 pixel coordinates ``(u, v)``.
+        radius: (N,) float32 radii.
+        height: image height.
+        width: image width.
+
+    Returns:
+        ``(owner, rows, left, right)``, each (S,) int64: the keypoint, image row and first and
+        last column (inclusive) of every segment, keypoint by keypoint.
+    """
+    owner, rows = _disk_rows(keypoints, radius, height)
+    u, r2 = keypoints[owner, 0], radius[owner].square()
+    dv2 = (rows - keypoints[owner, 1]).square()
+    left = _segment_end(u, dv2, r2, width, -1).clamp_min(0)
+    right = _segment_end(u, dv2, r2, width, 1).clamp_max(width - 1)
+    keep = left <= right
+    return owner[keep], rows[keep], left[keep], right[keep]
+
+
+def keypoint_disk_mask(
+    keypoints: torch.Tensor, radius_px: torch.Tensor | float, height: int, width: int
+) -> torch.Tensor:
+    """The pixels :func:`neighbour_surfels` reads: those within each keypoint's radius.
+
+    Pass it as ``pixels`` to :meth:`SurfelIndexRenderer.render` when only the neighbour sets
+    are needed.
+
+    Args:
+        keypoints: (K, 2) finite pixel coordinates ``(u, v)``.
+        radius_px: scalar or (K,) radii in pixels (finite, >= 0).
+        height: image height H.
+        width: image width W.
+
+    Returns:
+        (H, W) bool, true at the pixel centres within ``radius_px`` of a keypoint.
+
+    Raises:
+        ShapeError: keypoints not (K, 2), radii neither scalar nor (K,).
+        ValueError: non-finite keypoints, negative or non-finite radii.
+
+    Example:
+        >>> keypoint_disk_mask(torch.tensor([[1.0, 1.0]]), 1.0, 3, 4).int()
+        tensor([[0, 1, 0, 0],
+                [1, 1, 1, 0],
+                [0, 1, 0, 0]], dtype=torch.int32)
+    """
+    check_shape(keypoints, "K,2", "keypoints")
+    check_finite(keypoints, "keypoints")
+    keypoints = keypoints.to(torch.float32)
+    radius = torch.as_tensor(radius_px, dtype=torch.float32, device=keypoints.device)
+    if not bool((torch.isfinite(radius) & (radius >= 0)).all()):
+        raise ValueError("radius_px must be finite and non-negative")
+    _, rows, left, right = _disk_segments(
+        keypoints, radius.expand(keypoints.shape[0]), height, width
+    )
+    start = rows * width
+    steps = torch.zeros(height * width + 1, dtype=torch.int32, device=keypoints.device)
+    steps.index_add_(0, start + left, torch.ones_like(left, dtype=torch.int32))
+    steps.index_add_(0, start + right + 1, torch.full_like(right, -1, dtype=torch.int32))
+    return steps.cumsum_(0)[:-1].view(height, width) > 0
+
+
 def _run_starts(
     ids: torch.Tensor, first: torch.Tensor, last: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1506,13 +1664,7 @@ def _neighbours_flat(
     """
     batch, height, width = ids.shape
     kp, rad = keypoints.reshape(-1, 2), radius.reshape(-1)
-    owner, rows = _disk_rows(kp, rad, height)
-    u, r2 = kp[owner, 0], rad[owner].square()
-    dv2 = (rows - kp[owner, 1]).square()
-    left = _segment_end(u, dv2, r2, width, -1).clamp_min(0)
-    right = _segment_end(u, dv2, r2, width, 1).clamp_max(width - 1)
-    keep = left <= right
-    owner, rows, left, right = owner[keep], rows[keep], left[keep], right[keep]
+    owner, rows, left, right = _disk_segments(kp, rad, height, width)
     camera = owner // max(keypoints.shape[1], 1)
     row_start = (camera * height + rows) * width
     count, pixel = _run_starts(ids, row_start + left, row_start + right)
