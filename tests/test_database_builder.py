@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+import diffloc.database.builder as builder_module
 from diffloc.database.builder import ASSOCIATIONS, BuilderConfig, DatabaseBuilder
 from diffloc.database.database import VisualDatabase
 from diffloc.features.local import XFeatConfig, make_extractor
@@ -165,3 +166,30 @@ def test_epipolar_association_is_not_steered_by_noisy_poses(scene: Path, surfels
     assert median_px["epipolar", "noisy"] < 3.0
     assert median_px["epipolar", "noisy"] < 1.25 * median_px["epipolar", "true"]
     assert median_px["projection", "noisy"] > 2 * median_px["epipolar", "noisy"]
+
+
+def test_epipolar_build_renders_only_the_keypoint_disks_and_matches_the_full_render(
+    scene: Path, surfels: SurfelMap, monkeypatch: pytest.MonkeyPatch
+):
+    """The epipolar association reads the index map only at the keypoints and in their disks:
+    rendering those pixels alone gives the database of the full render."""
+    seq = read_sequence(scene, "mapping")
+    config = BuilderConfig(association="epipolar")
+    masks = []
+    builder = DatabaseBuilder(config, surfels, make_extractor(EXTRACTOR))
+    render = builder.renderer.render
+    monkeypatch.setattr(
+        builder.renderer,
+        "render",
+        lambda *a, pixels: masks.append(pixels) or render(*a, pixels=pixels),
+    )
+    masked = builder.build(seq, show_progress=False)
+    monkeypatch.undo()
+    monkeypatch.setattr(builder_module, "_keypoint_pixels", lambda features, camera: None)
+    full = DatabaseBuilder(config, surfels, make_extractor(EXTRACTOR)).build(
+        seq, show_progress=False
+    )
+    assert masks and all(0 < float(m.float().mean()) < 0.9 for m in masks)
+    for name, value in vars(full).items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(value, getattr(masked, name)), name

@@ -18,6 +18,7 @@ from diffloc.geometry.se3 import invert, se3_exp, transform_points
 from diffloc.render.splat import (
     PointSizes,
     SurfelIndexRenderer,
+    keypoint_disk_mask,
     neighbour_surfels,
     render_points,
     render_surfel_index,
@@ -416,6 +417,88 @@ def test_renderer_with_cells_matches_the_plain_render(cell_size_m):
     assert int((plain.ids == 3).sum()) > 0 and int((plain.ids == 11).sum()) == 0
     assert int((plain.ids == 7).sum()) == 0
     assert not bool(plain.mask[3].any())
+
+
+def _masked_scene():
+    """Mixed-size surfels (occlusions, near-plane disks), a duplicated disk (a tie) and four
+    poses (one looking away), with two exactly coplanar overlapping disks."""
+    g = torch.Generator().manual_seed(13)
+    centers, normals, radii = random_surfel_scene(g, 2000)
+    centers[3], normals[3], radii[3] = (
+        torch.tensor([0.2, -0.1, -2.0]),
+        torch.tensor([0, 0, -1]),
+        0.05,
+    )
+    centers[11], normals[11], radii[11] = centers[3], normals[3], radii[3]
+    centers[12], normals[12], radii[12] = torch.tensor([0.23, -0.1, -2.0]), normals[3], 0.05
+    T_wc = torch.stack(
+        (
+            look_at((0.2, -0.1, -2.6), (0.0, 0.0, 0.0)),
+            look_at((1.2, 0.4, -1.2), (0.0, 0.0, 0.3)),
+            look_at((-0.3, 0.2, -0.4), (0.1, 0.0, 1.0)),
+            look_at((0.0, 0.0, 4.0), (0.0, 0.0, 10.0)),
+        )
+    ).float()
+    return centers, normals, radii, T_wc, PinholeCamera.from_fov(72, 56, math.radians(75.0))
+
+
+@pytest.mark.parametrize("cell_size_m", [None, 0.3])
+def test_masked_render_is_the_full_render_at_the_masked_pixels(cell_size_m):
+    centers, normals, radii, T_wc, camera = _masked_scene()
+    renderer = SurfelIndexRenderer(centers, normals, radii, cell_size_m=cell_size_m)
+    g = torch.Generator().manual_seed(3)
+    masks = []
+    for count in (40, 3, 1, 0):  # keypoint disks, a few, one, none
+        keypoints = torch.rand(count, 2, generator=g) * torch.tensor([72.0, 56.0]) - 0.5
+        radius = torch.rand(count, generator=g) * 6.0
+        masks.append(keypoint_disk_mask(keypoints, radius, 56, 72))
+    pixels = torch.stack(masks)
+    for cull_backfaces in (False, True):
+        full = renderer.render(T_wc, camera, cull_backfaces=cull_backfaces)
+        part = renderer.render(T_wc, camera, cull_backfaces=cull_backfaces, pixels=pixels)
+        assert torch.equal(part.ids[pixels], full.ids[pixels])
+        assert torch.equal(
+            part.depth[pixels].view(torch.int32), full.depth[pixels].view(torch.int32)
+        )
+        normals_at = lambda r: r.normals.permute(1, 0, 2, 3)[:, pixels].view(torch.int32)  # noqa: E731
+        assert torch.equal(normals_at(part), normals_at(full))
+        assert bool((part.ids[~pixels] == -1).all() and (part.depth[~pixels] == 0).all())
+        assert not bool(part.normals.permute(1, 0, 2, 3)[:, ~pixels].any())
+        everything = renderer.render(
+            T_wc, camera, cull_backfaces=cull_backfaces, pixels=torch.ones_like(pixels)
+        )
+        _assert_same_render(everything, full)
+    assert int((full.ids[0][pixels[0]] == 3).sum()) > 0  # the tie is in the mask
+    assert int((full.ids == 11).sum()) == 0
+    assert int(pixels[0].sum()) > 500 and not bool(part.mask[3].any())
+
+
+def test_masked_render_checks_the_mask(camera):
+    renderer = SurfelIndexRenderer(torch.zeros(1, 3), torch.ones(1, 3), torch.ones(1))
+    with pytest.raises(ShapeError):
+        renderer.render(
+            identity(), camera, pixels=torch.ones(camera.height, camera.width, dtype=torch.bool)
+        )
+    with pytest.raises(ValueError, match="bool"):
+        renderer.render(identity(), camera, pixels=torch.ones(1, camera.height, camera.width))
+
+
+def test_keypoint_disk_mask_is_what_neighbour_surfels_reads():
+    g = torch.Generator().manual_seed(4)
+    keypoints = torch.rand(30, 2, generator=g) * torch.tensor([40.0, 30.0]) - 2.0
+    radius = torch.rand(30, generator=g) * 5.0
+    mask = keypoint_disk_mask(keypoints, radius, 30, 40)
+    v, u = torch.meshgrid(torch.arange(30.0), torch.arange(40.0), indexing="ij")
+    inside = (u[None] - keypoints[:, 0, None, None]).square() + (
+        v[None] - keypoints[:, 1, None, None]
+    ).square() <= radius[:, None, None].square()
+    assert torch.equal(mask, inside.any(0))
+    ids = torch.randint(-1, 50, (30, 40), generator=g)
+    hidden = torch.where(mask, ids, torch.randint(-1, 50, (30, 40), generator=g))
+    assert torch.equal(
+        neighbour_surfels(hidden, keypoints, radius), neighbour_surfels(ids, keypoints, radius)
+    )
+    assert not bool(keypoint_disk_mask(torch.zeros(0, 2), 3.0, 30, 40).any())
 
 
 def test_cells_cull_the_same_surfels_as_the_plain_frustum_test():
