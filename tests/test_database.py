@@ -53,6 +53,8 @@ def make_database(observers: list[list[int]], dim: int = 4, global_dim: int | No
 def assert_same(a: VisualDatabase, b: VisualDatabase) -> None:
     assert a.metric == b.metric
     for name, value in vars(a).items():
+        if name.startswith("_"):  # buffers and caches, not state
+            continue
         other = getattr(b, name)
         if isinstance(value, torch.Tensor):
             assert value.dtype == other.dtype, name
