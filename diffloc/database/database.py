@@ -277,6 +277,25 @@ class VisualDatabase:
         self._check_keyframe(keyframe)
         return slice(int(self.keypoint_offsets[keyframe]), int(self.keypoint_offsets[keyframe + 1]))
 
+    def keyframe_rows(self, keyframes: torch.Tensor) -> torch.Tensor:
+        """Rows of some keyframes in the flat keypoint arrays.
+
+        Args:
+            keyframes: (M,) int64 keyframe indices.
+
+        Returns:
+            (R,) int64 rows, keyframe by keyframe in the order given, each keyframe's in
+            increasing order.
+
+        Example:
+            >>> db.keyframe_rows(torch.tensor([2, 0]))  # doctest: +SKIP
+            tensor([5, 6, 0, 1, 2])
+        """
+        starts = self.keypoint_offsets[keyframes]
+        counts = self.keypoint_offsets[keyframes + 1] - starts
+        shift = starts - (torch.cumsum(counts, 0) - counts)
+        return torch.repeat_interleave(shift, counts) + torch.arange(int(counts.sum()))
+
     def camera(self, keyframe: int) -> PinholeCamera:
         """The float64 pinhole camera of keyframe ``keyframe``."""
         self._check_keyframe(keyframe)
@@ -468,10 +487,10 @@ class VisualDatabase:
             return
         keep = torch.ones(self.num_points, dtype=torch.bool)
         keep[point_ids.long()] = False
-        new_id = torch.cumsum(keep.long(), 0) - 1
-        new_id[~keep] = -1
-        observed = self.keypoint_points >= 0
-        self.keypoint_points[observed] = new_id[self.keypoint_points[observed]]
+        # new_id[p + 1]: the id of point p after compaction, -1 for removed points and none.
+        new_id = torch.cumsum(torch.cat([torch.zeros(1, dtype=torch.bool), keep]), 0) - 1
+        new_id[1:][~keep] = -1
+        self.keypoint_points.copy_(new_id[self.keypoint_points + 1])
         for name in ("point_positions", "point_descriptors", "point_surfels"):
             self._keep_rows(name, keep)
 
@@ -512,17 +531,20 @@ class VisualDatabase:
         Returns:
             (Q,) int64 sorted distinct point ids.
         """
-        selected = member_mask(self.keypoint_keyframes(), keyframe_ids, self.num_keyframes)
-        points = self.keypoint_points[selected]
+        points = self.keypoint_points[self.keyframe_rows(keyframe_ids.long())]
         return torch.unique(points[points >= 0])
 
-    def keyframes_observing(self, surfel_ids: torch.Tensor) -> torch.Tensor:
+    def keyframes_observing(
+        self, surfel_ids: torch.Tensor, top_n: int | None = None
+    ) -> torch.Tensor:
         """Keyframes whose keypoints are associated with any of some surfels.
 
         A keyframe observes the surfels of its keypoints (the surfel -> keyframes index).
 
         Args:
             surfel_ids: (M,) int64 surfel ids (-1 entries are ignored).
+            top_n: keep only the ``top_n`` keyframes with most keypoints on these surfels
+                (ties: lower index first); all when ``None``.
 
         Returns:
             (Q,) int64 sorted distinct keyframe indices.
@@ -530,7 +552,12 @@ class VisualDatabase:
         ids = (self.keypoint_surfels, surfel_ids)
         size = 1 + max((int(x.max()) for x in ids if len(x)), default=-1)
         hit = member_mask(self.keypoint_surfels, surfel_ids, size)
-        return torch.unique(self.keypoint_keyframes()[hit])
+        counts = torch.bincount(self.keypoint_keyframes()[hit], minlength=self.num_keyframes)
+        keyframes = torch.nonzero(counts).flatten()
+        if top_n is not None and len(keyframes) > top_n:
+            best = torch.argsort(counts[keyframes], descending=True, stable=True)[:top_n]
+            keyframes = torch.sort(keyframes[best]).values
+        return keyframes
 
     def surfel_keyframes(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The surfel -> keyframes index in CSR form.
@@ -610,12 +637,12 @@ class VisualDatabase:
         Args:
             point_ids: (Q,) int64 map point ids.
         """
-        obs = self.observations()
-        obs = obs[member_mask(obs[:, 2], point_ids, self.num_points)]
-        if len(obs) == 0:
+        keypoint = torch.nonzero(member_mask(self.keypoint_points, point_ids, self.num_points))
+        if len(keypoint) == 0:
             return
-        order = torch.argsort(obs[:, 2], stable=True)
-        keypoint, point = obs[order, 1], obs[order, 2]
+        point = self.keypoint_points[keypoint[:, 0]]
+        order = torch.argsort(point, stable=True)
+        keypoint, point = keypoint[order, 0], point[order]
         points, counts = torch.unique_consecutive(point, return_counts=True)
         starts = torch.cumsum(counts, 0) - counts
         width = int(counts.max())
