@@ -8,8 +8,10 @@ from pathlib import Path
 import pytest
 import torch
 
+import diffloc.database.builder as builder_module
 from diffloc.database.builder import ASSOCIATIONS, BuilderConfig, DatabaseBuilder
 from diffloc.database.database import VisualDatabase
+from diffloc.database.epipolar_matching import EpipolarMatchingConfig, match_epipolar
 from diffloc.features.local import XFeatConfig, make_extractor
 from diffloc.geometry.se3 import invert, transform_points
 from diffloc.io.dataset import read_sequence
@@ -165,3 +167,24 @@ def test_epipolar_association_is_not_steered_by_noisy_poses(scene: Path, surfels
     assert median_px["epipolar", "noisy"] < 3.0
     assert median_px["epipolar", "noisy"] < 1.25 * median_px["epipolar", "true"]
     assert median_px["projection", "noisy"] > 2 * median_px["epipolar", "noisy"]
+
+
+def test_epipolar_candidates_come_from_at_most_candidate_keyframes(
+    scene: Path, surfels: SurfelMap, monkeypatch: pytest.MonkeyPatch
+):
+    """``epipolar.candidate_keyframes`` bounds the covisible keyframes whose map points are
+    match candidates (which ones: ``VisualDatabase.keyframes_observing``'s ``top_n``)."""
+    sizes = []
+
+    def spy(db, covisible, *args, **kwargs):
+        sizes.append(len(covisible))
+        return match_epipolar(db, covisible, *args, **kwargs)
+
+    monkeypatch.setattr(builder_module, "match_epipolar", spy)
+    config = BuilderConfig(association="epipolar", epipolar=EpipolarMatchingConfig(2))
+    db = DatabaseBuilder(config, surfels, make_extractor(EXTRACTOR)).build(
+        read_sequence(scene, "mapping"), show_progress=False
+    )
+    assert max(sizes) == 2 and db.stats()["observations"] > db.num_points
+    with pytest.raises(ValueError, match="candidate_keyframes"):
+        EpipolarMatchingConfig(candidate_keyframes=0)
