@@ -53,6 +53,8 @@ def make_database(observers: list[list[int]], dim: int = 4, global_dim: int | No
 def assert_same(a: VisualDatabase, b: VisualDatabase) -> None:
     assert a.metric == b.metric
     for name, value in vars(a).items():
+        if name.startswith("_"):  # buffers and caches, not state
+            continue
         other = getattr(b, name)
         if isinstance(value, torch.Tensor):
             assert value.dtype == other.dtype, name
@@ -74,6 +76,39 @@ def test_stats_and_observations():
     assert surfels.tolist() == [0, 10, 20]
     assert offsets.tolist() == [0, 2, 5, 6]
     assert keyframes.tolist() == [0, 1, 0, 1, 2, 2]
+
+
+def test_keyframe_rows_and_best_observing_keyframes():
+    db = make_database([[0, 1], [0, 1, 2], [2]])  # keypoints on surfels (0, 10), (0, 10), (10, 20)
+    assert db.keyframe_rows(torch.tensor([2, 0])).tolist() == [6, 7, 8, 0, 1, 2]
+    assert db.keyframe_rows(torch.tensor([], dtype=torch.int64)).tolist() == []
+    surfels = torch.tensor([10, 20])  # one keypoint of keyframes 0 and 1, two of keyframe 2
+    assert db.keyframes_observing(surfels, top_n=1).tolist() == [2]
+    assert db.keyframes_observing(surfels, top_n=2).tolist() == [0, 2]
+    assert db.keyframes_observing(surfels, top_n=5).tolist() == [0, 1, 2]
+
+
+def test_appends_after_load_and_removal_match_a_fresh_database(tmp_path: Path):
+    db = make_database([[0, 1], [0, 1, 2], [2]], global_dim=3)
+    db.save(tmp_path / "db")
+    loaded = VisualDatabase.load(tmp_path / "db")
+    keypoints_before = db.keypoints
+    copy_before = keypoints_before.clone()
+    for target in (db, loaded):
+        target.remove_points(torch.tensor([1]))
+        k = target.add_keyframe(
+            torch.eye(4, dtype=torch.float64),
+            CAMERA,
+            torch.ones(2, 2),
+            torch.ones(2, 4),
+            torch.ones(2),
+            global_descriptor=torch.ones(3),
+        )
+        ids = target.add_points(torch.zeros(1, 3), torch.ones(1, 4), torch.tensor([7]))
+        target.add_observations(k, torch.tensor([1]), ids)
+    assert_same(db, loaded)
+    assert torch.equal(keypoints_before, copy_before)  # appends write past its end only
+    assert db.keypoint_points[-2:].tolist() == [-1, 2]
 
 
 def test_covisibility_weights_count_shared_points():

@@ -11,6 +11,7 @@ import torch
 import diffloc.database.builder as builder_module
 from diffloc.database.builder import ASSOCIATIONS, BuilderConfig, DatabaseBuilder
 from diffloc.database.database import VisualDatabase
+from diffloc.database.epipolar_matching import EpipolarMatchingConfig, match_epipolar
 from diffloc.features.local import XFeatConfig, make_extractor
 from diffloc.geometry.se3 import invert, transform_points
 from diffloc.io.dataset import read_sequence
@@ -193,3 +194,24 @@ def test_epipolar_build_renders_only_the_keypoint_disks_and_matches_the_full_ren
     for name, value in vars(full).items():
         if isinstance(value, torch.Tensor):
             assert torch.equal(value, getattr(masked, name)), name
+
+
+def test_epipolar_candidates_come_from_at_most_candidate_keyframes(
+    scene: Path, surfels: SurfelMap, monkeypatch: pytest.MonkeyPatch
+):
+    """``epipolar.candidate_keyframes`` bounds the covisible keyframes whose map points are
+    match candidates (which ones: ``VisualDatabase.keyframes_observing``'s ``top_n``)."""
+    sizes = []
+
+    def spy(db, covisible, *args, **kwargs):
+        sizes.append(len(covisible))
+        return match_epipolar(db, covisible, *args, **kwargs)
+
+    monkeypatch.setattr(builder_module, "match_epipolar", spy)
+    config = BuilderConfig(association="epipolar", epipolar=EpipolarMatchingConfig(2))
+    db = DatabaseBuilder(config, surfels, make_extractor(EXTRACTOR)).build(
+        read_sequence(scene, "mapping"), show_progress=False
+    )
+    assert max(sizes) == 2 and db.stats()["observations"] > db.num_points
+    with pytest.raises(ValueError, match="candidate_keyframes"):
+        EpipolarMatchingConfig(candidate_keyframes=0)

@@ -9,9 +9,10 @@ For every image (keyframe) with its pose ``T_wc``:
 3. collect the covisible keyframes (those observing any of this image's surfels) and match
    their map points to the keypoints: ``association="projection"`` projects them into the
    image (dropping points behind the rendered surface) and matches in a local window with
-   Lowe's ratio test (seed 1); ``association="epipolar"`` matches by descriptor alone and
-   keeps the matches two-view essential checks agree with, so noisy poses do not steer the
-   tracks (:mod:`diffloc.database.epipolar_matching`);
+   Lowe's ratio test (seed 1); ``association="epipolar"`` matches by descriptor alone the
+   points of the ``epipolar.candidate_keyframes`` covisible keyframes with most keypoints on
+   this image's surfels and keeps the matches two-view essential checks agree with, so noisy
+   poses do not steer the tracks (:mod:`diffloc.database.epipolar_matching`);
 4. matched keypoints become observations of the map points, whose descriptors are re-fused
    (the observation descriptor with the smallest median distance to the others);
 5. unmatched keypoints on a surfel create new map points at the surfel centre (a later
@@ -228,7 +229,11 @@ class DatabaseBuilder:
         surfels = _pixel_lookup(ids, features.keypoints)
         neighbours = neighbour_surfels(ids, features.keypoints, features.sizes / 2)
         db = self._database(features)
-        covisible = db.keyframes_observing(torch.cat([surfels, neighbours.flatten()]))
+        epipolar = self.config.association == "epipolar"
+        covisible = db.keyframes_observing(
+            torch.cat([surfels, neighbours.flatten()]),
+            top_n=self.config.epipolar.candidate_keyframes if epipolar else None,
+        )
         keyframe = db.add_keyframe(
             T_wc.to(torch.float64),
             camera.to(torch.float64),

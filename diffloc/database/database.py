@@ -203,6 +203,49 @@ class VisualDatabase:
         self.point_positions = _empty((0, 3), torch.float64)
         self.point_descriptors = _empty((0, dim), descriptor_dtype)
         self.point_surfels = _empty((0,), torch.int64)
+        self._buffers: dict[str, torch.Tensor] = {}
+        self._keypoint_keyframes: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    # ------------------------------------------------------------------ growable arrays
+
+    def _append_rows(self, name: str, rows: torch.Tensor) -> None:
+        """Append (M, ...) rows to the array attribute ``name`` in amortised O(M).
+
+        The attribute is a prefix view of a buffer (``_buffers[name]``) with spare capacity,
+        doubled when full, so adding a keyframe does not copy the whole database; rows are
+        only ever written past the attribute's end, so tensors taken from it earlier do not
+        change. An attribute replaced from outside (loading, optimised poses) no longer shares
+        the buffer's memory and moves to a new buffer at its next append.
+        """
+        current = getattr(self, name)
+        n, m = current.shape[0], rows.shape[0]
+        buffer = self._buffers.get(name)
+        if (
+            buffer is None
+            or buffer.data_ptr() != current.data_ptr()
+            or buffer.shape[0] < n + m
+            or buffer.shape[1:] != current.shape[1:]
+            or buffer.dtype != current.dtype
+        ):
+            buffer = self._new_buffer(name, 2 * (n + m))
+            buffer[:n] = current
+        buffer[n : n + m] = rows
+        setattr(self, name, buffer[: n + m])
+
+    def _keep_rows(self, name: str, keep: torch.Tensor) -> None:
+        """Keep the rows ``keep`` ((R,) bool) of the array attribute ``name`` (a new buffer)."""
+        current = getattr(self, name)
+        index = torch.nonzero(keep).flatten()
+        kept = self._new_buffer(name, 2 * len(index))[: len(index)]
+        torch.index_select(current, 0, index, out=kept)
+        setattr(self, name, kept)
+
+    def _new_buffer(self, name: str, capacity: int) -> torch.Tensor:
+        """An uninitialised buffer of ``capacity`` (at least 16) rows shaped like ``name``."""
+        current = getattr(self, name)
+        buffer = current.new_empty((max(capacity, 16), *current.shape[1:]))
+        self._buffers[name] = buffer
+        return buffer
 
     # ------------------------------------------------------------------ sizes and views
 
@@ -222,13 +265,36 @@ class VisualDatabase:
         return self.descriptors.shape[1]
 
     def keypoint_keyframes(self) -> torch.Tensor:
-        """(N,) int64 keyframe owning each keypoint."""
-        return csr_rows(self.keypoint_offsets)
+        """(N,) int64 keyframe owning each keypoint (cached until the keyframes change)."""
+        cached = self._keypoint_keyframes
+        if cached is None or cached[0] is not self.keypoint_offsets:
+            cached = (self.keypoint_offsets, csr_rows(self.keypoint_offsets))
+            self._keypoint_keyframes = cached
+        return cached[1]
 
     def keyframe_slice(self, keyframe: int) -> slice:
         """Rows of keyframe ``keyframe`` in the flat keypoint arrays."""
         self._check_keyframe(keyframe)
         return slice(int(self.keypoint_offsets[keyframe]), int(self.keypoint_offsets[keyframe + 1]))
+
+    def keyframe_rows(self, keyframes: torch.Tensor) -> torch.Tensor:
+        """Rows of some keyframes in the flat keypoint arrays.
+
+        Args:
+            keyframes: (M,) int64 keyframe indices.
+
+        Returns:
+            (R,) int64 rows, keyframe by keyframe in the order given, each keyframe's in
+            increasing order.
+
+        Example:
+            >>> db.keyframe_rows(torch.tensor([2, 0]))  # doctest: +SKIP
+            tensor([5, 6, 0, 1, 2])
+        """
+        starts = self.keypoint_offsets[keyframes]
+        counts = self.keypoint_offsets[keyframes + 1] - starts
+        shift = starts - (torch.cumsum(counts, 0) - counts)
+        return torch.repeat_interleave(shift, counts) + torch.arange(int(counts.sum()))
 
     def camera(self, keyframe: int) -> PinholeCamera:
         """The float64 pinhole camera of keyframe ``keyframe``."""
@@ -317,17 +383,16 @@ class VisualDatabase:
         check_shape(neighbour_surfels, f"{n},M", "neighbour_surfels")
         self._append_global(global_descriptor)
         intrinsics = torch.stack([camera.fx, camera.fy, camera.cx, camera.cy]).to(torch.float64)
-        self.T_wc = torch.cat([self.T_wc, T_wc.to(torch.float64).cpu()[None]])
-        self.intrinsics = torch.cat([self.intrinsics, intrinsics.cpu()[None]])
+        self._append_rows("T_wc", T_wc.to(torch.float64).cpu()[None])
+        self._append_rows("intrinsics", intrinsics.cpu()[None])
         size = torch.tensor([[camera.width, camera.height]], dtype=torch.int64)
-        self.image_sizes = torch.cat([self.image_sizes, size])
-        end = self.keypoint_offsets[-1:] + n
-        self.keypoint_offsets = torch.cat([self.keypoint_offsets, end])
-        self.keypoints = torch.cat([self.keypoints, keypoints.float().cpu()])
-        self.descriptors = torch.cat([self.descriptors, descriptors.cpu()])
-        self.sizes = torch.cat([self.sizes, sizes.float().cpu()])
-        self.keypoint_surfels = torch.cat([self.keypoint_surfels, keypoint_surfels.long().cpu()])
-        self.keypoint_points = torch.cat([self.keypoint_points, torch.full((n,), -1)])
+        self._append_rows("image_sizes", size)
+        self._append_rows("keypoint_offsets", self.keypoint_offsets[-1:] + n)
+        self._append_rows("keypoints", keypoints.float().cpu())
+        self._append_rows("descriptors", descriptors.cpu())
+        self._append_rows("sizes", sizes.float().cpu())
+        self._append_rows("keypoint_surfels", keypoint_surfels.long().cpu())
+        self._append_rows("keypoint_points", torch.full((n,), -1))
         self._append_neighbours(neighbour_surfels.long().cpu())
         return self.num_keyframes - 1
 
@@ -340,14 +405,13 @@ class VisualDatabase:
             check_shape(
                 global_descriptor, f"{self.global_descriptors.shape[1]}", "global_descriptor"
             )
-            row = global_descriptor.float().cpu()[None]
-            self.global_descriptors = torch.cat([self.global_descriptors, row])
+            self._append_rows("global_descriptors", global_descriptor.float().cpu()[None])
 
     def _append_neighbours(self, padded: torch.Tensor) -> None:
         valid = padded >= 0
         ends = self.neighbour_offsets[-1] + torch.cumsum(valid.sum(1), 0)
-        self.neighbour_offsets = torch.cat([self.neighbour_offsets, ends])
-        self.neighbour_surfels = torch.cat([self.neighbour_surfels, padded[valid]])
+        self._append_rows("neighbour_offsets", ends)
+        self._append_rows("neighbour_surfels", padded[valid])
 
     def add_points(
         self, positions: torch.Tensor, descriptors: torch.Tensor, surfels: torch.Tensor
@@ -376,9 +440,9 @@ class VisualDatabase:
                 f"descriptors must be {self.descriptors.dtype}, got {descriptors.dtype}"
             )
         first = self.num_points
-        self.point_positions = torch.cat([self.point_positions, positions.double().cpu()])
-        self.point_descriptors = torch.cat([self.point_descriptors, descriptors.cpu()])
-        self.point_surfels = torch.cat([self.point_surfels, surfels.long().cpu()])
+        self._append_rows("point_positions", positions.double().cpu())
+        self._append_rows("point_descriptors", descriptors.cpu())
+        self._append_rows("point_surfels", surfels.long().cpu())
         return torch.arange(first, first + m)
 
     def add_observations(
@@ -419,15 +483,16 @@ class VisualDatabase:
         Args:
             point_ids: (M,) int64 ids to remove.
         """
+        if len(point_ids) == 0:
+            return
         keep = torch.ones(self.num_points, dtype=torch.bool)
         keep[point_ids.long()] = False
-        new_id = torch.cumsum(keep.long(), 0) - 1
-        new_id[~keep] = -1
-        observed = self.keypoint_points >= 0
-        self.keypoint_points[observed] = new_id[self.keypoint_points[observed]]
-        self.point_positions = self.point_positions[keep]
-        self.point_descriptors = self.point_descriptors[keep]
-        self.point_surfels = self.point_surfels[keep]
+        # new_id[p + 1]: the id of point p after compaction, -1 for removed points and none.
+        new_id = torch.cumsum(torch.cat([torch.zeros(1, dtype=torch.bool), keep]), 0) - 1
+        new_id[1:][~keep] = -1
+        self.keypoint_points.copy_(new_id[self.keypoint_points + 1])
+        for name in ("point_positions", "point_descriptors", "point_surfels"):
+            self._keep_rows(name, keep)
 
     def remove_keyframes(self, keyframe_ids: torch.Tensor) -> None:
         """Remove keyframes with their keypoints; later keyframe ids shift down.
@@ -440,10 +505,10 @@ class VisualDatabase:
         keep = torch.ones(self.num_keyframes, dtype=torch.bool)
         keep[keyframe_ids.long()] = False
         keep_kp = keep[self.keypoint_keyframes()]
-        self.T_wc, self.intrinsics = self.T_wc[keep], self.intrinsics[keep]
-        self.image_sizes = self.image_sizes[keep]
+        for name in ("T_wc", "intrinsics", "image_sizes"):
+            self._keep_rows(name, keep)
         if self.global_descriptors is not None:
-            self.global_descriptors = self.global_descriptors[keep]
+            self._keep_rows("global_descriptors", keep)
         self.neighbour_offsets, self.neighbour_surfels = csr_select(
             self.neighbour_offsets, self.neighbour_surfels, keep_kp
         )
@@ -451,7 +516,7 @@ class VisualDatabase:
             0
         ]
         for name in ("keypoints", "descriptors", "sizes", "keypoint_surfels", "keypoint_points"):
-            setattr(self, name, getattr(self, name)[keep_kp])
+            self._keep_rows(name, keep_kp)
         orphans = torch.nonzero(self.observation_counts() == 0).flatten()
         self.remove_points(orphans)
 
@@ -466,17 +531,20 @@ class VisualDatabase:
         Returns:
             (Q,) int64 sorted distinct point ids.
         """
-        selected = member_mask(self.keypoint_keyframes(), keyframe_ids, self.num_keyframes)
-        points = self.keypoint_points[selected]
+        points = self.keypoint_points[self.keyframe_rows(keyframe_ids.long())]
         return torch.unique(points[points >= 0])
 
-    def keyframes_observing(self, surfel_ids: torch.Tensor) -> torch.Tensor:
+    def keyframes_observing(
+        self, surfel_ids: torch.Tensor, top_n: int | None = None
+    ) -> torch.Tensor:
         """Keyframes whose keypoints are associated with any of some surfels.
 
         A keyframe observes the surfels of its keypoints (the surfel -> keyframes index).
 
         Args:
             surfel_ids: (M,) int64 surfel ids (-1 entries are ignored).
+            top_n: keep only the ``top_n`` keyframes with most keypoints on these surfels
+                (ties: lower index first); all when ``None``.
 
         Returns:
             (Q,) int64 sorted distinct keyframe indices.
@@ -484,7 +552,12 @@ class VisualDatabase:
         ids = (self.keypoint_surfels, surfel_ids)
         size = 1 + max((int(x.max()) for x in ids if len(x)), default=-1)
         hit = member_mask(self.keypoint_surfels, surfel_ids, size)
-        return torch.unique(self.keypoint_keyframes()[hit])
+        counts = torch.bincount(self.keypoint_keyframes()[hit], minlength=self.num_keyframes)
+        keyframes = torch.nonzero(counts).flatten()
+        if top_n is not None and len(keyframes) > top_n:
+            best = torch.argsort(counts[keyframes], descending=True, stable=True)[:top_n]
+            keyframes = torch.sort(keyframes[best]).values
+        return keyframes
 
     def surfel_keyframes(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The surfel -> keyframes index in CSR form.
@@ -564,12 +637,12 @@ class VisualDatabase:
         Args:
             point_ids: (Q,) int64 map point ids.
         """
-        obs = self.observations()
-        obs = obs[member_mask(obs[:, 2], point_ids, self.num_points)]
-        if len(obs) == 0:
+        keypoint = torch.nonzero(member_mask(self.keypoint_points, point_ids, self.num_points))
+        if len(keypoint) == 0:
             return
-        order = torch.argsort(obs[:, 2], stable=True)
-        keypoint, point = obs[order, 1], obs[order, 2]
+        point = self.keypoint_points[keypoint[:, 0]]
+        order = torch.argsort(point, stable=True)
+        keypoint, point = keypoint[order, 0], point[order]
         points, counts = torch.unique_consecutive(point, return_counts=True)
         starts = torch.cumsum(counts, 0) - counts
         width = int(counts.max())
