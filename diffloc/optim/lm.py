@@ -704,7 +704,7 @@ class PoseSystem:
 
     What :func:`minimize` needs of a linearization with one pose per problem; a problem may
     subclass it to carry what it computed along (more dataclass fields, tensors with the
-    leading dimension ``B`` or objects with a ``where`` method: :meth:`where` picks them too).
+    leading dimension ``B``, or dataclasses of those: :meth:`where` picks them too).
 
     Attributes:
         cost: (B,) cost ``0.5 * sum rho``.
@@ -721,13 +721,7 @@ class PoseSystem:
 
     def where(self, mask: torch.Tensor, other: PoseSystem) -> PoseSystem:
         """Per problem: ``other`` where ``mask`` (B,) is true, else ``self``."""
-        return dataclasses.replace(
-            self,
-            **{
-                f.name: _select(mask, getattr(other, f.name), getattr(self, f.name))
-                for f in fields(self)
-            },
-        )
+        return _select(mask, other, self)
 
     def model_change(self, delta: torch.Tensor) -> torch.Tensor:
         """(B,) change of the quadratic model, ``g.delta + delta.H.delta / 2``, delta (B, 6)."""
@@ -1076,15 +1070,17 @@ class LMRun:
 
 def _select(mask: torch.Tensor, new: Any, old: Any) -> Any:
     """Per problem: ``new`` where ``mask`` (B,) is true, else ``old``. Values are tensors
-    (leading dimension ``B``), ``None``, tuples of those, or objects with a
-    ``where(mask, other)`` method (called on ``old``)."""
+    (leading dimension ``B``), ``None``, and tuples or dataclasses (field by field) of those."""
     if new is None:
         return None
     if isinstance(new, tuple):
         return tuple(_select(mask, n, o) for n, o in zip(new, old, strict=True))
-    if isinstance(new, torch.Tensor):
-        return torch.where(mask.view(-1, *[1] * (new.dim() - 1)), new, old)
-    return old.where(mask, new)
+    if dataclasses.is_dataclass(new):
+        picked = {
+            f.name: _select(mask, getattr(new, f.name), getattr(old, f.name)) for f in fields(new)
+        }
+        return dataclasses.replace(old, **picked)
+    return torch.where(mask.view(-1, *[1] * (new.dim() - 1)), new, old)
 
 
 def minimize(

@@ -50,7 +50,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -346,11 +346,6 @@ def _prepare_inputs(
     return batched, T, X, kp, sig, use
 
 
-def _pick(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> torch.Tensor:
-    """Per problem (leading dimension): ``new`` where ``mask`` (B,) is true, else ``old``."""
-    return torch.where(mask.view(-1, *[1] * (new.dim() - 1)), new, old)
-
-
 @dataclass(frozen=True)
 class _Projection:
     """The matches of ``B`` problems projected under their current poses: all the normal
@@ -378,12 +373,6 @@ class _Projection:
     def chi2(self) -> torch.Tensor:
         """(B, N) ``r2`` of the kept matches, ``inf`` for the others."""
         return torch.where(self.keep, self.r2, math.inf)
-
-    def where(self, mask: torch.Tensor, other: _Projection) -> _Projection:
-        """Per problem: ``other`` where ``mask`` (B,) is true, else ``self``."""
-        return _Projection(
-            *(_pick(mask, getattr(other, f.name), getattr(self, f.name)) for f in fields(self))
-        )
 
 
 @dataclass(frozen=True)

@@ -364,16 +364,6 @@ class _Projection:
             self.err2[j : j + 1],
         )
 
-    def where(self, mask: torch.Tensor, other: _Projection) -> _Projection:
-        """Per problem: ``other`` where ``mask`` (B,) is true, else ``self``."""
-        m = mask[:, None]
-        return _Projection(
-            torch.where(m[..., None], other.monomials, self.monomials),
-            torch.where(m[..., None], other.residuals, self.residuals),
-            torch.where(m, other.behind, self.behind),
-            torch.where(m, other.err2, self.err2),
-        )
-
 
 def _project(R: torch.Tensor, t: torch.Tensor, data: _Residuals) -> _Projection:
     """Project the points of B problems under (B, 3, 3) ``R_cw`` and (B, 3) ``t_cw`` (or of
