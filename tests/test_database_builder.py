@@ -152,11 +152,12 @@ def test_epipolar_association_is_not_steered_by_noisy_poses(scene: Path, surfels
     seq = read_sequence(scene, "mapping")
     truth = seq.T_wc.double().clone()
     noisy = perturb_positions(truth, 0.3, torch.Generator().manual_seed(0))
+    gate = EpipolarMatchingConfig(max_point_distance_m=0.5 + 4 * 0.3)
     median_px, tracks = {}, {}
     for association in ASSOCIATIONS:
         for name, poses in (("true", truth), ("noisy", noisy)):
             seq.T_wc = poses
-            config = BuilderConfig(association=association)
+            config = BuilderConfig(association=association, epipolar=gate)
             db = DatabaseBuilder(config, surfels, make_extractor(EXTRACTOR)).build(
                 seq, show_progress=False
             )
@@ -215,3 +216,43 @@ def test_epipolar_candidates_come_from_at_most_candidate_keyframes(
     assert max(sizes) == 2 and db.stats()["observations"] > db.num_points
     with pytest.raises(ValueError, match="candidate_keyframes"):
         EpipolarMatchingConfig(candidate_keyframes=0)
+
+
+def test_epipolar_3d_gate_keeps_only_points_near_the_keypoint_surfels(
+    scene: Path, surfels: SurfelMap, monkeypatch: pytest.MonkeyPatch
+):
+    """With ``max_point_distance_m`` every epipolar match's map point lies within that distance
+    of a surfel its keypoint sees; without the gate some matches are farther."""
+    seq = read_sequence(scene, "mapping")
+    distances: dict[float | None, list[torch.Tensor]] = {None: [], 0.25: []}
+    for gate, found in distances.items():
+
+        def spy(db, covisible, features, *args, keypoint_positions, found=found, **kwargs):
+            kp, pts = match_epipolar(
+                db, covisible, features, *args, keypoint_positions=keypoint_positions, **kwargs
+            )
+            offsets = keypoint_positions[kp] - db.point_positions[pts, None]
+            found.append(offsets.norm(dim=-1).nan_to_num(torch.inf).amin(-1))
+            return kp, pts
+
+        monkeypatch.setattr(builder_module, "match_epipolar", spy)
+        config = BuilderConfig(
+            association="epipolar", epipolar=EpipolarMatchingConfig(max_point_distance_m=gate)
+        )
+        DatabaseBuilder(config, surfels, make_extractor(EXTRACTOR)).build(seq, show_progress=False)
+    gated, free = torch.cat(distances[0.25]), torch.cat(distances[None])
+    assert len(gated) > 50 and bool((gated <= 0.25).all())
+    assert bool((free > 0.25).any())
+    with pytest.raises(ValueError, match="max_point_distance_m"):
+        EpipolarMatchingConfig(max_point_distance_m=0.0)
+    features = make_extractor(EXTRACTOR).extract(seq.load_rgb(0))
+    no_candidates = torch.zeros(0, dtype=torch.int64)
+    with pytest.raises(ValueError, match="keypoint_positions"):
+        match_epipolar(
+            VisualDatabase(64),
+            no_candidates,
+            features,
+            seq.camera,
+            EpipolarMatchingConfig(),
+            torch.Generator(),
+        )

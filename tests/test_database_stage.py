@@ -66,6 +66,9 @@ def test_build_then_optimize_with_noisy_poses(mapped: Path):
     overrides = ("db.noise_sigma=0.05", "db.builder.association=epipolar")
     built = _run("build_db", mapped, *overrides)
     assert built["kf_pos_rmse_m"] > 0.01
+    with pytest.raises(ValueError, match="min_pairs"):  # a tiny database: few pairs each
+        _run("optimize_db", mapped, *overrides, "db.optim.min_pairs=100000")
+    overrides += ("db.optim.min_pairs=5",)
     optimized = _run("optimize_db", mapped, *overrides)
     assert optimized["kf_pos_rmse_before_m"] == pytest.approx(built["kf_pos_rmse_m"])
     assert torch.isfinite(torch.tensor(optimized["kf_pos_rmse_after_m"]))

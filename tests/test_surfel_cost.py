@@ -318,6 +318,28 @@ def test_optimize_recovers_perturbed_poses(scene: Scene, fix_first: bool) -> Non
     assert_close(replace_map_points(db, scene.centers, scene.normals), scene.points, atol=1e-6)
 
 
+def test_keyframes_in_fewer_than_min_pairs_pairs_are_held_constant(scene: Scene) -> None:
+    """A keyframe in fewer than ``min_pairs`` valid pairs keeps its initial pose; the others
+    are optimised (here they recover the truth, the held keyframe starting at its own)."""
+    db = _database(scene, scene.T_true)
+    pairs = pairs_from_database(db, scene.centers, scene.normals)
+    counts = torch.bincount(torch.cat([pairs.alpha, pairs.beta]), minlength=db.num_keyframes)
+    weakest = int(counts.argmin())
+    assert int((counts <= counts[weakest]).sum()) == 1
+    T_init = _perturb(scene.T_true, torch.Generator().manual_seed(3))
+    T_init[weakest] = scene.T_true[weakest]
+    db.T_wc = T_init
+    config = SurfelOptimConfig(fix_first_keyframe=False, min_pairs=int(counts[weakest]) + 1)
+    T_wc, _ = optimize_keyframe_poses(db, scene.centers, scene.normals, config)
+    assert torch.equal(T_wc[weakest], T_init[weakest])
+    translation, rotation = _pose_errors(T_wc, scene.T_true)
+    assert translation < 1e-6 and rotation < 1e-6
+    with pytest.raises(ValueError, match="min_pairs"):
+        optimize_keyframe_poses(
+            db, scene.centers, scene.normals, SurfelOptimConfig(min_pairs=int(counts.max()) + 1)
+        )
+
+
 def test_optimize_without_pairs_raises(scene: Scene) -> None:
     db = _database(scene, scene.T_true)
     db.point_surfels[:] = -1
@@ -328,6 +350,8 @@ def test_optimize_without_pairs_raises(scene: Scene) -> None:
 def test_bad_config_raises() -> None:
     with pytest.raises(ValueError):
         SurfelOptimConfig(sigma_px=0.0)
+    with pytest.raises(ValueError, match="min_pairs"):
+        SurfelOptimConfig(min_pairs=-1)
 
 
 # ---------------------------------------------------------------------------- gradients

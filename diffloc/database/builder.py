@@ -230,8 +230,9 @@ class DatabaseBuilder:
         neighbours = neighbour_surfels(ids, features.keypoints, features.sizes / 2)
         db = self._database(features)
         epipolar = self.config.association == "epipolar"
+        seen = torch.cat([surfels[:, None], neighbours], dim=1)
         covisible = db.keyframes_observing(
-            torch.cat([surfels, neighbours.flatten()]),
+            seen.flatten(),
             top_n=self.config.epipolar.candidate_keyframes if epipolar else None,
         )
         keyframe = db.add_keyframe(
@@ -243,7 +244,7 @@ class DatabaseBuilder:
             keypoint_surfels=surfels,
             neighbour_surfels=neighbours,
         )
-        matched = self._match(db, covisible, features, T_wc, camera, render)
+        matched = self._match(db, covisible, features, seen, T_wc, camera, render)
         self._create_points(db, keyframe, surfels, matched)
         self._cull(db)
         self.timings_ms["features"] += (extracted - start) * 1e3
@@ -276,12 +277,18 @@ class DatabaseBuilder:
         db: VisualDatabase,
         covisible: torch.Tensor,
         features: Features,
+        seen: torch.Tensor,
         T_wc: torch.Tensor,
         camera: PinholeCamera,
         render: SurfelRender,
     ) -> torch.Tensor:
-        """Match the covisible map points; returns (N,) bool keypoints that got a point."""
+        """Match the covisible map points; returns (N,) bool keypoints that got a point.
+
+        ``seen``: (N, S) int64 surfels each keypoint sees at ``T_wc`` (at its pixel and its
+        neighbours; -1 padding)."""
         if self.config.association == "epipolar":
+            centres = self.surfel_map.centers[seen.clamp(min=0)].double()
+            centres[seen < 0] = torch.nan
             keypoint_ids, point_ids = match_epipolar(
                 db,
                 covisible,
@@ -289,6 +296,7 @@ class DatabaseBuilder:
                 camera,
                 self.config.epipolar,
                 self.generator,
+                keypoint_positions=centres,
                 ratio=self.config.ratio,
                 max_descriptor_distance=self.config.max_descriptor_distance,
             )

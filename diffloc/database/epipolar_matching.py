@@ -9,7 +9,15 @@ position:
 
 1. every keypoint of the new keyframe is matched to the fused descriptors of the candidate map
    points (those of the covisible keyframes) by mutual nearest neighbours and Lowe's ratio test;
-2. the matches are verified two-view: for the ``verify_keyframes`` covisible keyframes that
+2. optionally (``max_point_distance_m``) a match is kept only when its map point lies within that
+   distance of a surfel the keypoint sees at the new keyframe's pose (the surfel at its pixel or
+   one of its neighbouring surfels, so keypoints on depth edges and surfel gaps keep both
+   sides). Both are surfels of the one lidar map, each reached through one noisy camera pose,
+   so for a true match they differ by about the two position errors (and a surfel radius),
+   whatever the depth; a descriptor match to a repeated structure elsewhere on the same
+   epipolar line (a row of windows along a straight drive, where all keyframes' epipolar
+   geometries nearly coincide) is metres away;
+3. the matches are verified two-view: for the ``verify_keyframes`` covisible keyframes that
    observe most matched points, an essential matrix between that keyframe's detected keypoints
    and the new keypoints is fitted by RANSAC (:func:`diffloc.reloc.essential.essential_check`,
    which needs only the intrinsics); a match is kept when it is an inlier of every successful
@@ -53,6 +61,13 @@ class EpipolarMatchingConfig:
             the default scene's sigma-0.4 database optimised to 0.28 instead of 0.26 m (2
             threads; 0.25 m at 1 thread), about the spread of the RANSAC decisions, but
             enough to move Table III's recall@0.3 m from 83 to 65 %; 10 saves ~8 ms per image.
+        max_point_distance_m: largest distance (metres) between a matched map point and the
+            nearest surfel centre the keypoint sees at the new keyframe's pose (its own and
+            neighbouring surfels), or ``None`` for no 3D gate. A true match is off by about
+            the difference of two keyframes' position errors: with Gaussian noise of ``s``
+            metres per axis, allow ``~4 s`` on top of a floor of a few surfel radii
+            (``task=build_db`` adds ``db.point_gate_m_per_noise_m`` times ``db.noise_sigma``
+            to this floor).
         verify_keyframes: how many covisible keyframes (most matched points first) check the
             matches with an essential matrix.
         essential: RANSAC settings of the check (its ``min_inliers`` is the fewest matches
@@ -60,6 +75,7 @@ class EpipolarMatchingConfig:
     """
 
     candidate_keyframes: int | None = None
+    max_point_distance_m: float | None = 0.5
     verify_keyframes: int = 3
     essential: EssentialCheckConfig = field(
         default_factory=lambda: EssentialCheckConfig(
@@ -72,6 +88,10 @@ class EpipolarMatchingConfig:
             raise ValueError(
                 f"candidate_keyframes must be >= 1 or None, got {self.candidate_keyframes}"
             )
+        if self.max_point_distance_m is not None and not self.max_point_distance_m > 0:
+            raise ValueError(
+                f"max_point_distance_m must be positive or None, got {self.max_point_distance_m}"
+            )
         if self.verify_keyframes < 1:
             raise ValueError(f"verify_keyframes must be >= 1, got {self.verify_keyframes}")
 
@@ -83,6 +103,7 @@ def match_epipolar(
     camera: PinholeCamera,
     config: EpipolarMatchingConfig,
     generator: torch.Generator,
+    keypoint_positions: torch.Tensor | None = None,
     ratio: float | None = 0.8,
     max_descriptor_distance: float | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -95,13 +116,32 @@ def match_epipolar(
         camera: the new keyframe's camera.
         config: matching and verification settings.
         generator: the RANSAC random source.
+        keypoint_positions: (N, S, 3) world positions of the surfels each keypoint sees at
+            the new keyframe's pose (its own and its neighbours; NaN padding); needed by the
+            3D gate (``config.max_point_distance_m``), which rejects the matches of keypoints
+            that see no surfel.
         ratio: Lowe's ratio test over all candidate map points (``None`` to skip).
         max_descriptor_distance: largest accepted descriptor distance, or ``None``.
 
     Returns:
         ``(keypoint_ids, point_ids)``: (M,) int64 indices into ``features`` and the (M,)
         distinct map points they observe.
+
+    Raises:
+        ValueError: the 3D gate is on but ``keypoint_positions`` is missing or not (N, S, 3).
     """
+    gate = config.max_point_distance_m
+    if gate is not None and (
+        keypoint_positions is None
+        or keypoint_positions.dim() != 3
+        or keypoint_positions.shape[0] != len(features)
+        or keypoint_positions.shape[2] != 3
+    ):
+        raise ValueError(
+            "the 3D gate (max_point_distance_m) needs keypoint_positions of shape "
+            f"({len(features)}, S, 3), got "
+            f"{None if keypoint_positions is None else tuple(keypoint_positions.shape)}"
+        )
     empty = torch.zeros(0, dtype=torch.int64)
     points = db.points_observed_by(covisible)
     if len(points) == 0 or len(features) == 0:
@@ -115,6 +155,11 @@ def match_epipolar(
         max_distance=max_descriptor_distance,
     )
     keypoint_ids, point_ids = matches.indices[:, 0], points[matches.indices[:, 1]]
+    if gate is not None:
+        offsets = keypoint_positions[keypoint_ids].double() - db.point_positions[point_ids, None]
+        distance = offsets.norm(dim=-1).nan_to_num(torch.inf).amin(-1)
+        near = distance <= gate
+        keypoint_ids, point_ids = keypoint_ids[near], point_ids[near]
     # Observations of the matched points in covisible keyframes: their keypoint rows, the
     # observing keyframes and the match indices; a point has at most one keypoint per keyframe.
     slot = torch.full((db.num_points + 1,), -1, dtype=torch.int64)

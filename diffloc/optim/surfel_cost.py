@@ -568,6 +568,11 @@ class SurfelOptimConfig:
         fix_first_keyframe: hold keyframe 0 constant. The surfel planes anchor the world
             frame and the metric scale, so with enough non-parallel planes all poses are
             observable and ``False`` (every pose free) is also well posed.
+        min_pairs: keyframes in fewer valid pairs (as first observer or as the other
+            observer) are held constant: their pose would follow a handful of tracks, and a
+            few wrong or distant ones move it freely (the outdoor drive's last keyframes, seen
+            by nothing later, share ~20 tracks with the rest and drifted by up to 2 m at
+            exact initial poses). ``0`` frees every keyframe.
         sigma_px: keypoint standard deviation in pixels (whitening).
         kernel: robust kernel on the whitened residuals (Huber, ``sqrt(5.991)``).
         lm: Levenberg-Marquardt settings. Defaults: at most 100 iterations, three step
@@ -583,6 +588,7 @@ class SurfelOptimConfig:
     """
 
     fix_first_keyframe: bool = True
+    min_pairs: int = 50
     sigma_px: float = 1.0
     kernel: RobustKernel = field(
         default_factory=lambda: RobustKernel("huber", math.sqrt(CHI2_2DOF_95))
@@ -592,6 +598,8 @@ class SurfelOptimConfig:
     )
 
     def __post_init__(self) -> None:
+        if self.min_pairs < 0:
+            raise ValueError(f"min_pairs must be >= 0, got {self.min_pairs}")
         if not (math.isfinite(self.sigma_px) and self.sigma_px > 0):
             raise ValueError(f"sigma_px must be positive, got {self.sigma_px}")
 
@@ -707,7 +715,8 @@ def optimize_keyframe_poses(
 
     Raises:
         ShapeError: wrong surfel shapes.
-        ValueError: no valid pair (nothing to optimise), or bad surfels.
+        ValueError: no valid pair (nothing to optimise), no keyframe in ``min_pairs`` valid
+            pairs, or bad surfels.
 
     Example:
         >>> s = torch.zeros(1, 3, dtype=torch.float64)
@@ -724,6 +733,15 @@ def optimize_keyframe_poses(
     valid = cost.residuals_and_valid(T0[pairs.alpha], T0[pairs.beta])[1]
     if not bool(valid.any()):
         raise ValueError("the database has no valid surfel pairs to optimise")
+    used = torch.cat([pairs.alpha[valid], pairs.beta[valid]])
+    fixed = torch.bincount(used, minlength=db.num_keyframes) < config.min_pairs
+    if bool(fixed.all()):
+        raise ValueError(
+            f"no keyframe is in min_pairs={config.min_pairs} valid surfel pairs "
+            f"(most: {int(torch.bincount(used).max())}); lower min_pairs to optimise"
+        )
+    if config.fix_first_keyframe:
+        fixed[0] = True
     result = levenberg_marquardt(
         T0,
         lambda T_a, T_b, extra: cost(T_a, T_b),
@@ -731,7 +749,7 @@ def optimize_keyframe_poses(
         pairs.beta,
         jacobian_fn=lambda T_a, T_b, extra: cost.linearize(T_a, T_b),
         mask=valid,
-        fixed=[0] if config.fix_first_keyframe else None,
+        fixed=torch.nonzero(fixed).flatten(),
         kernel=config.kernel,
         config=config.lm,
     )
