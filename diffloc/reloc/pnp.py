@@ -15,8 +15,9 @@ Conventions:
 RANSAC (seed 1, Sec. III-C: "PnP with RANSAC to find a rough camera pose") draws minimal
 samples in batches and solves Lambda Twist P3P for all of them at once. Candidate poses are
 first scored on a fixed random subset of ``bailout_points`` correspondences; only those whose
-subset inlier count is within three binomial standard deviations of the best one seen are
-scored on all correspondences (a batched form of the bail-out test of Capel, BMVC 2005).
+subset inlier count is within three standard deviations of the best one seen (on the
+variance-stabilised scale of binomial counts, :func:`_bailout_keep`) are scored on all
+correspondences (a batched form of the bail-out test of Capel, BMVC 2005).
 The subset scoring projects the points under all candidates with one GEMM; the full one
 keeps each survivor's projection (normalised coordinates and inverse depths), which is also
 what the first Gauss-Newton step of the winner needs. Scores are MSAC (truncated squared
@@ -81,7 +82,7 @@ __all__ = [
 ]
 
 _SAMPLE_SIZE = 3
-_BAILOUT_SIGMAS = 3.0  # keep candidates within this many binomial std of the best subset count
+_BAILOUT_SIGMAS = 3.0  # keep candidates within this many std of the best subset count
 _REFINE_STEP_TOL = 1e-6  # Gauss-Newton on inliers stops before a step this small (m, rad)
 _P3P_REFINE_ITERATIONS = 0  # Newton steps on the P3P depths inside RANSAC (models are refined)
 
@@ -196,6 +197,7 @@ class _Problem:
     points_world: torch.Tensor  # (N, 3)
     bearings: torch.Tensor  # (N, 3) unit rays of the undistorted keypoints
     scale: torch.Tensor  # (3, 1) fx, fy, 1
+    points: _PointSet  # all correspondences
     subset: _PointSet | None  # the bail-out subset
     residuals: _Residuals  # B = 1 layout for scoring and Gauss-Newton
 
@@ -204,13 +206,14 @@ class _Problem:
 class _Model:
     """A RANSAC model and its score."""
 
-    R: torch.Tensor  # (3, 3) R_cw
-    t: torch.Tensor  # (3,) t_cw
+    R: torch.Tensor  # (1, 3, 3) R_cw
+    t: torch.Tensor  # (1, 3) t_cw
     err2: torch.Tensor  # (1, N) squared pixel errors
+    inliers: torch.Tensor  # (1, N) bool, err2 below the squared threshold
     cost: float  # MSAC cost
     num_inliers: int
-    projection: _Projection | None = None  # where err2 came from, if from _project
-    refined: bool = False  # the result of a Gauss-Newton step
+    projection: _Projection  # where err2 came from
+    refined: bool  # the result of a Gauss-Newton step
 
 
 # ---------------------------------------------------------------------------- inputs
@@ -256,16 +259,19 @@ def _make_problem(
     xy_t = xy.t().contiguous()
     focal_t = focal.view(2, 1)
     n = X.shape[0]
+    points = _PointSet(
+        torch.nn.functional.pad(X, (0, 1), value=1.0).t().contiguous(), xy_t * focal_t
+    )
     subset = None
     if 0 < bailout_points and 2 * bailout_points <= n:
         pick = torch.randperm(n, generator=generator)[:bailout_points].to(X.device)
-        points_h = torch.nn.functional.pad(X.index_select(0, pick), (0, 1), value=1.0)
-        subset = _PointSet(points_h.t().contiguous(), xy_t.index_select(1, pick) * focal_t)
+        subset = _PointSet(points.points_h.index_select(1, pick), points.uv_t.index_select(1, pick))
     rays = torch.nn.functional.pad(xy, (0, 1), value=1.0)
     return _Problem(
         points_world=X,
         bearings=rays / torch.linalg.vector_norm(rays, dim=-1, keepdim=True),
         scale=torch.nn.functional.pad(focal_t, (0, 0, 0, 1), value=1.0),
+        points=points,
         subset=subset,
         residuals=_Residuals(X.t().contiguous()[None], xy_t[None], focal_t.square()[None]),
     )
@@ -293,22 +299,27 @@ def _squared_errors(rows: torch.Tensor, points: _PointSet) -> torch.Tensor:
     return err2.masked_fill_(z <= MIN_DEPTH, math.inf)
 
 
-def _msac(err2: torch.Tensor, threshold2: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """MSAC cost (M,) (lower is better) and inlier counts (M,) from squared errors (M, n)."""
-    return err2.clamp(max=threshold2).sum(-1), (err2 < threshold2).sum(-1)
+def _msac(err2: torch.Tensor, threshold2: float) -> torch.Tensor:
+    """MSAC cost (M,) (lower is better) from squared errors (M, n)."""
+    return err2.clamp(max=threshold2).sum(-1)
 
 
 def _bailout_keep(counts: torch.Tensor, subset_size: int, best_ratio: float) -> torch.Tensor | None:
     """Indices of the candidates worth a full score, from their subset inlier counts (M,).
 
     The reference is the larger of the best subset count and the count the best model so
-    far would have; candidates more than ``_BAILOUT_SIGMAS`` binomial standard deviations
-    below it are dropped. ``None`` when every candidate is kept.
+    far would have; candidates more than ``_BAILOUT_SIGMAS`` standard deviations below it are
+    dropped. The deviations are measured on the variance-stabilised scale of the binomial
+    count ``k`` of ``n`` draws, ``asin(sqrt(k / n))`` (standard deviation ``1 / (2 sqrt(n))``
+    whatever the inlier ratio), which unlike the normal approximation of ``k`` itself stays
+    accurate for the small counts of low inlier ratios. ``None`` when every candidate is kept.
     """
     ref = max(float(counts.max()), best_ratio * subset_size)
-    p = min(ref / subset_size, 1.0)
-    bound = ref - _BAILOUT_SIGMAS * math.sqrt(subset_size * p * (1.0 - p))
-    keep = torch.nonzero(counts >= bound)[:, 0]
+    angle = math.asin(math.sqrt(min(ref / subset_size, 1.0)))
+    angle -= _BAILOUT_SIGMAS / (2.0 * math.sqrt(subset_size))
+    if angle <= 0.0:
+        return None
+    keep = torch.nonzero(counts >= subset_size * math.sin(angle) ** 2)[:, 0]
     return None if keep.shape[0] == counts.shape[0] else keep
 
 
@@ -354,15 +365,6 @@ class _Projection:
     residuals: torch.Tensor
     behind: torch.Tensor
     err2: torch.Tensor
-
-    def pick(self, j: int) -> _Projection:
-        """The projection under pose ``j`` (B = 1)."""
-        return _Projection(
-            self.monomials[j : j + 1],
-            self.residuals[j : j + 1],
-            self.behind[j : j + 1],
-            self.err2[j : j + 1],
-        )
 
 
 def _project(R: torch.Tensor, t: torch.Tensor, data: _Residuals) -> _Projection:
@@ -496,18 +498,14 @@ def _lm(
 # ---------------------------------------------------------------------------- RANSAC
 
 
-def _model(R: torch.Tensor, t: torch.Tensor, err2: torch.Tensor, threshold2: float) -> _Model:
-    cost, count = _msac(err2, threshold2)
-    return _Model(R, t, err2, float(cost), int(count))
-
-
 def _projected_model(
     R: torch.Tensor, t: torch.Tensor, data: _Residuals, threshold2: float, refined: bool
 ) -> _Model:
     """A model (1, 3, 3), (1, 3) scored from its projection (kept for Gauss-Newton)."""
     proj = _project(R, t, data)
-    cost, count = _msac(proj.err2, threshold2)
-    return _Model(R[0], t[0], proj.err2, float(cost), int(count), proj, refined)
+    inliers = proj.err2 < threshold2
+    cost = float(_msac(proj.err2, threshold2))
+    return _Model(R, t, proj.err2, inliers, cost, int(inliers.sum()), proj, refined)
 
 
 def _optimise(
@@ -529,14 +527,12 @@ def _optimise(
     pose and the normal equations of the next step.
     """
     data = problem.residuals
-    if model.projection is None:
-        model = _projected_model(model.R[None], model.t[None], data, threshold2, model.refined)
     for _ in range(steps):
-        weights = torch.where((model.err2 < threshold2)[:, None], data.focal2, 0.0)
+        weights = model.inliers.unsqueeze(1) * data.focal2
         delta = _step(*_normal_equations(model.projection, weights))
         if model.refined and float(torch.linalg.vector_norm(delta, ord=math.inf)) < step_tol:
             break
-        R, t = _retract(model.R[None], model.t[None], delta)
+        R, t = _retract(model.R, model.t, delta)
         candidate = _projected_model(R, t, data, threshold2, refined=True)
         if not candidate.cost < model.cost:
             break
@@ -552,21 +548,23 @@ def _best_of_batch(
 ) -> _Model | None:
     """Best candidate (MSAC) of a batch of poses (M, 3, 3), (M, 3), with the bail-out test.
 
-    The candidates that pass it are scored by their projections (:func:`_project`), so the
-    winner comes with the data of its first Gauss-Newton step.
+    The candidates that pass it are scored on all points by the scoring GEMM; the winner is
+    then projected (:func:`_project`), which gives its score and the data of its first
+    Gauss-Newton step.
     """
+    rows = _scaled_rows(R, t, problem.scale)
+    keep = None
     if problem.subset is not None:
-        rows = _scaled_rows(R, t, problem.scale)
         counts = (_squared_errors(rows, problem.subset) < threshold2).sum(-1)
         keep = _bailout_keep(counts, problem.subset.uv_t.shape[1], best_ratio)
         if keep is not None:
             if keep.shape[0] == 0:
                 return None
-            R, t = R.index_select(0, keep), t.index_select(0, keep)
-    proj = _project(R, t, problem.residuals)
-    cost, count = _msac(proj.err2, threshold2)
-    j = int(cost.argmin())
-    return _Model(R[j], t[j], proj.err2[j : j + 1], float(cost[j]), int(count[j]), proj.pick(j))
+            rows = rows.index_select(0, keep)
+    j = int(_msac(_squared_errors(rows, problem.points), threshold2).argmin())
+    if keep is not None:
+        j = int(keep[j])
+    return _projected_model(R[j : j + 1], t[j : j + 1], problem.residuals, threshold2, False)
 
 
 def _target_samples(model: _Model | None, n: int, config: PnPRansacConfig) -> int:
@@ -681,8 +679,8 @@ def solve_pnp_ransac(
                 reprojection_errors=torch.full((n,), math.inf, dtype=torch.float64, device=device),
             )
         err2 = best.err2[0]
-        R_wc = best.R.T
-        T_wc = torch.cat((R_wc, -(R_wc @ best.t)[:, None]), dim=1)
+        R_wc = best.R[0].T
+        T_wc = torch.cat((R_wc, -(R_wc @ best.t[0])[:, None]), dim=1)
         return PnPResult(
             T_wc=torch.cat((T_wc, _homogeneous_row(T_wc.dtype, T_wc.device)), dim=0),
             inliers=err2 < config.threshold_px**2,
