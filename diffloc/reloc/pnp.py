@@ -18,9 +18,9 @@ first scored on a fixed random subset of ``bailout_points`` correspondences; onl
 subset inlier count is within three standard deviations of the best one seen (on the
 variance-stabilised scale of binomial counts, :func:`_bailout_keep`) are scored on all
 correspondences (a batched form of the bail-out test of Capel, BMVC 2005).
-The subset scoring projects the points under all candidates with one GEMM; the full one
-keeps each survivor's projection (normalised coordinates and inverse depths), which is also
-what the first Gauss-Newton step of the winner needs. Scores are MSAC (truncated squared
+Both scorings project the points under all candidates with one GEMM; only the winner is then
+projected again keeping its normalised coordinates and inverse depths, which its first
+Gauss-Newton step needs. Scores are MSAC (truncated squared
 error). The number of samples adapts to the best inlier ratio ``w``:
 ``k = log(1 - confidence) / log(1 - w^3)``, clamped to ``[min_iterations, max_iterations]``;
 the first batch has ``min_iterations`` samples and each later one the samples still needed (at
