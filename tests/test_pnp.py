@@ -16,6 +16,7 @@ from diffloc.reloc.epnp import solve_epnp
 from diffloc.reloc.pnp import (
     PnPRansacConfig,
     _bailout_keep,
+    _batch_count,
     refine_pnp,
     solve_pnp,
     solve_pnp_ransac,
@@ -193,6 +194,14 @@ def test_bailout_keeps_candidates_near_the_best_subset_count():
     assert _bailout_keep(torch.tensor([10, 9]), 64, 0.5).tolist() == []
     # Counts too small to tell candidates apart: all are scored (None).
     assert _bailout_keep(torch.tensor([2, 0, 1]), 64, 0.0) is None
+
+
+def test_a_small_remainder_joins_the_batch():
+    config = PnPRansacConfig(batch_size=512, min_iterations=100)
+    assert _batch_count(50, config) == 50
+    assert _batch_count(515, config) == 515  # not 512 and then 3
+    assert _batch_count(611, config) == 611
+    assert _batch_count(612, config) == 512
 
 
 def test_ransac_agrees_with_poselib():

@@ -20,19 +20,20 @@ variance-stabilised scale of binomial counts, :func:`_bailout_keep`) are scored 
 correspondences (a batched form of the bail-out test of Capel, BMVC 2005).
 Both scorings project the points under all candidates with one GEMM; only the winner is then
 projected again keeping its normalised coordinates and inverse depths, which its first
-Gauss-Newton step needs. Scores are MSAC (truncated squared
-error). The number of samples adapts to the best inlier ratio ``w``:
-``k = log(1 - confidence) / log(1 - w^3)``, clamped to ``[min_iterations, max_iterations]``;
-the first batch has ``min_iterations`` samples and each later one the samples still needed (at
-most ``batch_size``). A new best model is locally optimised (LO-RANSAC, Chum et al. 2003) when
-sampling goes on after its batch: Gauss-Newton steps on its inliers, each re-scored and kept
-only if the MSAC cost drops (so the inlier set is re-estimated after every step), until the
-inlier count is stable. The best model is finally refined the same way until the next step
-would be below 1e-6 (m, rad), a step that is then not taken, or until a step below 3e-4
-leaves the inlier count unchanged (Gauss-Newton converges quadratically here, typically with
-steps of 1e-2, 1e-3 and 1e-6, so the next step would be below 1e-6): the pose is within ~1e-6
-of the least-squares optimum on its inliers, orders of magnitude below the error due to the
-keypoint noise, and its ``inliers`` and ``reprojection_errors`` are those of the returned pose.
+Gauss-Newton step needs. Scores are MSAC (truncated squared error). The number of samples
+adapts to the best inlier ratio ``w``: ``k = log(1 - confidence) / log(1 - w^3)``, clamped to
+``[min_iterations, max_iterations]``; the first batch has ``min_iterations`` samples and each
+later one the samples still needed (at most ``batch_size``, or ``batch_size + min_iterations``
+rather than leave a small remainder). A new best model is locally optimised (LO-RANSAC, Chum
+et al. 2003) when sampling goes on after its batch: Gauss-Newton steps on its inliers, each
+re-scored and kept only if the MSAC cost drops (so the inlier set is re-estimated after every
+step), until the inlier count is stable. The best model is finally refined the same way until
+the next step would be below 1e-6 (m, rad), a step that is then not taken, or until a step
+below 3e-4 leaves the inlier count unchanged (Gauss-Newton converges quadratically here,
+typically with steps of 1e-2, 1e-3 and 1e-6, so the next step would be below 1e-6): the pose
+is within ~1e-6 of the least-squares optimum on its inliers, orders of magnitude below the
+error due to the keypoint noise, and its ``inliers`` and ``reprojection_errors`` are those of
+the returned pose.
 
 The non-minimal :func:`solve_pnp` (EPnP + Levenberg-Marquardt) and :func:`refine_pnp` (LM)
 are batched over problems and take per-correspondence weights.
@@ -106,9 +107,10 @@ class PnPRansacConfig:
         min_iterations: fewest minimal samples drawn; also the size of the first batch.
         max_iterations: most minimal samples drawn.
         batch_size: most minimal samples solved and scored together. After the first batch,
-            each batch draws the samples still needed by the adaptive criterion (at most
-            ``batch_size``); a torch operation costs about as much for one hypothesis as for
-            hundreds, so few large batches are fastest.
+            each batch draws the samples still needed by the adaptive criterion, at most
+            ``batch_size`` unless that would leave fewer than ``min_iterations`` for another
+            batch (they are then drawn too); a torch operation costs about as much for one
+            hypothesis as for hundreds, so few large batches are fastest.
         min_inliers: a pose with fewer inliers is reported with ``success = False``.
         lo_rounds: most local-optimisation steps (Gauss-Newton on the inliers + re-score)
             per new best model; 0 disables LO.
@@ -581,6 +583,13 @@ def _target_samples(model: _Model | None, n: int, config: PnPRansacConfig) -> in
     return min(config.max_iterations, max(config.min_iterations, needed))
 
 
+def _batch_count(needed: int, config: PnPRansacConfig) -> int:
+    """Samples of the next batch given the ``needed`` ones: all of them unless they exceed
+    ``batch_size`` by ``min_iterations`` or more (a small remainder costs a whole batch's
+    fixed overhead, which is about that of ``min_iterations`` samples)."""
+    return needed if needed < config.batch_size + config.min_iterations else config.batch_size
+
+
 def _ransac(
     problem: _Problem, config: PnPRansacConfig, generator: torch.Generator
 ) -> tuple[_Model | None, int]:
@@ -596,7 +605,7 @@ def _ransac(
     drawn = 0
     target = max(config.min_iterations, 1)
     while drawn < target:
-        count = min(config.batch_size, target - drawn)
+        count = _batch_count(target - drawn, config)
         idx = _sample_triples(n, count, generator).view(-1)
         drawn += count
         R, t, valid = p3p_flat(
