@@ -202,6 +202,8 @@ def test_a_small_remainder_joins_the_batch():
     assert _batch_count(515, config) == 515  # not 512 and then 3
     assert _batch_count(611, config) == 611
     assert _batch_count(612, config) == 512
+    small = PnPRansacConfig(batch_size=64, min_iterations=100)  # a remainder below 64 joins
+    assert (_batch_count(127, small), _batch_count(128, small)) == (127, 64)
 
 
 def test_ransac_agrees_with_poselib():
