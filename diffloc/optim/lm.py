@@ -333,7 +333,8 @@ def cayley_rotation(w: torch.Tensor) -> torch.Tensor:
         >>> round(float(torch.atan2(R[1, 0], R[0, 0])), 4)  # 2 atan(0.25), not 0.5
         0.49
     """
-    check_shape(w, "*,3", "w")
+    if not isinstance(w, torch.Tensor) or w.shape[-1:] != (3,):  # checked only if wrong
+        check_shape(w, "*,3", "w")
     q = torch.nn.functional.pad(w, (1, 0), value=2.0)  # 2 (1, w / 2): the scale cancels
     outer = (q[..., :, None] * q[..., None, :]).flatten(-2)
     m = outer @ _cayley_coefficients(w.dtype, w.device)
