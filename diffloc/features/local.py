@@ -335,31 +335,40 @@ def _xfeat_keypoint_heatmap(logits: torch.Tensor) -> torch.Tensor:
     return F.pixel_shuffle(logits.softmax(dim=1)[:, : _XFEAT_CELL**2], _XFEAT_CELL)
 
 
+def _sliding_max(rows: torch.Tensor, size: int) -> torch.Tensor:
+    """Maximum over windows of ``size`` (odd) values along the last dim, cut at the ends.
+
+    Args:
+        rows: (..., W) float tensor.
+        size: window length.
+
+    Returns:
+        (..., W) maxima of the windows centred at each value.
+    """
+    flat = rows.reshape(-1, 1, rows.shape[-1])
+    return F.max_pool1d(flat, size, stride=1, padding=size // 2).reshape(rows.shape)
+
+
 def _local_maxima(heatmap: torch.Tensor, threshold: float) -> torch.Tensor:
     """Pixels above ``threshold`` that are the maximum of their 5x5 window (XFeat's NMS).
 
-    Only the pixels above the threshold are compared with their window, so the cost scales
-    with their number instead of the image size. As in XFeat, which marks padding with
-    ``(0, 0)``, the top-left pixel is never a keypoint.
+    The 5x5 maximum is taken as two 1-D passes (rows, then columns), which is exact and much
+    faster on CPU than a 2-D max pooling. XFeat marks padding with ``(0, 0)`` and so never
+    returns the top-left pixel; neither does this function.
 
     Args:
         heatmap: (B, 1, H, W) keypoint heatmap.
         threshold: minimum heatmap value.
 
     Returns:
-        (N, 3) int64 rows ``(b, v, u)`` in row-major order per image.
+        (N, 3) int64 rows ``(b, v, u)``, sorted by image, then row-major.
     """
-    pad = _XFEAT_NMS_SIZE // 2
-    above = heatmap[:, 0] > threshold
-    above[:, 0, 0] = False
-    candidates = above.nonzero()
-    padded = F.pad(heatmap[:, 0], (pad, pad, pad, pad), value=-math.inf)
-    steps = torch.arange(_XFEAT_NMS_SIZE, device=heatmap.device)
-    dv, du = torch.meshgrid(steps, steps, indexing="ij")
-    b, v, u = candidates.unbind(1)
-    window = padded[b[:, None], v[:, None] + dv.reshape(1, -1), u[:, None] + du.reshape(1, -1)]
-    is_max = heatmap[b, 0, v, u] >= window.amax(dim=1)
-    return candidates[is_max]
+    image = heatmap[:, 0]
+    rows_max = _sliding_max(image, _XFEAT_NMS_SIZE)
+    window_max = _sliding_max(rows_max.transpose(1, 2), _XFEAT_NMS_SIZE).transpose(1, 2)
+    keep = (image == window_max) & (image > threshold)
+    keep[:, 0, 0] = False
+    return keep.nonzero()
 
 
 def _xfeat_select(
