@@ -442,10 +442,11 @@ class XFeatExtractor(LocalFeatureExtractor):
             x = F.interpolate(x, net_size, mode="bilinear", align_corners=False)
         with torch.inference_mode():
             raw, logits, reliability = self.model(x)
-        feats = F.normalize(raw, dim=1)
+        dense = dense_descriptor_map(raw, height, width)
+        # Unless the image was resized, the dense map is the normalised network map itself.
+        feats = dense if dense.shape == raw.shape else F.normalize(raw, dim=1)
         heatmap = _xfeat_keypoint_heatmap(logits)
         maxima = _local_maxima(heatmap, self.config.detection_threshold)
-        dense = dense_descriptor_map(raw, height, width)
         ratio = torch.tensor([width / net_size[1], height / net_size[0]], device=x.device)
         features = []
         for b in range(len(images)):
