@@ -283,11 +283,12 @@ def as_image_batch(image: torch.Tensor | np.ndarray) -> tuple[torch.Tensor, bool
         return images.float() / 255.0, batched
     if not images.is_floating_point():
         raise ValueError(f"image must be uint8 or floating point, got {images.dtype}")
-    check_finite(images, "image")
-    if images.min() < 0 or images.max() > 1:
+    low, high = torch.aminmax(images)  # one pass; NaN propagates and fails the range test
+    if not (low >= 0 and high <= 1):
+        check_finite(images, "image")
         raise ValueError(
-            f"float images must lie in [0, 1], got values in [{float(images.min())}, "
-            f"{float(images.max())}] (divide 8-bit values by 255)"
+            f"float images must lie in [0, 1], got values in [{float(low)}, {float(high)}] "
+            "(divide 8-bit values by 255)"
         )
     return images.float(), batched
 
