@@ -103,6 +103,8 @@ _TIE_TOP = 0x7F7FFFFF
 """Bits of the largest finite float32; tie-breakers count down from it."""
 _MAX_SURFELS = _TIE_TOP - 0x00800000 + 1
 """Surfels per render, so that every tie-breaker is a positive normal float32."""
+_SURFEL_CHUNK = 1 << 16
+"""Surfels per chunk of the per-surfel stages of :func:`_surfel_windows`."""
 _MERGE_PIXELS = 4096
 """A bucket of windows joins a larger one when that adds at most this many candidate pixels
 (about the cost of the few tensor operations that every bucket takes)."""
@@ -561,21 +563,10 @@ class _Conics:
     g_uv: torch.Tensor  # (2, M) gu, gv
     centre: torch.Tensor  # (2, M) projected centre (u, v), pixels
 
-    def select(self, index: torch.Tensor) -> _Conics:
-        """The conics of the (K,) surfels ``index``."""
-        return _Conics(
-            self.AC.index_select(1, index),
-            self.B.index_select(0, index),
-            self.DE.index_select(1, index),
-            self.g0.index_select(0, index),
-            self.g_uv.index_select(1, index),
-            self.centre.index_select(1, index),
-        )
-
 
 def _surfel_conics(
-    c: torch.Tensor, n: torch.Tensor, r: torch.Tensor, cc: torch.Tensor, view: _View
-) -> tuple[_Conics, torch.Tensor]:
+    c: torch.Tensor, n: torch.Tensor, r: torch.Tensor, view: _View
+) -> tuple[_Conics, torch.Tensor, torch.Tensor]:
     """Ray-disk conics of surfels in front of the camera.
 
     The ray ``d = c / cz + (du / fx, dv / fy, 0)`` meets the plane ``n.p = k`` (``k = n.c``)
@@ -590,12 +581,12 @@ def _surfel_conics(
         c: (3, M) centres, camera frame, ``cz > 0``.
         n: (3, M) unit normals, camera frame.
         r: (M,) radii.
-        cc: (M,) ``|c|^2``.
         view: the camera.
 
     Returns:
-        ``(conics, k)`` with (M,) ``k = n.c``.
+        ``(conics, k, cc)`` with (M,) ``k = n.c`` and ``cc = |c|^2``.
     """
+    cc = (c * c).sum(0)
     cxy, cz, nxy = c[:2], c[2], n[:2]
     fx, fy = view.fx, view.fy
     f = c.new_tensor([[fx], [fy]])
@@ -613,7 +604,7 @@ def _surfel_conics(
     DE = nxy * h * c.new_tensor([[-2.0 / fx], [-2.0 / fy]])
     g0 = cz.reciprocal()
     centre = (cxy * g0 * f).add_(c.new_tensor([[view.cx], [view.cy]]))
-    return _Conics(AC, B, DE, g0, nxy / k / f, centre), k
+    return _Conics(AC, B, DE, g0, nxy / k / f, centre), k, cc
 
 
 def _surfel_windows(
@@ -626,6 +617,10 @@ def _surfel_windows(
 ) -> _Windows:
     """Conics and candidate windows of the surfels that may be visible in one camera.
 
+    The per-surfel stages (conic, box, bucket, and with ``pixel_sums`` whether the box holds a
+    pixel to render) run on chunks of :data:`_SURFEL_CHUNK` surfels, whose temporaries stay in
+    the CPU caches; they are elementwise, so the chunks change no value.
+
     Args:
         surfels: the frustum-culled surfels.
         view: the camera.
@@ -635,9 +630,45 @@ def _surfel_windows(
         pixel_sums: summed-area table of the pixels to render (see :func:`_summed_area`), or
             ``None`` for all pixels.
     """
-    c, n, r = surfels.centers, surfels.normals, surfels.radii
-    cc = (c * c).sum(0)
-    conics, k = _surfel_conics(c, n, r, cc, view)
+    layout = _bucket_layout(width, height, surfels.radii.device)
+    count = surfels.radii.shape[0]
+    parts = [
+        _surfel_groups(
+            surfels, slice(start, start + _SURFEL_CHUNK), view, layout, cull_backfaces, pixel_sums
+        )
+        for start in range(0, max(count, 1), _SURFEL_CHUNK)
+    ]
+    lo, group, untouched = (torch.cat(part, dim=-1) for part in zip(*parts, strict=True))
+    return _bucket_windows(surfels, view, layout, lo, group, untouched)
+
+
+def _surfel_groups(
+    surfels: _SurfelCandidates,
+    chunk: slice,
+    view: _View,
+    layout: _BucketLayout,
+    cull_backfaces: bool,
+    pixel_sums: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Boxes and buckets of a chunk of m surfels.
+
+    Args:
+        surfels: the frustum-culled surfels.
+        chunk: the chunk's surfels.
+        view: the camera.
+        layout: the image's window buckets.
+        cull_backfaces: drop surfels whose normal points away from the camera.
+        pixel_sums: summed-area table of the pixels to render (see :func:`_summed_area`), or
+            ``None`` for all pixels.
+
+    Returns:
+        ``(lo, group, untouched)``: (2, m) int32 top-left box corners ``(u, v)`` (see
+        :func:`_surfel_boxes`), (m,) int32 bucket before merging (:class:`_BucketLayout`),
+        ``len(layout.shapes)`` for the surfels not drawn, and (m,) bool, the box holds no pixel
+        of ``pixel_sums`` (all false without it).
+    """
+    c, n, r = surfels.centers[:, chunk], surfels.normals[:, chunk], surfels.radii[chunk]
+    conics, k, cc = _surfel_conics(c, n, r, view)
     total = c.sum(0) + n.sum(0) + r
     visible = (total - total) == 0  # false for NaN / inf
     visible &= c[2] > MIN_DEPTH
@@ -645,8 +676,16 @@ def _surfel_windows(
     if cull_backfaces:
         visible &= k < 0
     near = c[2] - r <= MIN_DEPTH
-    lo, hi = _surfel_boxes(conics, near, r, c, view, height, width)
-    return _bucket_windows(conics, surfels.ids, near, lo, hi, visible, height, width, pixel_sums)
+    lo, hi = _surfel_boxes(conics, near, r, c, view, layout.height, layout.width)
+    extent = hi - lo + 1
+    visible &= torch.minimum(*extent) > 0  # (integer amin is slow on CPU)
+    level = layout.level.index_select(0, extent.clamp_(0, layout.level.shape[0] - 1).view(-1))
+    level = level.view(2, -1)  # (2, m)
+    group = level[0].mul_(layout.levels).add_(level[1]).mul_(2).add_(near)
+    group = group.masked_fill_(~visible, len(layout.shapes))
+    if pixel_sums is None:
+        return lo, group, torch.zeros_like(visible)
+    return lo, group, _box_sums(pixel_sums, lo, hi, layout.width) <= 0
 
 
 def _ellipse_box_offsets(conics: _Conics) -> tuple[torch.Tensor, torch.Tensor]:
@@ -718,6 +757,8 @@ class _BucketLayout:
     ``l_v`` clipped to the image; ``near`` marks surfels that may reach the near plane.
     """
 
+    width: int  # image width W
+    height: int  # image height H
     levels: int
     shapes: tuple[tuple[int, int], ...]  # (G,)
     level: torch.Tensor  # (max(W, H) + 1,) int32 level of a box extent
@@ -739,59 +780,47 @@ def _bucket_layout(width: int, height: int, device: torch.device) -> _BucketLayo
     level = torch.bucketize(torch.arange(limit + 1, device=device), table, out_int32=True)
     sizes = torch.tensor([*shapes, (1, 1)], dtype=torch.int32, device=device).T.contiguous()
     wide = [_chunk_windows(u * v) < _GEMM_COLUMNS for u, v in shapes]
-    return _BucketLayout(levels, shapes, level, sizes, torch.tensor([*wide, False], device=device))
+    wide = torch.tensor([*wide, False], device=device)
+    return _BucketLayout(width, height, levels, shapes, level, sizes, wide)
 
 
 def _bucket_windows(
-    conics: _Conics,
-    ids: torch.Tensor,
-    near: torch.Tensor,
+    surfels: _SurfelCandidates,
+    view: _View,
+    layout: _BucketLayout,
     lo: torch.Tensor,
-    hi: torch.Tensor,
-    visible: torch.Tensor,
-    height: int,
-    width: int,
-    pixel_sums: torch.Tensor | None = None,
+    group: torch.Tensor,
+    untouched: torch.Tensor,
 ) -> _Windows:
     """Sort the visible windows into buckets of one (width, height) and place them in the image.
 
     Each box widens to its bucket's size and shifts left / up to lie inside the image (extra
     pixels fail the exact test). Surfels that may reach the near plane get buckets of their own,
     which add a depth test. Sparse buckets join larger ones (see :func:`_merge_sparse_buckets`).
-    Only the visible surfels' windows are placed and given polynomials; with ``pixel_sums``,
-    only those whose box holds a pixel to render (the full render draws no pixel outside a
-    surfel's box, which bounds its disk with a margin against rounding), and all the windows
-    of the wide buckets, which :func:`_rasterise_surfels` evaluates in chunks of fewer than
-    :data:`_GEMM_COLUMNS`. The buckets are chosen from all visible windows in both cases and
-    keep their order, so every drawn window is evaluated bit for bit as without ``pixel_sums``.
+    Only the visible surfels' windows are placed and given polynomials (their conics computed
+    again, elementwise, for those alone); of those, only the ``untouched`` ones whose box
+    holds a pixel to render (the full render draws no pixel outside a surfel's box, which bounds its
+    disk with a margin against rounding), and all the windows of the wide buckets, which
+    :func:`_rasterise_surfels` evaluates in chunks of fewer than :data:`_GEMM_COLUMNS`. The
+    buckets are chosen from all visible windows in both cases and keep their order, so every
+    drawn window is evaluated bit for bit as in the full render (no ``untouched`` window).
 
     Args:
-        conics: the surfels' conics.
-        ids: (M,) int64 map indices of the surfels (their z-buffer tie-breakers).
-        near: (M,) bool, the disk may reach the near plane.
+        surfels: the frustum-culled surfels (M).
+        view: the camera.
+        layout: the image's window buckets.
         lo: (2, M) int32 top-left pixel ``(u, v)`` of each box.
-        hi: (2, M) int32 bottom-right pixel (inclusive).
-        visible: (M,) bool, the surfels to draw.
-        height: image height.
-        width: image width.
-        pixel_sums: summed-area table of the pixels to render (see :func:`_summed_area`), or
-            ``None`` for all pixels.
+        group: (M,) int32 bucket of each window before merging (see :func:`_surfel_groups`).
+        untouched: (M,) bool, the window holds no pixel to render.
     """
-    layout = _bucket_layout(width, height, lo.device)
-    extent = (hi - lo).add_(1)
-    visible = visible & (torch.minimum(*extent) > 0)  # (integer amin is slow on CPU)
-    level = layout.level.index_select(0, extent.clamp_(0, layout.level.shape[0] - 1).view(-1))
-    level = level.view(2, -1)  # (2, M)
-    group = level[0].mul_(layout.levels).add_(level[1]).mul_(2).add_(near)
+    height, width = layout.height, layout.width
     dropped = len(layout.shapes)
-    group = group.masked_fill_(~visible, dropped)  # sorted last
     counts = torch.bincount(group, minlength=dropped + 1).tolist()
     target = _merge_sparse_buckets(counts[:-1], layout.shapes)
     group = torch.tensor([*target, dropped], dtype=torch.int16, device=lo.device).index_select(
         0, group
     )
-    if pixel_sums is not None:  # after the merge, which sees all windows
-        untouched = _box_sums(pixel_sums, lo, hi, width) <= 0
+    if bool(untouched.any()):  # after the merge, which sees all windows
         wide = layout.wide.index_select(0, group.to(torch.int32))
         group = group.masked_fill_(untouched & ~wide, dropped)
     buckets, start = [], 0
@@ -802,10 +831,16 @@ def _bucket_windows(
     order = torch.argsort(group, stable=True)[:start]  # the windows, bucket by bucket
     size = layout.sizes.index_select(1, group.index_select(0, order).to(torch.int32))
     corner = torch.minimum(lo.index_select(1, order), lo.new_tensor([[width], [height]]) - size)
-    inside, inverse_depth = _window_polynomials(conics.select(order), corner)
+    conics = _surfel_conics(
+        surfels.centers.index_select(1, order),
+        surfels.normals.index_select(1, order),
+        surfels.radii.index_select(0, order),
+        view,
+    )[0]
+    inside, inverse_depth = _window_polynomials(conics, corner)
     keys = inside.new_empty(3, start, 2)  # (tie-breaker, inverse depth) words of int64 keys
     keys[:2, :, 1 - _HIGH_WORD] = 0.0
-    keys[2, :, 1 - _HIGH_WORD] = _tie_breakers(ids.index_select(0, order))
+    keys[2, :, 1 - _HIGH_WORD] = _tie_breakers(surfels.ids.index_select(0, order))
     keys[:, :, _HIGH_WORD] = inverse_depth
     base = corner[1].to(torch.int64).mul_(width).add_(corner[0])
     return _Windows(inside, keys.view(3, -1), base, buckets)
