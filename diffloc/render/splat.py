@@ -858,10 +858,11 @@ def _summed_area(pixels: torch.Tensor) -> torch.Tensor:
 def _box_sums(sums: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, width: int) -> torch.Tensor:
     """(M,) int32 counts of the true pixels in the boxes ``[lo, hi]`` ((2, M) int32 ``(u, v)``,
     inclusive, in the image as :func:`_surfel_boxes` clips them; empty boxes count <= 0), from
-    a flat :func:`_summed_area` table of a ``width``-wide image: four lookups per box."""
-    first, last = lo.to(torch.int64), hi.to(torch.int64).add_(1)
-    top, bottom = first[1] * (width + 1), last[1] * (width + 1)
-    corners = torch.stack((bottom + last[0], top + first[0], top + last[0], bottom + first[0]))
+    a flat :func:`_summed_area` table of a ``width``-wide image: four lookups per box (int32
+    indices: the table is image-sized)."""
+    last = hi + 1
+    top, bottom = lo[1] * (width + 1), last[1] * (width + 1)
+    corners = torch.stack((bottom + last[0], top + lo[0], top + last[0], bottom + lo[0]))
     value = sums.index_select(0, corners.view(-1)).view(4, -1)
     return value[0] + value[1] - value[2] - value[3]
 
