@@ -828,7 +828,9 @@ def _bucket_windows(
         if count:
             buckets.append((*layout.shapes[g], g % 2 == 1, start, count))
             start += count
-    order = torch.argsort(group, stable=True)[:start]  # the windows, bucket by bucket
+    drawn = torch.nonzero(group != dropped).view(-1)
+    # The windows, bucket by bucket (a stable sort of the drawn ones only).
+    order = drawn.index_select(0, torch.argsort(group.index_select(0, drawn), stable=True))
     size = layout.sizes.index_select(1, group.index_select(0, order).to(torch.int32))
     corner = torch.minimum(lo.index_select(1, order), lo.new_tensor([[width], [height]]) - size)
     conics = _surfel_conics(
@@ -1187,12 +1189,18 @@ class SurfelIndexRenderer:
             windows = _surfel_windows(surfels, view, height, width, cull_backfaces, sums)
             keys = torch.full((height * width,), _NO_KEY, dtype=torch.int64, device=device)
             _rasterise_surfels(windows, keys, width)
-            _resolve_surfel_keys(keys, surfels, len(self), ids[b], depth[b], normals_cam[b])
-        if pixels is not None:  # other pixels saw only some of their surfels
-            skipped = ~pixels.reshape(batch, 1, -1)
-            ids.masked_fill_(skipped[:, 0], -1)
-            depth.masked_fill_(skipped[:, 0], 0.0)
-            normals_cam.masked_fill_(skipped, 0.0)
+            if pixels is None:
+                _resolve_surfel_keys(keys, surfels, len(self), ids[b], depth[b], normals_cam[b])
+                continue
+            # The other pixels saw only some of their surfels: -1, 0, 0 there.
+            index = torch.nonzero(pixels[b].reshape(-1)).view(-1)
+            found_ids, found_depth = ids.new_empty(len(index)), depth.new_empty(len(index))
+            found_normals = normals_cam.new_empty(3, len(index))
+            keys = keys.index_select(0, index)
+            _resolve_surfel_keys(keys, surfels, len(self), found_ids, found_depth, found_normals)
+            ids[b].fill_(-1).index_copy_(0, index, found_ids)
+            depth[b].zero_().index_copy_(0, index, found_depth)
+            normals_cam[b].zero_().index_copy_(1, index, found_normals)
         return SurfelRender(
             ids.view(batch, height, width),
             depth.view(batch, height, width),
