@@ -72,6 +72,7 @@ from diffloc.geometry.se3 import invert
 
 __all__ = [
     "PointRender",
+    "KeypointDisks",
     "PointSizes",
     "SurfelIndexRenderer",
     "SurfelRender",
@@ -1626,20 +1627,79 @@ def keypoint_disk_mask(
                 [1, 1, 1, 0],
                 [0, 1, 0, 0]], dtype=torch.int32)
     """
-    check_shape(keypoints, "K,2", "keypoints")
-    check_finite(keypoints, "keypoints")
-    keypoints = keypoints.to(torch.float32)
-    radius = torch.as_tensor(radius_px, dtype=torch.float32, device=keypoints.device)
-    if not bool((torch.isfinite(radius) & (radius >= 0)).all()):
-        raise ValueError("radius_px must be finite and non-negative")
-    _, rows, left, right = _disk_segments(
-        keypoints, radius.expand(keypoints.shape[0]), height, width
-    )
-    start = rows * width
-    steps = torch.zeros(height * width + 1, dtype=torch.int32, device=keypoints.device)
-    steps.index_add_(0, start + left, torch.ones_like(left, dtype=torch.int32))
-    steps.index_add_(0, start + right + 1, torch.full_like(right, -1, dtype=torch.int32))
-    return steps.cumsum_(0)[:-1].view(height, width) > 0
+    return KeypointDisks.of(keypoints, radius_px, height, width).mask()
+
+
+@dataclass(frozen=True)
+class KeypointDisks:
+    """The pixels within each keypoint's radius in one image, as row segments.
+
+    Made once per image, they give both the pixels :func:`neighbour_surfels` reads
+    (:meth:`mask`, as :func:`keypoint_disk_mask`) and, from the rendered index map, the
+    neighbouring surfel sets (:meth:`neighbours`, as :func:`neighbour_surfels`).
+
+    Attributes:
+        owner: (S,) int64 keypoint of every segment, keypoint by keypoint.
+        rows: (S,) int64 image row of every segment.
+        left: (S,) int64 first column (inclusive) of every segment.
+        right: (S,) int64 last column (inclusive) of every segment.
+        count: number of keypoints K.
+        height: image height H.
+        width: image width W.
+
+    Example:
+        >>> disks = KeypointDisks.of(torch.tensor([[0.0, 0.0]]), 1.0, 2, 3)
+        >>> disks.neighbours(torch.tensor([[0, 1, -1], [2, 2, 3]]))
+        tensor([[0, 1, 2]])
+    """
+
+    owner: torch.Tensor
+    rows: torch.Tensor
+    left: torch.Tensor
+    right: torch.Tensor
+    count: int
+    height: int
+    width: int
+
+    @classmethod
+    def of(
+        cls, keypoints: torch.Tensor, radius_px: torch.Tensor | float, height: int, width: int
+    ) -> KeypointDisks:
+        """The disks of (K, 2) ``keypoints`` with scalar or (K,) ``radius_px`` in an image.
+
+        Raises:
+            ShapeError: keypoints not (K, 2), radii neither scalar nor (K,).
+            ValueError: non-finite keypoints, negative or non-finite radii.
+        """
+        check_shape(keypoints, "K,2", "keypoints")
+        check_finite(keypoints, "keypoints")
+        keypoints = keypoints.to(torch.float32)
+        radius = torch.as_tensor(radius_px, dtype=torch.float32, device=keypoints.device)
+        if radius.dim() > 1 or radius.numel() not in (1, keypoints.shape[0]):
+            raise ShapeError(f"radius_px must be scalar or (K,), got {tuple(radius.shape)}")
+        if not bool((torch.isfinite(radius) & (radius >= 0)).all()):
+            raise ValueError("radius_px must be finite and non-negative")
+        radius = radius.expand(keypoints.shape[0])
+        segments = _disk_segments(keypoints, radius, height, width)
+        return cls(*segments, keypoints.shape[0], height, width)
+
+    def mask(self) -> torch.Tensor:
+        """(H, W) bool, true at the pixel centres within a keypoint's radius."""
+        start = self.rows * self.width
+        steps = torch.zeros(self.height * self.width + 1, dtype=torch.int32, device=start.device)
+        steps.index_add_(0, start + self.left, torch.ones_like(self.left, dtype=torch.int32))
+        ends = torch.full_like(self.right, -1, dtype=torch.int32)
+        steps.index_add_(0, start + self.right + 1, ends)
+        return steps.cumsum_(0)[:-1].view(self.height, self.width) > 0
+
+    def neighbours(self, ids: torch.Tensor) -> torch.Tensor:
+        """(K, M) sorted distinct surfel ids of (H, W) ``ids`` in each disk, padded with -1.
+
+        Raises:
+            ShapeError: ``ids`` not (H, W).
+        """
+        check_shape(ids, f"{self.height},{self.width}", "ids")
+        return _segment_sets(ids[None], self.owner, self.rows, self.left, self.right, self.count)
 
 
 def _run_starts(
@@ -1710,7 +1770,24 @@ def _neighbours_flat(
     kp, rad = keypoints.reshape(-1, 2), radius.reshape(-1)
     owner, rows, left, right = _disk_segments(kp, rad, height, width)
     camera = owner // max(keypoints.shape[1], 1)
-    row_start = (camera * height + rows) * width
-    count, pixel = _run_starts(ids, row_start + left, row_start + right)
+    return _segment_sets(ids, owner, camera * height + rows, left, right, kp.shape[0])
+
+
+def _segment_sets(
+    ids: torch.Tensor,
+    owner: torch.Tensor,
+    rows: torch.Tensor,
+    left: torch.Tensor,
+    right: torch.Tensor,
+    count: int,
+) -> torch.Tensor:
+    """(count, M) distinct ids of (B, H, W) ``ids`` in the (S,) row segments of each owner.
+
+    ``rows`` index the rows of all B images stacked (``b H + row``); see :func:`_disk_segments`
+    for the other fields. The ids of a segment are those of its runs of equal ids, and one
+    sort of ``(owner, id)`` keys makes the sets distinct.
+    """
+    row_start = rows * ids.shape[-1]
+    runs, pixel = _run_starts(ids, row_start + left, row_start + right)
     found = ids.reshape(-1).index_select(0, pixel)
-    return _padded_sets(torch.repeat_interleave(owner, count), found, kp.shape[0])
+    return _padded_sets(torch.repeat_interleave(owner, runs), found, count)
