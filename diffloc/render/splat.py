@@ -564,6 +564,16 @@ class _Conics:
     g_uv: torch.Tensor  # (2, M) gu, gv
     centre: torch.Tensor  # (2, M) projected centre (u, v), pixels
 
+    def select(self, index: torch.Tensor) -> _Conics:
+        """The conics of the (K,) surfels ``index``."""
+        return _Conics(*(field.index_select(-1, index) for field in vars(self).values()))
+
+    @staticmethod
+    def cat(parts: list[_Conics]) -> _Conics:
+        """The conics of consecutive chunks of surfels, concatenated."""
+        fields = zip(*(vars(part).values() for part in parts), strict=True)
+        return _Conics(*(torch.cat(field, dim=-1) for field in fields))
+
 
 def _surfel_conics(
     c: torch.Tensor, n: torch.Tensor, r: torch.Tensor, view: _View
@@ -639,8 +649,11 @@ def _surfel_windows(
         )
         for start in range(0, max(count, 1), _SURFEL_CHUNK)
     ]
-    lo, group, untouched = (torch.cat(part, dim=-1) for part in zip(*parts, strict=True))
-    return _bucket_windows(surfels, view, layout, lo, group, untouched)
+    lo, group, untouched, chunk_conics = zip(*parts, strict=True)
+    lo, group, untouched = (torch.cat(part, dim=-1) for part in (lo, group, untouched))
+    # A full render draws nearly all windows: keep their conics rather than compute them again.
+    conics = _Conics.cat(list(chunk_conics)) if pixel_sums is None else None
+    return _bucket_windows(surfels, view, layout, lo, group, untouched, conics)
 
 
 def _surfel_groups(
@@ -650,7 +663,7 @@ def _surfel_groups(
     layout: _BucketLayout,
     cull_backfaces: bool,
     pixel_sums: torch.Tensor | None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, _Conics]:
     """Boxes and buckets of a chunk of m surfels.
 
     Args:
@@ -663,10 +676,10 @@ def _surfel_groups(
             ``None`` for all pixels.
 
     Returns:
-        ``(lo, group, untouched)``: (2, m) int32 top-left box corners ``(u, v)`` (see
+        ``(lo, group, untouched, conics)``: (2, m) int32 top-left box corners ``(u, v)`` (see
         :func:`_surfel_boxes`), (m,) int32 bucket before merging (:class:`_BucketLayout`),
-        ``len(layout.shapes)`` for the surfels not drawn, and (m,) bool, the box holds no pixel
-        of ``pixel_sums`` (all false without it).
+        ``len(layout.shapes)`` for the surfels not drawn, (m,) bool, the box holds no pixel
+        of ``pixel_sums`` (all false without it), and the surfels' conics.
     """
     c, n, r = surfels.centers[:, chunk], surfels.normals[:, chunk], surfels.radii[chunk]
     conics, k, cc = _surfel_conics(c, n, r, view)
@@ -685,8 +698,8 @@ def _surfel_groups(
     group = level[0].mul_(layout.levels).add_(level[1]).mul_(2).add_(near)
     group = group.masked_fill_(~visible, len(layout.shapes))
     if pixel_sums is None:
-        return lo, group, torch.zeros_like(visible)
-    return lo, group, _box_sums(pixel_sums, lo, hi, layout.width) <= 0
+        return lo, group, torch.zeros_like(visible), conics
+    return lo, group, _box_sums(pixel_sums, lo, hi, layout.width) <= 0, conics
 
 
 def _ellipse_box_offsets(conics: _Conics) -> tuple[torch.Tensor, torch.Tensor]:
@@ -792,19 +805,21 @@ def _bucket_windows(
     lo: torch.Tensor,
     group: torch.Tensor,
     untouched: torch.Tensor,
+    conics: _Conics | None,
 ) -> _Windows:
     """Sort the visible windows into buckets of one (width, height) and place them in the image.
 
     Each box widens to its bucket's size and shifts left / up to lie inside the image (extra
     pixels fail the exact test). Surfels that may reach the near plane get buckets of their own,
     which add a depth test. Sparse buckets join larger ones (see :func:`_merge_sparse_buckets`).
-    Only the visible surfels' windows are placed and given polynomials (their conics computed
-    again, elementwise, for those alone); of those, only the ``untouched`` ones whose box
-    holds a pixel to render (the full render draws no pixel outside a surfel's box, which bounds its
-    disk with a margin against rounding), and all the windows of the wide buckets, which
-    :func:`_rasterise_surfels` evaluates in chunks of fewer than :data:`_GEMM_COLUMNS`. The
-    buckets are chosen from all visible windows in both cases and keep their order, so every
-    drawn window is evaluated bit for bit as in the full render (no ``untouched`` window).
+    Only the visible surfels' windows are placed and given polynomials (without ``conics``,
+    theirs are computed again, elementwise, for those alone); of those, only the ones not
+    ``untouched``, whose box holds a pixel to render (the full render draws no pixel outside a
+    surfel's box, which bounds its disk with a margin against rounding), and all the windows
+    of the wide buckets, which :func:`_rasterise_surfels` evaluates in chunks of fewer than
+    :data:`_GEMM_COLUMNS`. The buckets are chosen from all visible windows in both cases and
+    keep their order, so every drawn window is evaluated bit for bit as in the full render (no
+    ``untouched`` window).
 
     Args:
         surfels: the frustum-culled surfels (M).
@@ -813,6 +828,7 @@ def _bucket_windows(
         lo: (2, M) int32 top-left pixel ``(u, v)`` of each box.
         group: (M,) int32 bucket of each window before merging (see :func:`_surfel_groups`).
         untouched: (M,) bool, the window holds no pixel to render.
+        conics: the conics of all M surfels, or ``None`` to compute those of the drawn ones.
     """
     height, width = layout.height, layout.width
     dropped = len(layout.shapes)
@@ -834,12 +850,11 @@ def _bucket_windows(
     order = drawn.index_select(0, torch.argsort(group.index_select(0, drawn), stable=True))
     size = layout.sizes.index_select(1, group.index_select(0, order).to(torch.int32))
     corner = torch.minimum(lo.index_select(1, order), lo.new_tensor([[width], [height]]) - size)
-    conics = _surfel_conics(
-        surfels.centers.index_select(1, order),
-        surfels.normals.index_select(1, order),
-        surfels.radii.index_select(0, order),
-        view,
-    )[0]
+    if conics is None:
+        c, n = surfels.centers.index_select(1, order), surfels.normals.index_select(1, order)
+        conics = _surfel_conics(c, n, surfels.radii.index_select(0, order), view)[0]
+    else:
+        conics = conics.select(order)
     inside, inverse_depth = _window_polynomials(conics, corner)
     keys = inside.new_empty(3, start, 2)  # (tie-breaker, inverse depth) words of int64 keys
     keys[:2, :, 1 - _HIGH_WORD] = 0.0
