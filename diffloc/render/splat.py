@@ -568,12 +568,6 @@ class _Conics:
         """The conics of the (K,) surfels ``index``."""
         return _Conics(*(field.index_select(-1, index) for field in vars(self).values()))
 
-    @staticmethod
-    def cat(parts: list[_Conics]) -> _Conics:
-        """The conics of consecutive chunks of surfels, concatenated."""
-        fields = zip(*(vars(part).values() for part in parts), strict=True)
-        return _Conics(*(torch.cat(field, dim=-1) for field in fields))
-
 
 def _surfel_conics(
     c: torch.Tensor, n: torch.Tensor, r: torch.Tensor, view: _View
@@ -628,9 +622,10 @@ def _surfel_windows(
 ) -> _Windows:
     """Conics and candidate windows of the surfels that may be visible in one camera.
 
-    The per-surfel stages (conic, box, bucket, and with ``pixel_sums`` whether the box holds a
+    With ``pixel_sums``, the per-surfel stages (conic, box, bucket, whether the box holds a
     pixel to render) run on chunks of :data:`_SURFEL_CHUNK` surfels, whose temporaries stay in
-    the CPU caches; they are elementwise, so the chunks change no value.
+    the CPU caches (they are elementwise, so the chunks change no value), and the conics of the
+    few drawn windows are computed again; a full render keeps the conics of all surfels.
 
     Args:
         surfels: the frustum-culled surfels.
@@ -642,18 +637,19 @@ def _surfel_windows(
             ``None`` for all pixels.
     """
     layout = _bucket_layout(width, height, surfels.radii.device)
-    count = surfels.radii.shape[0]
+    if pixel_sums is None:  # nearly all windows are drawn: keep the conics, in one chunk
+        lo, group, untouched, conics = _surfel_groups(
+            surfels, slice(None), view, layout, cull_backfaces, None
+        )
+        return _bucket_windows(surfels, view, layout, lo, group, untouched, conics)
     parts = [
         _surfel_groups(
             surfels, slice(start, start + _SURFEL_CHUNK), view, layout, cull_backfaces, pixel_sums
         )
-        for start in range(0, max(count, 1), _SURFEL_CHUNK)
+        for start in range(0, max(surfels.radii.shape[0], 1), _SURFEL_CHUNK)
     ]
-    lo, group, untouched, chunk_conics = zip(*parts, strict=True)
-    lo, group, untouched = (torch.cat(part, dim=-1) for part in (lo, group, untouched))
-    # A full render draws nearly all windows: keep their conics rather than compute them again.
-    conics = _Conics.cat(list(chunk_conics)) if pixel_sums is None else None
-    return _bucket_windows(surfels, view, layout, lo, group, untouched, conics)
+    lo, group, untouched = (torch.cat(part, dim=-1) for part in list(zip(*parts, strict=True))[:3])
+    return _bucket_windows(surfels, view, layout, lo, group, untouched, None)
 
 
 def _surfel_groups(
@@ -845,9 +841,12 @@ def _bucket_windows(
         if count:
             buckets.append((*layout.shapes[g], g % 2 == 1, start, count))
             start += count
-    drawn = torch.nonzero(group != dropped).view(-1)
-    # The windows, bucket by bucket (a stable sort of the drawn ones only).
-    order = drawn.index_select(0, torch.argsort(group.index_select(0, drawn), stable=True))
+    # The windows, bucket by bucket: a stable sort of all, or of the drawn ones when few are.
+    if 2 * start > group.shape[0]:
+        order = torch.argsort(group, stable=True)[:start]
+    else:
+        drawn = torch.nonzero(group != dropped).view(-1)
+        order = drawn.index_select(0, torch.argsort(group.index_select(0, drawn), stable=True))
     size = layout.sizes.index_select(1, group.index_select(0, order).to(torch.int32))
     corner = torch.minimum(lo.index_select(1, order), lo.new_tensor([[width], [height]]) - size)
     if conics is None:
