@@ -50,12 +50,7 @@ from diffloc.geometry.se3 import invert, transform_points
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.surfel import SurfelMap
 from diffloc.progress import progress
-from diffloc.render.splat import (
-    SurfelIndexRenderer,
-    SurfelRender,
-    keypoint_disk_mask,
-    neighbour_surfels,
-)
+from diffloc.render.splat import KeypointDisks, SurfelIndexRenderer, SurfelRender
 
 __all__ = ["ASSOCIATIONS", "BuilderConfig", "DatabaseBuilder"]
 
@@ -121,11 +116,11 @@ def _pixel_lookup(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return image[v, u]
 
 
-def _keypoint_pixels(features: Features, camera: PinholeCamera) -> torch.Tensor:
+def _keypoint_pixels(features: Features, disks: KeypointDisks) -> torch.Tensor:
     """(1, H, W) bool: the pixels the keypoints read in the index map, their rounded pixels
-    (:func:`_pixel_lookup`) and their disks of radius ``size / 2`` (:func:`neighbour_surfels`)."""
-    mask = keypoint_disk_mask(features.keypoints, features.sizes / 2, camera.height, camera.width)
-    u, v = _rounded_pixels(features.keypoints, camera.height, camera.width)
+    (:func:`_pixel_lookup`) and their disks of radius ``size / 2`` (``disks``)."""
+    mask = disks.mask()
+    u, v = _rounded_pixels(features.keypoints, disks.height, disks.width)
     mask[v, u] = True
     return mask[None]
 
@@ -218,16 +213,19 @@ class DatabaseBuilder:
         start = time.perf_counter()
         features = self._features(image)
         extracted = time.perf_counter()
+        disks = KeypointDisks.of(
+            features.keypoints, features.sizes / 2, camera.height, camera.width
+        )
         # The projection association reads depths anywhere; the other only at the keypoints.
         pixels = (
-            None if self.config.association == "projection" else _keypoint_pixels(features, camera)
+            None if self.config.association == "projection" else _keypoint_pixels(features, disks)
         )
         render = self.renderer.render(
             T_wc.to(torch.float32)[None], camera.to(torch.float32), pixels=pixels
         )
         ids = render.ids[0]
         surfels = _pixel_lookup(ids, features.keypoints)
-        neighbours = neighbour_surfels(ids, features.keypoints, features.sizes / 2)
+        neighbours = disks.neighbours(ids)
         db = self._database(features)
         epipolar = self.config.association == "epipolar"
         seen = torch.cat([surfels[:, None], neighbours], dim=1)

@@ -61,11 +61,12 @@ def redundancy(db: VisualDatabase, config: CullingConfig) -> torch.Tensor:
         >>> redundancy(db, CullingConfig())  # doctest: +SKIP
         tensor([0.0000, 0.9500, 1.0000])
     """
-    obs = db.observations()
-    others = db.observation_counts()[obs[:, 2]] - 1
+    observed = db.keypoint_points >= 0
+    point, keyframe = db.keypoint_points[observed], db.keypoint_keyframes()[observed]
+    others = torch.bincount(point, minlength=db.num_points)[point] - 1
     well_seen = (others >= config.min_other_observers).double()
-    total = torch.bincount(obs[:, 0], minlength=db.num_keyframes).double()
-    seen = torch.bincount(obs[:, 0], weights=well_seen, minlength=db.num_keyframes)
+    total = torch.bincount(keyframe, minlength=db.num_keyframes).double()
+    seen = torch.bincount(keyframe, weights=well_seen, minlength=db.num_keyframes)
     return seen / total.clamp(min=1.0)
 
 
@@ -128,8 +129,12 @@ def cull_unconfirmed_points(
         >>> cull_unconfirmed_points(db, CullingConfig(), torch.tensor([7]))  # doctest: +SKIP
         tensor([12, 40])
     """
-    obs = db.observations()
-    keyframe, point = obs[:, 0], obs[:, 2]
+    observed = db.keypoint_points >= 0
+    if first_keyframes is not None:
+        # Only points the given keyframes observe can have one of them as creator.
+        candidates = db.points_observed_by(first_keyframes)
+        observed = member_mask(db.keypoint_points, candidates, db.num_points)
+    point, keyframe = db.keypoint_points[observed], db.keypoint_keyframes()[observed]
     big = torch.full((db.num_points,), db.num_keyframes, dtype=torch.int64)
     first = big.scatter_reduce(0, point, keyframe, reduce="amin")
     in_window = (keyframe > first[point]) & (keyframe <= first[point] + config.new_point_window)

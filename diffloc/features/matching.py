@@ -46,6 +46,10 @@ _NEIGHBOUR_CELLS = torch.tensor([(du, dv) for dv in (-1, 0, 1) for du in (-1, 0,
 """(9, 2) offsets of a grid cell and its eight neighbours."""
 _ROW_BLOCK = 128
 """Columns per block of :func:`_row_min`."""
+_MATCH_BLOCK = 1 << 21
+"""Distance matrix entries per column block of :func:`match_descriptors` (8 MB of float32): the
+whole matrix of a thousand keypoints against ten thousand map points would be allocated (and
+page-faulted) afresh by every call and read three times from memory."""
 _CELLS_PER_KEYPOINT = 4.0
 """Bound on the grid cells per keypoint of the guided search's dense cell table."""
 _XFEAT_LIGHTERGLUE = {
@@ -158,6 +162,44 @@ def _aligned_pairs(desc0: torch.Tensor, desc1: torch.Tensor, metric: Metric) -> 
     return torch.linalg.vector_norm(desc0 - desc1, dim=1)
 
 
+def _nearest_two(
+    desc0: torch.Tensor, desc1: torch.Tensor, metric: Metric
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Nearest and second-nearest neighbours of (N, D) ``desc0`` in (M, D) ``desc1``.
+
+    The distance matrix (squared for L2) is made and reduced in blocks of columns of about
+    :data:`_MATCH_BLOCK` entries; a block's entries are bit for bit those of the whole matrix
+    (the same products, checked for the CPU GEMM) and the reductions are exact, so the results
+    are those of the whole matrix.
+
+    Returns:
+        ``(best, nearest, second, column_min)``: (N,) smallest value of each row and its first
+        column, (N,) the smallest once that column is left out (``inf`` for M = 1), and (M,)
+        the smallest value of each column.
+    """
+    step = max(_ROW_BLOCK, _MATCH_BLOCK // max(desc0.shape[0], 1))
+    column_min = []
+    best = nearest = second = None
+    for start in range(0, desc1.shape[0], step):
+        block = desc1[start : start + step]
+        values = _squared_l2(desc0, block) if metric == "l2" else _all_pairs(desc0, block, metric)
+        block_best, block_nearest = _row_min(values)
+        column_min.append(values.amin(dim=0))
+        # The block's second smallest: its smallest once the nearest is masked (in place).
+        block_second = values.scatter_(1, block_nearest[:, None], torch.inf).amin(dim=1)
+        block_nearest += start
+        if best is None:
+            best, nearest, second = block_best, block_nearest, block_second
+            continue
+        later = block_best < best  # ties keep the first column
+        second = torch.where(
+            later, torch.minimum(best, block_second), torch.minimum(second, block_best)
+        )
+        nearest = torch.where(later, block_nearest, nearest)
+        best = torch.where(later, block_best, best)
+    return best, nearest, second, torch.cat(column_min)
+
+
 def _row_min(values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``values.min(dim=1)`` of (N, M) values: each row's smallest value and its first column.
 
@@ -262,23 +304,18 @@ def match_descriptors(
     # L2 works on squared distances (no square root over the whole matrix), with the
     # thresholds squared too; the other metrics on the distances themselves.
     power = 2 if metric == "l2" else 1
-    values = _squared_l2(desc0, desc1) if metric == "l2" else _all_pairs(desc0, desc1, metric)
-    best, nearest = _row_min(values)
+    best, nearest, second, column_min = _nearest_two(desc0, desc1, metric)
     keep = torch.ones_like(best, dtype=torch.bool)
     if mutual:
-        # Row i and its nearest column j are mutual when no row is nearer to j (amin over the
-        # rows is a fast reduction, unlike the argmin); among rows tied for the minimum of j,
-        # the first one whose nearest neighbour is j keeps it.
-        tied = torch.nonzero(best == values.amin(dim=0)[nearest]).squeeze(1)
-        first = torch.full_like(values[0], desc0.shape[0], dtype=torch.int64)
+        # Row i and its nearest column j are mutual when no row is nearer to j; among rows
+        # tied for the minimum of j, the first one whose nearest neighbour is j keeps it.
+        tied = torch.nonzero(best == column_min[nearest]).squeeze(1)
+        first = torch.full_like(column_min, desc0.shape[0], dtype=torch.int64)
         first.scatter_reduce_(0, nearest[tied], tied, "amin")
         keep = torch.zeros_like(keep).index_fill_(0, first[first < desc0.shape[0]], True)
     best = best.clamp(min=0.0)
-    if ratio is not None and values.shape[1] > 1:
-        # The second smallest of each row: the smallest once the nearest is masked (in
-        # place: the matrix is not needed any more).
-        second = values.scatter_(1, nearest[:, None], torch.inf).amin(dim=1).clamp(min=0.0)
-        keep &= best < ratio**power * second
+    if ratio is not None and desc1.shape[0] > 1:
+        keep &= best < ratio**power * second.clamp(min=0.0)
     if max_distance is not None:
         keep &= best <= max_distance**power
     query = torch.nonzero(keep).squeeze(1)

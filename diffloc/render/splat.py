@@ -72,6 +72,7 @@ from diffloc.geometry.se3 import invert
 
 __all__ = [
     "PointRender",
+    "KeypointDisks",
     "PointSizes",
     "SurfelIndexRenderer",
     "SurfelRender",
@@ -103,6 +104,8 @@ _TIE_TOP = 0x7F7FFFFF
 """Bits of the largest finite float32; tie-breakers count down from it."""
 _MAX_SURFELS = _TIE_TOP - 0x00800000 + 1
 """Surfels per render, so that every tie-breaker is a positive normal float32."""
+_SURFEL_CHUNK = 1 << 16
+"""Surfels per chunk of the per-surfel stages of :func:`_surfel_windows`."""
 _MERGE_PIXELS = 4096
 """A bucket of windows joins a larger one when that adds at most this many candidate pixels
 (about the cost of the few tensor operations that every bucket takes)."""
@@ -563,19 +566,12 @@ class _Conics:
 
     def select(self, index: torch.Tensor) -> _Conics:
         """The conics of the (K,) surfels ``index``."""
-        return _Conics(
-            self.AC.index_select(1, index),
-            self.B.index_select(0, index),
-            self.DE.index_select(1, index),
-            self.g0.index_select(0, index),
-            self.g_uv.index_select(1, index),
-            self.centre.index_select(1, index),
-        )
+        return _Conics(*(field.index_select(-1, index) for field in vars(self).values()))
 
 
 def _surfel_conics(
-    c: torch.Tensor, n: torch.Tensor, r: torch.Tensor, cc: torch.Tensor, view: _View
-) -> tuple[_Conics, torch.Tensor]:
+    c: torch.Tensor, n: torch.Tensor, r: torch.Tensor, view: _View
+) -> tuple[_Conics, torch.Tensor, torch.Tensor]:
     """Ray-disk conics of surfels in front of the camera.
 
     The ray ``d = c / cz + (du / fx, dv / fy, 0)`` meets the plane ``n.p = k`` (``k = n.c``)
@@ -590,12 +586,12 @@ def _surfel_conics(
         c: (3, M) centres, camera frame, ``cz > 0``.
         n: (3, M) unit normals, camera frame.
         r: (M,) radii.
-        cc: (M,) ``|c|^2``.
         view: the camera.
 
     Returns:
-        ``(conics, k)`` with (M,) ``k = n.c``.
+        ``(conics, k, cc)`` with (M,) ``k = n.c`` and ``cc = |c|^2``.
     """
+    cc = (c * c).sum(0)
     cxy, cz, nxy = c[:2], c[2], n[:2]
     fx, fy = view.fx, view.fy
     f = c.new_tensor([[fx], [fy]])
@@ -613,7 +609,7 @@ def _surfel_conics(
     DE = nxy * h * c.new_tensor([[-2.0 / fx], [-2.0 / fy]])
     g0 = cz.reciprocal()
     centre = (cxy * g0 * f).add_(c.new_tensor([[view.cx], [view.cy]]))
-    return _Conics(AC, B, DE, g0, nxy / k / f, centre), k
+    return _Conics(AC, B, DE, g0, nxy / k / f, centre), k, cc
 
 
 def _surfel_windows(
@@ -626,6 +622,11 @@ def _surfel_windows(
 ) -> _Windows:
     """Conics and candidate windows of the surfels that may be visible in one camera.
 
+    With ``pixel_sums``, the per-surfel stages (conic, box, bucket, whether the box holds a
+    pixel to render) run on chunks of :data:`_SURFEL_CHUNK` surfels, whose temporaries stay in
+    the CPU caches (they are elementwise, so the chunks change no value), and the conics of the
+    few drawn windows are computed again; a full render keeps the conics of all surfels.
+
     Args:
         surfels: the frustum-culled surfels.
         view: the camera.
@@ -635,9 +636,49 @@ def _surfel_windows(
         pixel_sums: summed-area table of the pixels to render (see :func:`_summed_area`), or
             ``None`` for all pixels.
     """
-    c, n, r = surfels.centers, surfels.normals, surfels.radii
-    cc = (c * c).sum(0)
-    conics, k = _surfel_conics(c, n, r, cc, view)
+    layout = _bucket_layout(width, height, surfels.radii.device)
+    if pixel_sums is None:  # nearly all windows are drawn: keep the conics, in one chunk
+        lo, group, untouched, conics = _surfel_groups(
+            surfels, slice(None), view, layout, cull_backfaces, None
+        )
+        return _bucket_windows(surfels, view, layout, lo, group, untouched, conics)
+    parts = [
+        _surfel_groups(
+            surfels, slice(start, start + _SURFEL_CHUNK), view, layout, cull_backfaces, pixel_sums
+        )
+        for start in range(0, max(surfels.radii.shape[0], 1), _SURFEL_CHUNK)
+    ]
+    lo, group, untouched = (torch.cat(part, dim=-1) for part in list(zip(*parts, strict=True))[:3])
+    return _bucket_windows(surfels, view, layout, lo, group, untouched, None)
+
+
+def _surfel_groups(
+    surfels: _SurfelCandidates,
+    chunk: slice,
+    view: _View,
+    layout: _BucketLayout,
+    cull_backfaces: bool,
+    pixel_sums: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, _Conics]:
+    """Boxes and buckets of a chunk of m surfels.
+
+    Args:
+        surfels: the frustum-culled surfels.
+        chunk: the chunk's surfels.
+        view: the camera.
+        layout: the image's window buckets.
+        cull_backfaces: drop surfels whose normal points away from the camera.
+        pixel_sums: summed-area table of the pixels to render (see :func:`_summed_area`), or
+            ``None`` for all pixels.
+
+    Returns:
+        ``(lo, group, untouched, conics)``: (2, m) int32 top-left box corners ``(u, v)`` (see
+        :func:`_surfel_boxes`), (m,) int32 bucket before merging (:class:`_BucketLayout`),
+        ``len(layout.shapes)`` for the surfels not drawn, (m,) bool, the box holds no pixel
+        of ``pixel_sums`` (all false without it), and the surfels' conics.
+    """
+    c, n, r = surfels.centers[:, chunk], surfels.normals[:, chunk], surfels.radii[chunk]
+    conics, k, cc = _surfel_conics(c, n, r, view)
     total = c.sum(0) + n.sum(0) + r
     visible = (total - total) == 0  # false for NaN / inf
     visible &= c[2] > MIN_DEPTH
@@ -645,8 +686,16 @@ def _surfel_windows(
     if cull_backfaces:
         visible &= k < 0
     near = c[2] - r <= MIN_DEPTH
-    lo, hi = _surfel_boxes(conics, near, r, c, view, height, width)
-    return _bucket_windows(conics, surfels.ids, near, lo, hi, visible, height, width, pixel_sums)
+    lo, hi = _surfel_boxes(conics, near, r, c, view, layout.height, layout.width)
+    extent = hi - lo + 1
+    visible &= torch.minimum(*extent) > 0  # (integer amin is slow on CPU)
+    level = layout.level.index_select(0, extent.clamp_(0, layout.level.shape[0] - 1).view(-1))
+    level = level.view(2, -1)  # (2, m)
+    group = level[0].mul_(layout.levels).add_(level[1]).mul_(2).add_(near)
+    group = group.masked_fill_(~visible, len(layout.shapes))
+    if pixel_sums is None:
+        return lo, group, torch.zeros_like(visible), conics
+    return lo, group, _box_sums(pixel_sums, lo, hi, layout.width) <= 0, conics
 
 
 def _ellipse_box_offsets(conics: _Conics) -> tuple[torch.Tensor, torch.Tensor]:
@@ -718,6 +767,8 @@ class _BucketLayout:
     ``l_v`` clipped to the image; ``near`` marks surfels that may reach the near plane.
     """
 
+    width: int  # image width W
+    height: int  # image height H
     levels: int
     shapes: tuple[tuple[int, int], ...]  # (G,)
     level: torch.Tensor  # (max(W, H) + 1,) int32 level of a box extent
@@ -739,59 +790,50 @@ def _bucket_layout(width: int, height: int, device: torch.device) -> _BucketLayo
     level = torch.bucketize(torch.arange(limit + 1, device=device), table, out_int32=True)
     sizes = torch.tensor([*shapes, (1, 1)], dtype=torch.int32, device=device).T.contiguous()
     wide = [_chunk_windows(u * v) < _GEMM_COLUMNS for u, v in shapes]
-    return _BucketLayout(levels, shapes, level, sizes, torch.tensor([*wide, False], device=device))
+    wide = torch.tensor([*wide, False], device=device)
+    return _BucketLayout(width, height, levels, shapes, level, sizes, wide)
 
 
 def _bucket_windows(
-    conics: _Conics,
-    ids: torch.Tensor,
-    near: torch.Tensor,
+    surfels: _SurfelCandidates,
+    view: _View,
+    layout: _BucketLayout,
     lo: torch.Tensor,
-    hi: torch.Tensor,
-    visible: torch.Tensor,
-    height: int,
-    width: int,
-    pixel_sums: torch.Tensor | None = None,
+    group: torch.Tensor,
+    untouched: torch.Tensor,
+    conics: _Conics | None,
 ) -> _Windows:
     """Sort the visible windows into buckets of one (width, height) and place them in the image.
 
     Each box widens to its bucket's size and shifts left / up to lie inside the image (extra
     pixels fail the exact test). Surfels that may reach the near plane get buckets of their own,
     which add a depth test. Sparse buckets join larger ones (see :func:`_merge_sparse_buckets`).
-    Only the visible surfels' windows are placed and given polynomials; with ``pixel_sums``,
-    only those whose box holds a pixel to render (the full render draws no pixel outside a
+    Only the visible surfels' windows are placed and given polynomials (without ``conics``,
+    theirs are computed again, elementwise, for those alone); of those, only the ones not
+    ``untouched``, whose box holds a pixel to render (the full render draws no pixel outside a
     surfel's box, which bounds its disk with a margin against rounding), and all the windows
     of the wide buckets, which :func:`_rasterise_surfels` evaluates in chunks of fewer than
     :data:`_GEMM_COLUMNS`. The buckets are chosen from all visible windows in both cases and
-    keep their order, so every drawn window is evaluated bit for bit as without ``pixel_sums``.
+    keep their order, so every drawn window is evaluated bit for bit as in the full render (no
+    ``untouched`` window).
 
     Args:
-        conics: the surfels' conics.
-        ids: (M,) int64 map indices of the surfels (their z-buffer tie-breakers).
-        near: (M,) bool, the disk may reach the near plane.
+        surfels: the frustum-culled surfels (M).
+        view: the camera.
+        layout: the image's window buckets.
         lo: (2, M) int32 top-left pixel ``(u, v)`` of each box.
-        hi: (2, M) int32 bottom-right pixel (inclusive).
-        visible: (M,) bool, the surfels to draw.
-        height: image height.
-        width: image width.
-        pixel_sums: summed-area table of the pixels to render (see :func:`_summed_area`), or
-            ``None`` for all pixels.
+        group: (M,) int32 bucket of each window before merging (see :func:`_surfel_groups`).
+        untouched: (M,) bool, the window holds no pixel to render.
+        conics: the conics of all M surfels, or ``None`` to compute those of the drawn ones.
     """
-    layout = _bucket_layout(width, height, lo.device)
-    extent = (hi - lo).add_(1)
-    visible = visible & (torch.minimum(*extent) > 0)  # (integer amin is slow on CPU)
-    level = layout.level.index_select(0, extent.clamp_(0, layout.level.shape[0] - 1).view(-1))
-    level = level.view(2, -1)  # (2, M)
-    group = level[0].mul_(layout.levels).add_(level[1]).mul_(2).add_(near)
+    height, width = layout.height, layout.width
     dropped = len(layout.shapes)
-    group = group.masked_fill_(~visible, dropped)  # sorted last
     counts = torch.bincount(group, minlength=dropped + 1).tolist()
     target = _merge_sparse_buckets(counts[:-1], layout.shapes)
     group = torch.tensor([*target, dropped], dtype=torch.int16, device=lo.device).index_select(
         0, group
     )
-    if pixel_sums is not None:  # after the merge, which sees all windows
-        untouched = _box_sums(pixel_sums, lo, hi, width) <= 0
+    if bool(untouched.any()):  # after the merge, which sees all windows
         wide = layout.wide.index_select(0, group.to(torch.int32))
         group = group.masked_fill_(untouched & ~wide, dropped)
     buckets, start = [], 0
@@ -799,13 +841,23 @@ def _bucket_windows(
         if count:
             buckets.append((*layout.shapes[g], g % 2 == 1, start, count))
             start += count
-    order = torch.argsort(group, stable=True)[:start]  # the windows, bucket by bucket
+    # The windows, bucket by bucket: a stable sort of all, or of the drawn ones when few are.
+    if 2 * start > group.shape[0]:
+        order = torch.argsort(group, stable=True)[:start]
+    else:
+        drawn = torch.nonzero(group != dropped).view(-1)
+        order = drawn.index_select(0, torch.argsort(group.index_select(0, drawn), stable=True))
     size = layout.sizes.index_select(1, group.index_select(0, order).to(torch.int32))
     corner = torch.minimum(lo.index_select(1, order), lo.new_tensor([[width], [height]]) - size)
-    inside, inverse_depth = _window_polynomials(conics.select(order), corner)
+    if conics is None:
+        c, n = surfels.centers.index_select(1, order), surfels.normals.index_select(1, order)
+        conics = _surfel_conics(c, n, surfels.radii.index_select(0, order), view)[0]
+    else:
+        conics = conics.select(order)
+    inside, inverse_depth = _window_polynomials(conics, corner)
     keys = inside.new_empty(3, start, 2)  # (tie-breaker, inverse depth) words of int64 keys
     keys[:2, :, 1 - _HIGH_WORD] = 0.0
-    keys[2, :, 1 - _HIGH_WORD] = _tie_breakers(ids.index_select(0, order))
+    keys[2, :, 1 - _HIGH_WORD] = _tie_breakers(surfels.ids.index_select(0, order))
     keys[:, :, _HIGH_WORD] = inverse_depth
     base = corner[1].to(torch.int64).mul_(width).add_(corner[0])
     return _Windows(inside, keys.view(3, -1), base, buckets)
@@ -823,10 +875,11 @@ def _summed_area(pixels: torch.Tensor) -> torch.Tensor:
 def _box_sums(sums: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, width: int) -> torch.Tensor:
     """(M,) int32 counts of the true pixels in the boxes ``[lo, hi]`` ((2, M) int32 ``(u, v)``,
     inclusive, in the image as :func:`_surfel_boxes` clips them; empty boxes count <= 0), from
-    a flat :func:`_summed_area` table of a ``width``-wide image: four lookups per box."""
-    first, last = lo.to(torch.int64), hi.to(torch.int64).add_(1)
-    top, bottom = first[1] * (width + 1), last[1] * (width + 1)
-    corners = torch.stack((bottom + last[0], top + first[0], top + last[0], bottom + first[0]))
+    a flat :func:`_summed_area` table of a ``width``-wide image: four lookups per box (int32
+    indices: the table is image-sized)."""
+    last = hi + 1
+    top, bottom = lo[1] * (width + 1), last[1] * (width + 1)
+    corners = torch.stack((bottom + last[0], top + lo[0], top + last[0], bottom + lo[0]))
     value = sums.index_select(0, corners.view(-1)).view(4, -1)
     return value[0] + value[1] - value[2] - value[3]
 
@@ -1151,12 +1204,18 @@ class SurfelIndexRenderer:
             windows = _surfel_windows(surfels, view, height, width, cull_backfaces, sums)
             keys = torch.full((height * width,), _NO_KEY, dtype=torch.int64, device=device)
             _rasterise_surfels(windows, keys, width)
-            _resolve_surfel_keys(keys, surfels, len(self), ids[b], depth[b], normals_cam[b])
-        if pixels is not None:  # other pixels saw only some of their surfels
-            skipped = ~pixels.reshape(batch, 1, -1)
-            ids.masked_fill_(skipped[:, 0], -1)
-            depth.masked_fill_(skipped[:, 0], 0.0)
-            normals_cam.masked_fill_(skipped, 0.0)
+            if pixels is None:
+                _resolve_surfel_keys(keys, surfels, len(self), ids[b], depth[b], normals_cam[b])
+                continue
+            # The other pixels saw only some of their surfels: -1, 0, 0 there.
+            index = torch.nonzero(pixels[b].reshape(-1)).view(-1)
+            found_ids, found_depth = ids.new_empty(len(index)), depth.new_empty(len(index))
+            found_normals = normals_cam.new_empty(3, len(index))
+            keys = keys.index_select(0, index)
+            _resolve_surfel_keys(keys, surfels, len(self), found_ids, found_depth, found_normals)
+            ids[b].fill_(-1).index_copy_(0, index, found_ids)
+            depth[b].zero_().index_copy_(0, index, found_depth)
+            normals_cam[b].zero_().index_copy_(1, index, found_normals)
         return SurfelRender(
             ids.view(batch, height, width),
             depth.view(batch, height, width),
@@ -1582,20 +1641,79 @@ def keypoint_disk_mask(
                 [1, 1, 1, 0],
                 [0, 1, 0, 0]], dtype=torch.int32)
     """
-    check_shape(keypoints, "K,2", "keypoints")
-    check_finite(keypoints, "keypoints")
-    keypoints = keypoints.to(torch.float32)
-    radius = torch.as_tensor(radius_px, dtype=torch.float32, device=keypoints.device)
-    if not bool((torch.isfinite(radius) & (radius >= 0)).all()):
-        raise ValueError("radius_px must be finite and non-negative")
-    _, rows, left, right = _disk_segments(
-        keypoints, radius.expand(keypoints.shape[0]), height, width
-    )
-    start = rows * width
-    steps = torch.zeros(height * width + 1, dtype=torch.int32, device=keypoints.device)
-    steps.index_add_(0, start + left, torch.ones_like(left, dtype=torch.int32))
-    steps.index_add_(0, start + right + 1, torch.full_like(right, -1, dtype=torch.int32))
-    return steps.cumsum_(0)[:-1].view(height, width) > 0
+    return KeypointDisks.of(keypoints, radius_px, height, width).mask()
+
+
+@dataclass(frozen=True)
+class KeypointDisks:
+    """The pixels within each keypoint's radius in one image, as row segments.
+
+    Made once per image, they give both the pixels :func:`neighbour_surfels` reads
+    (:meth:`mask`, as :func:`keypoint_disk_mask`) and, from the rendered index map, the
+    neighbouring surfel sets (:meth:`neighbours`, as :func:`neighbour_surfels`).
+
+    Attributes:
+        owner: (S,) int64 keypoint of every segment, keypoint by keypoint.
+        rows: (S,) int64 image row of every segment.
+        left: (S,) int64 first column (inclusive) of every segment.
+        right: (S,) int64 last column (inclusive) of every segment.
+        count: number of keypoints K.
+        height: image height H.
+        width: image width W.
+
+    Example:
+        >>> disks = KeypointDisks.of(torch.tensor([[0.0, 0.0]]), 1.0, 2, 3)
+        >>> disks.neighbours(torch.tensor([[0, 1, -1], [2, 2, 3]]))
+        tensor([[0, 1, 2]])
+    """
+
+    owner: torch.Tensor
+    rows: torch.Tensor
+    left: torch.Tensor
+    right: torch.Tensor
+    count: int
+    height: int
+    width: int
+
+    @classmethod
+    def of(
+        cls, keypoints: torch.Tensor, radius_px: torch.Tensor | float, height: int, width: int
+    ) -> KeypointDisks:
+        """The disks of (K, 2) ``keypoints`` with scalar or (K,) ``radius_px`` in an image.
+
+        Raises:
+            ShapeError: keypoints not (K, 2), radii neither scalar nor (K,).
+            ValueError: non-finite keypoints, negative or non-finite radii.
+        """
+        check_shape(keypoints, "K,2", "keypoints")
+        check_finite(keypoints, "keypoints")
+        keypoints = keypoints.to(torch.float32)
+        radius = torch.as_tensor(radius_px, dtype=torch.float32, device=keypoints.device)
+        if radius.dim() > 1 or radius.numel() not in (1, keypoints.shape[0]):
+            raise ShapeError(f"radius_px must be scalar or (K,), got {tuple(radius.shape)}")
+        if not bool((torch.isfinite(radius) & (radius >= 0)).all()):
+            raise ValueError("radius_px must be finite and non-negative")
+        radius = radius.expand(keypoints.shape[0])
+        segments = _disk_segments(keypoints, radius, height, width)
+        return cls(*segments, keypoints.shape[0], height, width)
+
+    def mask(self) -> torch.Tensor:
+        """(H, W) bool, true at the pixel centres within a keypoint's radius."""
+        start = self.rows * self.width
+        steps = torch.zeros(self.height * self.width + 1, dtype=torch.int32, device=start.device)
+        steps.index_add_(0, start + self.left, torch.ones_like(self.left, dtype=torch.int32))
+        ends = torch.full_like(self.right, -1, dtype=torch.int32)
+        steps.index_add_(0, start + self.right + 1, ends)
+        return steps.cumsum_(0)[:-1].view(self.height, self.width) > 0
+
+    def neighbours(self, ids: torch.Tensor) -> torch.Tensor:
+        """(K, M) sorted distinct surfel ids of (H, W) ``ids`` in each disk, padded with -1.
+
+        Raises:
+            ShapeError: ``ids`` not (H, W).
+        """
+        check_shape(ids, f"{self.height},{self.width}", "ids")
+        return _segment_sets(ids[None], self.owner, self.rows, self.left, self.right, self.count)
 
 
 def _run_starts(
@@ -1666,7 +1784,24 @@ def _neighbours_flat(
     kp, rad = keypoints.reshape(-1, 2), radius.reshape(-1)
     owner, rows, left, right = _disk_segments(kp, rad, height, width)
     camera = owner // max(keypoints.shape[1], 1)
-    row_start = (camera * height + rows) * width
-    count, pixel = _run_starts(ids, row_start + left, row_start + right)
+    return _segment_sets(ids, owner, camera * height + rows, left, right, kp.shape[0])
+
+
+def _segment_sets(
+    ids: torch.Tensor,
+    owner: torch.Tensor,
+    rows: torch.Tensor,
+    left: torch.Tensor,
+    right: torch.Tensor,
+    count: int,
+) -> torch.Tensor:
+    """(count, M) distinct ids of (B, H, W) ``ids`` in the (S,) row segments of each owner.
+
+    ``rows`` index the rows of all B images stacked (``b H + row``); see :func:`_disk_segments`
+    for the other fields. The ids of a segment are those of its runs of equal ids, and one
+    sort of ``(owner, id)`` keys makes the sets distinct.
+    """
+    row_start = rows * ids.shape[-1]
+    runs, pixel = _run_starts(ids, row_start + left, row_start + right)
     found = ids.reshape(-1).index_select(0, pixel)
-    return _padded_sets(torch.repeat_interleave(owner, count), found, kp.shape[0])
+    return _padded_sets(torch.repeat_interleave(owner, runs), found, count)
