@@ -58,7 +58,7 @@ from torch import nn
 
 from diffloc.checks import ShapeError, check_finite, check_positive_int, check_shape
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera, pose_jacobian_map
-from diffloc.geometry.se3 import invert, se3_exp
+from diffloc.geometry.se3 import se3_exp
 from diffloc.optim.lm import LMConfig, PoseSystem, cayley_rotation, minimize, solve_spd
 from diffloc.optim.robust import KernelFn, RobustKernel, make_robust_kernel
 
@@ -310,11 +310,14 @@ def _prepare_inputs(
     sigmas: torch.Tensor | None,
     mask: torch.Tensor | None,
 ) -> tuple[bool, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Validate, add the batch dimension, cast to float64 and neutralise masked entries."""
+    """Validate, add the batch dimension, cast to float64 and neutralise masked entries.
+
+    The value checks (finite pose, finite unmasked matches, positive sigmas) are reduced to
+    one flag read once; :func:`_raise_value_error` names the culprit when it is false.
+    """
     check_shape(T_wc, "*,4,4", "T_wc")
     if T_wc.dim() not in (2, 3):
         raise ShapeError(f"T_wc must have shape (4, 4) or (B, 4, 4), got {tuple(T_wc.shape)}")
-    check_finite(T_wc, "T_wc")
     batched = T_wc.dim() == 3
     lead = "B," if batched else ""
     check_shape(points_world, f"{lead}N,3", "points_world")
@@ -332,18 +335,49 @@ def _prepare_inputs(
         raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
     f64 = torch.float64
     T = _as_batch(T_wc, batched).to(f64)
-    use = _as_batch(mask, batched) if mask is not None else torch.ones(B, N, dtype=torch.bool)
     X = _as_batch(points_world, batched).to(f64)
     kp = _as_batch(keypoints, batched).to(f64)
-    sig = torch.ones_like(kp[..., 0]) if sigmas is None else _as_batch(sigmas, batched).to(f64)
-    for name, x in (("points_world", X), ("keypoints", kp), ("sigmas", sig)):
-        check_finite(x[use], f"{name} (unmasked entries)")
-    if not bool((sig[use] > 0).all()):
-        raise ValueError("sigmas must be positive for every unmasked match")
-    X = torch.where(use[..., None], X, 0.0)
-    kp = torch.where(use[..., None], kp, 0.0)
-    sig = torch.where(use, sig, 1.0)
+    sig = None if sigmas is None else _as_batch(sigmas, batched).to(f64)
+    use = None if mask is None else _as_batch(mask, batched)
+    # (B, N, 6) or (B, N, 5): every unmasked value must be finite, the sigmas also positive.
+    values = torch.cat((X, kp) if sig is None else (X, kp, sig[..., None]), dim=-1)
+    if use is not None:
+        values = torch.where(use[..., None], values, 1.0)
+    ok = torch.isfinite(T).all() & torch.isfinite(values).all()
+    if sig is not None:
+        ok &= (values[..., 5] > 0).all()
+    if not bool(ok):
+        _raise_value_error(T, X, kp, sig, use)
+    if use is None:
+        use = torch.ones(B, N, dtype=torch.bool, device=X.device)
+    else:
+        X = torch.where(use[..., None], X, 0.0)
+        kp = torch.where(use[..., None], kp, 0.0)
+    sig = torch.ones_like(kp[..., 0]) if sig is None else torch.where(use, sig, 1.0)
     return batched, T, X, kp, sig, use
+
+
+def _raise_value_error(
+    T: torch.Tensor,
+    X: torch.Tensor,
+    kp: torch.Tensor,
+    sig: torch.Tensor | None,
+    use: torch.Tensor | None,
+) -> None:
+    """Raise the ``ValueError`` naming the first bad input of :func:`_prepare_inputs` (whose
+    combined check failed): a non-finite pose or unmasked value, else a non-positive sigma."""
+    check_finite(T, "T_wc")
+    for name, x in (("points_world", X), ("keypoints", kp), ("sigmas", sig)):
+        if x is not None:
+            check_finite(x if use is None else x[use], f"{name} (unmasked entries)")
+    raise ValueError("sigmas must be positive for every unmasked match")
+
+
+def _world_to_camera(T_wc: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 4) top rows ``[R^T | -R^T t]`` of the inverses of rigid poses (B, 4, 4) or
+    (B, 3, 4) ``[R | t]`` (the same products as :func:`~diffloc.geometry.se3.invert`)."""
+    R_t = T_wc[:, :3, :3].mT
+    return torch.cat((R_t, (R_t @ T_wc[:, :3, 3:]).neg_()), dim=-1)
 
 
 @dataclass(frozen=True)
@@ -554,60 +588,72 @@ def refine_pose(
     """
     config = config or MotionRefineConfig()
     batched, T0, X, kp, sig, valid = _prepare_inputs(T_wc, points_world, keypoints, sigmas, mask)
-    camera = camera.to(torch.float64)
+    if camera.dtype != torch.float64:
+        camera = camera.to(torch.float64)
     problem = _Problem.make(camera, X.detach(), kp.detach(), sig.detach(), valid)
     # Rounds before the last only re-classify the matches: they stop at a looser tolerance.
     classify_lm = dataclasses.replace(
         config.lm, cost_tolerance=max(config.lm.cost_tolerance, config.round_cost_tolerance)
     )
-    projection = problem.project(invert(T0.detach())[:, :3])
+    projection = problem.project(_world_to_camera(T0.detach()))
+    B = T0.shape[0]
     inliers = valid
-    iterations = [0] * T0.shape[0]
-    converged = torch.ones(T0.shape[0], dtype=torch.bool)
+    iterations, converged = [0] * B, [True] * B
     kernel = used = None
     with torch.no_grad():
         for round_index in range(config.rounds):
             previous_kernel, previous_used = kernel, used
             kernel = config.kernel if round_index < config.robust_rounds else RobustKernel()
-            enough = inliers.sum(-1) >= config.min_inliers
-            converged &= enough
-            used = inliers & enough[:, None]
+            enough = [n >= config.min_inliers for n in inliers.sum(-1).tolist()]
+            converged = [c and e for c, e in zip(converged, enough, strict=True)]
+            used = (
+                inliers
+                if all(enough)
+                else inliers & torch.tensor(enough, device=inliers.device)[:, None]
+            )
             # A round with the previous round's kernel and matches would restart at that
             # round's optimum: only the problems whose matches changed are optimised again.
             rerun = enough
             if kernel == previous_kernel:
-                rerun = rerun & (used != previous_used).any(-1)
-            rerun = rerun.tolist()
-            if kernel == previous_kernel and not any(rerun):
-                continue
-            kernel_fn = make_robust_kernel(kernel)
-            # The previous round ended at these poses: only its weights change.
-            state = problem.normal_equations(projection, used, kernel_fn)
-            lm_config = config.lm if round_index == config.rounds - 1 else classify_lm
-            run = minimize(
-                _RoundProblem(problem, used, kernel_fn),
-                projection.T_cw,
-                lm_config,
-                system=state,
-                active=rerun,
-            )
-            projection = run.system.projection
-            iterations = [i + s for i, s in zip(iterations, run.iterations, strict=True)]
+                changed = (used != previous_used).any(-1).tolist()
+                rerun = [r and c for r, c in zip(rerun, changed, strict=True)]
+            if not any(rerun):
+                if round_index:  # the inliers are those of the unchanged poses already
+                    continue
+            else:
+                kernel_fn = make_robust_kernel(kernel)
+                # The previous round ended at these poses: only its weights change.
+                state = problem.normal_equations(projection, used, kernel_fn)
+                lm_config = config.lm if round_index == config.rounds - 1 else classify_lm
+                run = minimize(
+                    _RoundProblem(problem, used, kernel_fn),
+                    projection.T_cw,
+                    lm_config,
+                    system=state,
+                    active=rerun,
+                )
+                projection = run.system.projection
+                iterations = [i + s for i, s in zip(iterations, run.iterations, strict=True)]
             chi2 = projection.chi2
             inliers = chi2 <= config.chi2_threshold
-        T_star = invert(torch.cat((projection.T_cw, T0[:, 3:]), dim=1))
-    converged &= inliers.sum(-1) >= config.min_inliers
-    rho = make_robust_kernel(kernel)
-    cost = MotionOnlyCost(camera)
+        bottom = projection.T_cw.new_tensor((0.0, 0.0, 0.0, 1.0)).expand(B, 1, 4)
+        T_star = torch.cat((_world_to_camera(projection.T_cw), bottom), dim=1)
+    counts = inliers.sum(-1).tolist()
+    converged_t = torch.tensor(
+        [c and n >= config.min_inliers for c, n in zip(converged, counts, strict=True)]
+    )
+    T_out = T_star
+    if torch.is_grad_enabled() and (kp.requires_grad or X.requires_grad or sig.requires_grad):
+        rho = make_robust_kernel(kernel)
 
-    def objective(
-        theta: torch.Tensor, kp_: torch.Tensor, X_: torch.Tensor, sig_: torch.Tensor
-    ) -> torch.Tensor:
-        r = cost(T_star @ se3_exp(theta), X_, kp_, sig_, used)
-        return 0.5 * torch.where(used, rho((r * r).sum(-1))[0], 0.0).sum(-1)
+        def objective(
+            theta: torch.Tensor, kp_: torch.Tensor, X_: torch.Tensor, sig_: torch.Tensor
+        ) -> torch.Tensor:
+            r = MotionOnlyCost(camera)(T_star @ se3_exp(theta), X_, kp_, sig_, used)
+            return 0.5 * torch.where(used, rho((r * r).sum(-1))[0], 0.0).sum(-1)
 
-    T_out = _ImplicitPose.apply(T_star, objective, kp, X, sig)
-    out = RefineResult(T_out, inliers, chi2, torch.tensor(iterations), converged)
+        T_out = _ImplicitPose.apply(T_star, objective, kp, X, sig)
+    out = RefineResult(T_out, inliers, chi2, torch.tensor(iterations), converged_t)
     if batched:
         return out
-    return RefineResult(out.T_wc[0], inliers[0], chi2[0], out.iterations[0], converged[0])
+    return RefineResult(out.T_wc[0], inliers[0], chi2[0], out.iterations[0], converged_t[0])
