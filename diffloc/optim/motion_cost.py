@@ -48,6 +48,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -380,6 +381,20 @@ def _world_to_camera(T_wc: torch.Tensor) -> torch.Tensor:
     return torch.cat((R_t, (R_t @ T_wc[:, :3, 3:]).neg_()), dim=-1)
 
 
+@functools.lru_cache(maxsize=8)
+def _projection_map(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(14, 16) map from the outer products ``(u u^T).flatten()`` of ``u = (x, y, 1, 1/z)`` to
+    the pose Jacobian of the normalised projection ``(x, y)`` and the projection itself, row
+    ``7 c + k`` for component ``c`` of ``d (x, y) / d twist_k`` (``k < 6``,
+    :func:`~diffloc.geometry.camera.pose_jacobian_map`) and of ``(x, y)`` (``k = 6``: the
+    product ``u_c u_2``, exact since ``u_2 = 1``). Cached: never modify it in place."""
+    with torch.inference_mode(False):  # an ordinary tensor even if first made in one
+        jacobian = pose_jacobian_map(dtype, device).T.unflatten(0, (6, 2)).transpose(0, 1)
+        picks = torch.zeros(2, 1, 16, dtype=dtype, device=device)
+        picks[0, 0, 2] = picks[1, 0, 6] = 1.0
+        return torch.cat((jacobian, picks), dim=1).flatten(0, 1)
+
+
 @dataclass(frozen=True)
 class _Projection:
     """The matches of ``B`` problems projected under their current poses: all the normal
@@ -391,22 +406,25 @@ class _Projection:
 
     Attributes:
         T_cw: (B, 3, 4) the top rows ``[R_cw | t_cw]`` of the world-to-camera poses.
-        jacobian: (B, 6, 2, N) Jacobian of the normalised projection w.r.t. ``delta``.
-        residuals: (B, 2, N) normalised residuals ``xy - projection``.
+        rows: (B, 2, 7, N) per residual component, rows 0-5: the Jacobian of the
+            normalised projection w.r.t. ``delta``; row 6: the normalised errors
+            ``projection - xy`` (the residuals negated). One product of each component's rows
+            with themselves gives its share of the Hessian and the gradient.
         r2: (B, N) ``||e||^2`` of the whitened pixel residuals (meaningless where not kept).
-        keep: (B, N) bool, valid matches in front of the camera.
+        front: (B, N) bool, matches in front of the camera.
+        valid: (B, N) bool, the problem's valid matches.
     """
 
     T_cw: torch.Tensor
-    jacobian: torch.Tensor
-    residuals: torch.Tensor
+    rows: torch.Tensor
     r2: torch.Tensor
-    keep: torch.Tensor
+    front: torch.Tensor
+    valid: torch.Tensor
 
     @property
     def chi2(self) -> torch.Tensor:
-        """(B, N) ``r2`` of the kept matches, ``inf`` for the others."""
-        return torch.where(self.keep, self.r2, math.inf)
+        """(B, N) ``r2`` of the valid matches in front of the camera, ``inf`` for the others."""
+        return torch.where(self.front & self.valid, self.r2, math.inf)
 
 
 @dataclass(frozen=True)
@@ -435,7 +453,7 @@ class _Problem:
         xy_t: (B, 2, N) normalised (distorted) keypoints ``(p - c) / f``.
         scale: (B, 2, N) ``f^2 / sigma^2`` per residual component.
         valid: (B, N) bool, matches whose ``chi2`` is reported.
-        jacobian_map: (12, 16) :func:`~diffloc.geometry.camera.pose_jacobian_map`, transposed.
+        projection_map: (B, 14, 16) :func:`_projection_map`, expanded.
     """
 
     camera: PinholeCamera
@@ -443,7 +461,7 @@ class _Problem:
     xy_t: torch.Tensor
     scale: torch.Tensor
     valid: torch.Tensor
-    jacobian_map: torch.Tensor
+    projection_map: torch.Tensor
 
     @staticmethod
     def make(
@@ -463,56 +481,56 @@ class _Problem:
             xy_t=(keypoints.mT - centre) / focal,
             scale=(focal / sigmas[:, None]).square_(),
             valid=valid,
-            jacobian_map=pose_jacobian_map(points_h.dtype, points_h.device).T,
+            projection_map=_projection_map(points_h.dtype, points_h.device).expand(
+                points_h.shape[0], 14, 16
+            ),
         )
 
     def project(self, T_cw: torch.Tensor) -> _Projection:
         """The matches projected under the poses ``T_cw`` (B, 3, 4).
 
-        The Jacobian is one product of a constant map with the outer products of
-        ``(x, y, 1, 1/z)`` (:func:`~diffloc.geometry.camera.pose_jacobian_map`), times the
+        The Jacobian and the projection are one product of a constant map with the outer
+        products of ``(x, y, 1, 1/z)`` (:func:`_projection_map`), the Jacobian times the
         distortion Jacobian if any.
         """
-        points_cam = T_cw @ self.points_h  # (B, 3, N)
+        points_cam = torch.bmm(T_cw, self.points_h)  # (B, 3, N)
         z = points_cam[:, 2:]
         front = z > MIN_DEPTH
         inv_z = torch.where(front, z, 1.0).reciprocal_()
         # (x, y, 1, 1/z); z / z may round to 1 - 1 ulp, which is harmless here.
         monomials = torch.cat((points_cam.mul_(inv_z), inv_z), dim=1)
         outer = (monomials[:, :, None] * monomials[:, None]).flatten(1, 2)  # (B, 16, N)
-        J = (self.jacobian_map @ outer).unflatten(1, (6, 2))
-        xy = monomials[:, :2]
+        rows = torch.bmm(self.projection_map, outer).unflatten(1, (2, 7))  # (B, 2, 7, N)
         if self.camera.distortion is not None:
-            xy_d, D = self.camera._distort_and_jacobian(xy.mT)  # (B, N, 2), (B, N, 2, 2)
-            xy = xy_d.mT
-            J = (D.permute(0, 2, 3, 1)[:, None] * J[:, :, None]).sum(3)
-        residuals = self.xy_t - xy
-        r0, r1 = residuals.unbind(1)
-        w0, w1 = (residuals * self.scale).unbind(1)
-        r2 = torch.addcmul(w0 * r0, w1, r1)
-        return _Projection(T_cw, J, residuals, r2, front[:, 0] & self.valid)
+            xy_d, D = self.camera._distort_and_jacobian(rows[:, :, 6].mT)  # (B, N, 2), (B, N, 2, 2)
+            J = (D.permute(0, 2, 3, 1)[..., None, :] * rows[:, None, :, :6]).sum(2)
+            rows = torch.cat((J, xy_d.mT[:, :, None]), dim=2)
+        errors = rows[:, :, 6].sub_(self.xy_t)  # (B, 2, N)
+        r2 = (errors * self.scale).mul_(errors).sum(1)
+        return _Projection(T_cw, rows, r2, front[:, 0], self.valid)
 
     def normal_equations(
         self, projection: _Projection, used: torch.Tensor, kernel: KernelFn
     ) -> _Linearization:
-        """The normal equations of the robust cost of the ``used`` (B, N) matches."""
+        """The normal equations of the robust cost of the ``used`` (B, N) matches (valid
+        ones: a subset of :attr:`valid`)."""
         rho, weight = kernel(projection.r2)
-        used = projection.keep & used
+        used = projection.front & used
         weight = torch.where(used, weight, 0.0)
-        omega = self.scale * weight[:, None]  # (B, 2, N)
-        J = projection.jacobian
-        J0, J1 = J.unbind(2)
-        W0, W1 = (J * omega[:, None]).unbind(2)
-        r0, r1 = projection.residuals.unbind(1)
+        rows0, rows1 = projection.rows.unbind(1)  # (B, 7, N) each
+        weighted0, weighted1 = (
+            projection.rows * (self.scale * weight[:, None])[:, :, None]
+        ).unbind(1)
         # Summed over the two residual components one after the other, so that every product
         # runs over the matches in order: padding at the end of a batch leaves the sums
         # bitwise unchanged (a batched refinement equals the single ones).
-        H = torch.baddbmm(W0 @ J0.mT, W1, J1.mT)
-        grad = torch.baddbmm(W0 @ r0[..., None], W1, r1[..., None], beta=-1.0, alpha=-1.0)
+        products = torch.baddbmm(
+            torch.bmm(weighted0, rows0.mT), weighted1, rows1.mT
+        )  # (B, 7, 7): [[H, grad], [grad^T, sum w e^T e]]
         return _Linearization(
             cost=torch.where(used, rho, 0.0).sum(-1).mul_(0.5),
-            grad=grad[..., 0],
-            hessian=H,
+            grad=products[:, :6, 6],
+            hessian=products[:, :6, :6],
             support=weight.sum(-1, keepdim=True).mul_(2.0),
             projection=projection,
         )
