@@ -378,7 +378,7 @@ def _world_to_camera(T_wc: torch.Tensor) -> torch.Tensor:
     """(B, 3, 4) top rows ``[R^T | -R^T t]`` of the inverses of rigid poses (B, 4, 4) or
     (B, 3, 4) ``[R | t]`` (the same products as :func:`~diffloc.geometry.se3.invert`)."""
     R_t = T_wc[:, :3, :3].mT
-    return torch.cat((R_t, (R_t @ T_wc[:, :3, 3:]).neg_()), dim=-1)
+    return torch.cat((R_t, torch.bmm(R_t, T_wc[:, :3, 3:]).neg_()), dim=-1)
 
 
 @functools.lru_cache(maxsize=8)
@@ -562,9 +562,8 @@ class _RoundProblem:
         return self.linearize(T_cw).cost
 
     def retract(self, T_cw: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-        T_new = cayley_rotation(delta[:, 3:]) @ T_cw
-        T_new[:, :, 3] += delta[:, :3]
-        return T_new
+        shift = torch.nn.functional.pad(delta[:, :3, None], (3, 0))  # (B, 3, 4): [0 | v]
+        return torch.baddbmm(shift, cayley_rotation(delta[:, 3:]), T_cw)
 
 
 def refine_pose(
