@@ -1197,13 +1197,12 @@ def minimize(
                 if expand[b] and cost[b] - new_cost[b] <= config.cost_tolerance * cost[b]:
                     status[b] = _COST
             if any(accept):
-                accepted = torch.tensor(accept, device=device)
+                everywhere = all(accept)
+                accepted = None if everywhere else torch.tensor(accept, device=device)
                 if candidate is None:  # residual-only evaluation: linearize the accepted
-                    params_lin = (
-                        new_params if all(accept) else _select(accepted, new_params, params)
-                    )
+                    params_lin = new_params if everywhere else _select(accepted, new_params, params)
                     candidate = problem.linearize(params_lin)
-                if all(accept):
+                if everywhere:
                     params, system = new_params, candidate
                 else:
                     params = _select(accepted, new_params, params)
