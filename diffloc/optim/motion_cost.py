@@ -432,9 +432,11 @@ class _Linearization(PoseSystem):
     """Robust normal equations of ``B`` one-pose problems at their current poses, in the
     tangent ``delta`` of :class:`_Projection` (``grad = sum w J^T e`` with ``w = rho'(chi2)``
     and ``J`` the Jacobian of the whitened residuals ``e``), with the projection they come
-    from."""
+    from and the kernel's ``(rho, rho')`` (B, N) of every match (masked or not), which a
+    round with the same kernel reuses."""
 
     projection: _Projection
+    kernel_values: tuple[torch.Tensor, torch.Tensor]
 
 
 @dataclass(frozen=True)
@@ -454,6 +456,8 @@ class _Problem:
         scale: (B, 2, N) ``f^2 / sigma^2`` per residual component.
         valid: (B, N) bool, matches whose ``chi2`` is reported.
         projection_map: (B, 14, 16) :func:`_projection_map`, expanded.
+        zero: () float64 zero, one: () float64 one (``torch.where`` fills that need not be
+            made on every call).
     """
 
     camera: PinholeCamera
@@ -462,6 +466,8 @@ class _Problem:
     scale: torch.Tensor
     valid: torch.Tensor
     projection_map: torch.Tensor
+    zero: torch.Tensor
+    one: torch.Tensor
 
     @staticmethod
     def make(
@@ -484,6 +490,8 @@ class _Problem:
             projection_map=_projection_map(points_h.dtype, points_h.device).expand(
                 points_h.shape[0], 14, 16
             ),
+            zero=points_h.new_zeros(()),
+            one=points_h.new_ones(()),
         )
 
     def project(self, T_cw: torch.Tensor) -> _Projection:
@@ -496,7 +504,7 @@ class _Problem:
         points_cam = torch.bmm(T_cw, self.points_h)  # (B, 3, N)
         z = points_cam[:, 2:]
         front = z > MIN_DEPTH
-        inv_z = torch.where(front, z, 1.0).reciprocal_()
+        inv_z = torch.where(front, z, self.one).reciprocal_()
         # (x, y, 1, 1/z); z / z may round to 1 - 1 ulp, which is harmless here.
         monomials = torch.cat((points_cam.mul_(inv_z), inv_z), dim=1)
         outer = (monomials[:, :, None] * monomials[:, None]).flatten(1, 2)  # (B, 16, N)
@@ -510,13 +518,20 @@ class _Problem:
         return _Projection(T_cw, rows, r2, front[:, 0], self.valid)
 
     def normal_equations(
-        self, projection: _Projection, used: torch.Tensor, kernel: KernelFn
+        self,
+        projection: _Projection,
+        used: torch.Tensor,
+        kernel: KernelFn,
+        kernel_values: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> _Linearization:
         """The normal equations of the robust cost of the ``used`` (B, N) matches (valid
-        ones: a subset of :attr:`valid`)."""
-        rho, weight = kernel(projection.r2)
+        ones: a subset of :attr:`valid`); ``kernel_values``: ``kernel`` of ``projection.r2``
+        if already known."""
+        if kernel_values is None:
+            kernel_values = kernel(projection.r2)
+        rho, weight = kernel_values
         used = projection.front & used
-        weight = torch.where(used, weight, 0.0)
+        weight = torch.where(used, weight, self.zero)
         rows0, rows1 = projection.rows.unbind(1)  # (B, 7, N) each
         weighted0, weighted1 = (
             projection.rows * (self.scale * weight[:, None])[:, :, None]
@@ -528,11 +543,12 @@ class _Problem:
             torch.bmm(weighted0, rows0.mT), weighted1, rows1.mT
         )  # (B, 7, 7): [[H, grad], [grad^T, sum w e^T e]]
         return _Linearization(
-            cost=torch.where(used, rho, 0.0).sum(-1).mul_(0.5),
+            cost=torch.where(used, rho, self.zero).sum(-1).mul_(0.5),
             grad=products[:, :6, 6],
             hessian=products[:, :6, :6],
             support=weight.sum(-1, keepdim=True).mul_(2.0),
             projection=projection,
+            kernel_values=kernel_values,
         )
 
     def linearize(self, T_cw: torch.Tensor, used: torch.Tensor, kernel: KernelFn) -> _Linearization:
@@ -617,6 +633,7 @@ def refine_pose(
     inliers = valid
     iterations, converged = [0] * B, [True] * B
     kernel = used = None
+    system, system_kernel = None, None  # the last round's final normal equations, its kernel
     with torch.no_grad():
         for round_index in range(config.rounds):
             previous_kernel, previous_used = kernel, used
@@ -639,8 +656,10 @@ def refine_pose(
                     continue
             else:
                 kernel_fn = make_robust_kernel(kernel)
-                # The previous round ended at these poses: only its weights change.
-                state = problem.normal_equations(projection, used, kernel_fn)
+                # The previous round ended at these poses: only its weights change (and not
+                # the kernel's values if the kernel is the same).
+                values = system.kernel_values if kernel == system_kernel else None
+                state = problem.normal_equations(projection, used, kernel_fn, values)
                 lm_config = config.lm if round_index == config.rounds - 1 else classify_lm
                 run = minimize(
                     _RoundProblem(problem, used, kernel_fn),
@@ -649,7 +668,8 @@ def refine_pose(
                     system=state,
                     active=rerun,
                 )
-                projection = run.system.projection
+                system, system_kernel = run.system, kernel
+                projection = system.projection
                 iterations = [i + s for i, s in zip(iterations, run.iterations, strict=True)]
             chi2 = projection.chi2
             inliers = chi2 <= config.chi2_threshold
