@@ -340,14 +340,13 @@ def _prepare_inputs(
     kp = _as_batch(keypoints, batched).to(f64)
     sig = None if sigmas is None else _as_batch(sigmas, batched).to(f64)
     use = None if mask is None else _as_batch(mask, batched)
-    # (B, N, 6) or (B, N, 5): every unmasked value must be finite, the sigmas also positive.
-    values = torch.cat((X, kp) if sig is None else (X, kp, sig[..., None]), dim=-1)
+    # The pose and every unmasked value must be finite and every unmasked sigma positive:
+    # log(sigma) is finite exactly then, so one finiteness test (x * 0 == 0) checks them all.
+    values = torch.cat((X, kp) if sig is None else (X, kp, sig.log()[..., None]), dim=-1)
     if use is not None:
-        values = torch.where(use[..., None], values, 1.0)
-    ok = torch.isfinite(T).all() & torch.isfinite(values).all()
-    if sig is not None:
-        ok &= (values[..., 5] > 0).all()
-    if not bool(ok):
+        values = torch.where(use[..., None], values, 0.0)
+    values = torch.cat((T.flatten(1), values.flatten(1)), dim=1)
+    if not bool((values * 0.0 == 0.0).all()):
         _raise_value_error(T, X, kp, sig, use)
     if use is None:
         use = torch.ones(B, N, dtype=torch.bool, device=X.device)
