@@ -743,11 +743,9 @@ class PoseSystem:
             ``(delta, failed, True)``: the (B, 6) steps and (B,) non-zero where Cholesky could
             not factor the damped matrix (that step is meaningless and counts as failed).
         """
-        H = self.hessian
-        damped = H.clone()
-        damped.diagonal(dim1=-2, dim2=-1).addcmul_(
-            H.diagonal(dim1=-2, dim2=-1).clamp(min=config.min_diagonal), damping[:, None]
-        )
+        damped = self.hessian.clone()
+        diagonal = damped.diagonal(dim1=-2, dim2=-1)
+        diagonal.addcmul_(diagonal.clamp(min=config.min_diagonal), damping[:, None])
         L, info = torch.linalg.cholesky_ex(damped)
         return torch.cholesky_solve(self.grad[..., None], L)[..., 0].neg_(), info, True
 
@@ -1197,13 +1195,12 @@ def minimize(
                 if expand[b] and cost[b] - new_cost[b] <= config.cost_tolerance * cost[b]:
                     status[b] = _COST
             if any(accept):
-                accepted = torch.tensor(accept, device=device)
+                everywhere = all(accept)
+                accepted = None if everywhere else torch.tensor(accept, device=device)
                 if candidate is None:  # residual-only evaluation: linearize the accepted
-                    params_lin = (
-                        new_params if all(accept) else _select(accepted, new_params, params)
-                    )
+                    params_lin = new_params if everywhere else _select(accepted, new_params, params)
                     candidate = problem.linearize(params_lin)
-                if all(accept):
+                if everywhere:
                     params, system = new_params, candidate
                 else:
                     params = _select(accepted, new_params, params)
@@ -1285,7 +1282,7 @@ def _expand_step(
 
 def _cost_and_gradient_norm(system: LinearSystem) -> tuple[list[float], list[float]]:
     """Per problem: the cost and ``max |g|``, as Python floats (NaN if any entry is)."""
-    norm = system.grad.abs().amax(-1)
+    norm = torch.linalg.vector_norm(system.grad, ord=math.inf, dim=-1)
     cost, grad_max = torch.stack((system.cost, norm)).tolist()
     return cost, grad_max
 

@@ -48,6 +48,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -58,7 +59,7 @@ from torch import nn
 
 from diffloc.checks import ShapeError, check_finite, check_positive_int, check_shape
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera, pose_jacobian_map
-from diffloc.geometry.se3 import invert, se3_exp
+from diffloc.geometry.se3 import se3_exp
 from diffloc.optim.lm import LMConfig, PoseSystem, cayley_rotation, minimize, solve_spd
 from diffloc.optim.robust import KernelFn, RobustKernel, make_robust_kernel
 
@@ -310,11 +311,14 @@ def _prepare_inputs(
     sigmas: torch.Tensor | None,
     mask: torch.Tensor | None,
 ) -> tuple[bool, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Validate, add the batch dimension, cast to float64 and neutralise masked entries."""
+    """Validate, add the batch dimension, cast to float64 and neutralise masked entries.
+
+    The value checks (finite pose, finite unmasked matches, positive sigmas) are reduced to
+    one flag read once; :func:`_raise_value_error` names the culprit when it is false.
+    """
     check_shape(T_wc, "*,4,4", "T_wc")
     if T_wc.dim() not in (2, 3):
         raise ShapeError(f"T_wc must have shape (4, 4) or (B, 4, 4), got {tuple(T_wc.shape)}")
-    check_finite(T_wc, "T_wc")
     batched = T_wc.dim() == 3
     lead = "B," if batched else ""
     check_shape(points_world, f"{lead}N,3", "points_world")
@@ -332,18 +336,62 @@ def _prepare_inputs(
         raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
     f64 = torch.float64
     T = _as_batch(T_wc, batched).to(f64)
-    use = _as_batch(mask, batched) if mask is not None else torch.ones(B, N, dtype=torch.bool)
     X = _as_batch(points_world, batched).to(f64)
     kp = _as_batch(keypoints, batched).to(f64)
-    sig = torch.ones_like(kp[..., 0]) if sigmas is None else _as_batch(sigmas, batched).to(f64)
-    for name, x in (("points_world", X), ("keypoints", kp), ("sigmas", sig)):
-        check_finite(x[use], f"{name} (unmasked entries)")
-    if not bool((sig[use] > 0).all()):
-        raise ValueError("sigmas must be positive for every unmasked match")
-    X = torch.where(use[..., None], X, 0.0)
-    kp = torch.where(use[..., None], kp, 0.0)
-    sig = torch.where(use, sig, 1.0)
+    sig = None if sigmas is None else _as_batch(sigmas, batched).to(f64)
+    use = None if mask is None else _as_batch(mask, batched)
+    # The pose and every unmasked value must be finite and every unmasked sigma positive:
+    # log(sigma) is finite exactly then, so one finiteness test (x * 0 == 0) checks them all.
+    values = torch.cat((X, kp) if sig is None else (X, kp, sig.log()[..., None]), dim=-1)
+    if use is not None:
+        values = torch.where(use[..., None], values, 0.0)
+    values = torch.cat((T.flatten(1), values.flatten(1)), dim=1)
+    if not bool((values * 0.0 == 0.0).all()):
+        _raise_value_error(T, X, kp, sig, use)
+    if use is None:
+        use = torch.ones(B, N, dtype=torch.bool, device=X.device)
+    else:
+        X = torch.where(use[..., None], X, 0.0)
+        kp = torch.where(use[..., None], kp, 0.0)
+    sig = torch.ones_like(kp[..., 0]) if sig is None else torch.where(use, sig, 1.0)
     return batched, T, X, kp, sig, use
+
+
+def _raise_value_error(
+    T: torch.Tensor,
+    X: torch.Tensor,
+    kp: torch.Tensor,
+    sig: torch.Tensor | None,
+    use: torch.Tensor | None,
+) -> None:
+    """Raise the ``ValueError`` naming the first bad input of :func:`_prepare_inputs` (whose
+    combined check failed): a non-finite pose or unmasked value, else a non-positive sigma."""
+    check_finite(T, "T_wc")
+    for name, x in (("points_world", X), ("keypoints", kp), ("sigmas", sig)):
+        if x is not None:
+            check_finite(x if use is None else x[use], f"{name} (unmasked entries)")
+    raise ValueError("sigmas must be positive for every unmasked match")
+
+
+def _world_to_camera(T_wc: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 4) top rows ``[R^T | -R^T t]`` of the inverses of rigid poses (B, 4, 4) or
+    (B, 3, 4) ``[R | t]`` (the same products as :func:`~diffloc.geometry.se3.invert`)."""
+    R_t = T_wc[:, :3, :3].mT
+    return torch.cat((R_t, torch.bmm(R_t, T_wc[:, :3, 3:]).neg_()), dim=-1)
+
+
+@functools.lru_cache(maxsize=8)
+def _projection_map(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(14, 16) map from the outer products ``(u u^T).flatten()`` of ``u = (x, y, 1, 1/z)`` to
+    the pose Jacobian of the normalised projection ``(x, y)`` and the projection itself, row
+    ``7 c + k`` for component ``c`` of ``d (x, y) / d twist_k`` (``k < 6``,
+    :func:`~diffloc.geometry.camera.pose_jacobian_map`) and of ``(x, y)`` (``k = 6``: the
+    product ``u_c u_2``, exact since ``u_2 = 1``). Cached: never modify it in place."""
+    with torch.inference_mode(False):  # an ordinary tensor even if first made in one
+        jacobian = pose_jacobian_map(dtype, device).T.unflatten(0, (6, 2)).transpose(0, 1)
+        picks = torch.zeros(2, 1, 16, dtype=dtype, device=device)
+        picks[0, 0, 2] = picks[1, 0, 6] = 1.0
+        return torch.cat((jacobian, picks), dim=1).flatten(0, 1)
 
 
 @dataclass(frozen=True)
@@ -357,22 +405,25 @@ class _Projection:
 
     Attributes:
         T_cw: (B, 3, 4) the top rows ``[R_cw | t_cw]`` of the world-to-camera poses.
-        jacobian: (B, 6, 2, N) Jacobian of the normalised projection w.r.t. ``delta``.
-        residuals: (B, 2, N) normalised residuals ``xy - projection``.
+        rows: (B, 2, 7, N) per residual component, rows 0-5: the Jacobian of the
+            normalised projection w.r.t. ``delta``; row 6: the normalised errors
+            ``projection - xy`` (the residuals negated). One product of each component's rows
+            with themselves gives its share of the Hessian and the gradient.
         r2: (B, N) ``||e||^2`` of the whitened pixel residuals (meaningless where not kept).
-        keep: (B, N) bool, valid matches in front of the camera.
+        front: (B, N) bool, matches in front of the camera.
+        valid: (B, N) bool, the problem's valid matches.
     """
 
     T_cw: torch.Tensor
-    jacobian: torch.Tensor
-    residuals: torch.Tensor
+    rows: torch.Tensor
     r2: torch.Tensor
-    keep: torch.Tensor
+    front: torch.Tensor
+    valid: torch.Tensor
 
     @property
     def chi2(self) -> torch.Tensor:
-        """(B, N) ``r2`` of the kept matches, ``inf`` for the others."""
-        return torch.where(self.keep, self.r2, math.inf)
+        """(B, N) ``r2`` of the valid matches in front of the camera, ``inf`` for the others."""
+        return torch.where(self.front & self.valid, self.r2, math.inf)
 
 
 @dataclass(frozen=True)
@@ -380,9 +431,11 @@ class _Linearization(PoseSystem):
     """Robust normal equations of ``B`` one-pose problems at their current poses, in the
     tangent ``delta`` of :class:`_Projection` (``grad = sum w J^T e`` with ``w = rho'(chi2)``
     and ``J`` the Jacobian of the whitened residuals ``e``), with the projection they come
-    from."""
+    from and the kernel's ``(rho, rho')`` (B, N) of every match (masked or not), which a
+    round with the same kernel reuses."""
 
     projection: _Projection
+    kernel_values: tuple[torch.Tensor, torch.Tensor]
 
 
 @dataclass(frozen=True)
@@ -401,7 +454,9 @@ class _Problem:
         xy_t: (B, 2, N) normalised (distorted) keypoints ``(p - c) / f``.
         scale: (B, 2, N) ``f^2 / sigma^2`` per residual component.
         valid: (B, N) bool, matches whose ``chi2`` is reported.
-        jacobian_map: (12, 16) :func:`~diffloc.geometry.camera.pose_jacobian_map`, transposed.
+        projection_map: (B, 14, 16) :func:`_projection_map`, expanded.
+        zero: () float64 zero, one: () float64 one (``torch.where`` fills that need not be
+            made on every call).
     """
 
     camera: PinholeCamera
@@ -409,7 +464,9 @@ class _Problem:
     xy_t: torch.Tensor
     scale: torch.Tensor
     valid: torch.Tensor
-    jacobian_map: torch.Tensor
+    projection_map: torch.Tensor
+    zero: torch.Tensor
+    one: torch.Tensor
 
     @staticmethod
     def make(
@@ -429,58 +486,68 @@ class _Problem:
             xy_t=(keypoints.mT - centre) / focal,
             scale=(focal / sigmas[:, None]).square_(),
             valid=valid,
-            jacobian_map=pose_jacobian_map(points_h.dtype, points_h.device).T,
+            projection_map=_projection_map(points_h.dtype, points_h.device).expand(
+                points_h.shape[0], 14, 16
+            ),
+            zero=points_h.new_zeros(()),
+            one=points_h.new_ones(()),
         )
 
     def project(self, T_cw: torch.Tensor) -> _Projection:
         """The matches projected under the poses ``T_cw`` (B, 3, 4).
 
-        The Jacobian is one product of a constant map with the outer products of
-        ``(x, y, 1, 1/z)`` (:func:`~diffloc.geometry.camera.pose_jacobian_map`), times the
+        The Jacobian and the projection are one product of a constant map with the outer
+        products of ``(x, y, 1, 1/z)`` (:func:`_projection_map`), the Jacobian times the
         distortion Jacobian if any.
         """
-        points_cam = T_cw @ self.points_h  # (B, 3, N)
+        points_cam = torch.bmm(T_cw, self.points_h)  # (B, 3, N)
         z = points_cam[:, 2:]
         front = z > MIN_DEPTH
-        inv_z = torch.where(front, z, 1.0).reciprocal_()
+        inv_z = torch.where(front, z, self.one).reciprocal_()
         # (x, y, 1, 1/z); z / z may round to 1 - 1 ulp, which is harmless here.
         monomials = torch.cat((points_cam.mul_(inv_z), inv_z), dim=1)
         outer = (monomials[:, :, None] * monomials[:, None]).flatten(1, 2)  # (B, 16, N)
-        J = (self.jacobian_map @ outer).unflatten(1, (6, 2))
-        xy = monomials[:, :2]
+        rows = torch.bmm(self.projection_map, outer).unflatten(1, (2, 7))  # (B, 2, 7, N)
         if self.camera.distortion is not None:
-            xy_d, D = self.camera._distort_and_jacobian(xy.mT)  # (B, N, 2), (B, N, 2, 2)
-            xy = xy_d.mT
-            J = (D.permute(0, 2, 3, 1)[:, None] * J[:, :, None]).sum(3)
-        residuals = self.xy_t - xy
-        r0, r1 = residuals.unbind(1)
-        w0, w1 = (residuals * self.scale).unbind(1)
-        r2 = torch.addcmul(w0 * r0, w1, r1)
-        return _Projection(T_cw, J, residuals, r2, front[:, 0] & self.valid)
+            xy_d, D = self.camera._distort_and_jacobian(rows[:, :, 6].mT)  # (B, N, 2), (B, N, 2, 2)
+            J = (D.permute(0, 2, 3, 1)[..., None, :] * rows[:, None, :, :6]).sum(2)
+            rows = torch.cat((J, xy_d.mT[:, :, None]), dim=2)
+        errors = rows[:, :, 6].sub_(self.xy_t)  # (B, 2, N)
+        r2 = (errors * self.scale).mul_(errors).sum(1)
+        return _Projection(T_cw, rows, r2, front[:, 0], self.valid)
 
     def normal_equations(
-        self, projection: _Projection, used: torch.Tensor, kernel: KernelFn
+        self,
+        projection: _Projection,
+        used: torch.Tensor,
+        kernel: KernelFn,
+        kernel_values: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> _Linearization:
-        """The normal equations of the robust cost of the ``used`` (B, N) matches."""
-        rho, weight = kernel(projection.r2)
-        used = projection.keep & used
-        weight = torch.where(used, weight, 0.0)
-        omega = self.scale * weight[:, None]  # (B, 2, N)
-        J = projection.jacobian
-        J0, J1 = J.unbind(2)
-        W0, W1 = (J * omega[:, None]).unbind(2)
-        r0, r1 = projection.residuals.unbind(1)
+        """The normal equations of the robust cost of the ``used`` (B, N) matches (valid
+        ones: a subset of :attr:`valid`); ``kernel_values``: ``kernel`` of ``projection.r2``
+        if already known."""
+        if kernel_values is None:
+            kernel_values = kernel(projection.r2)
+        rho, weight = kernel_values
+        used = projection.front & used
+        weight = torch.where(used, weight, self.zero)
+        rows0, rows1 = projection.rows.unbind(1)  # (B, 7, N) each
+        weighted0, weighted1 = (
+            projection.rows * (self.scale * weight[:, None])[:, :, None]
+        ).unbind(1)
         # Summed over the two residual components one after the other, so that every product
         # runs over the matches in order: padding at the end of a batch leaves the sums
         # bitwise unchanged (a batched refinement equals the single ones).
-        H = torch.baddbmm(W0 @ J0.mT, W1, J1.mT)
-        grad = torch.baddbmm(W0 @ r0[..., None], W1, r1[..., None], beta=-1.0, alpha=-1.0)
+        products = torch.baddbmm(
+            torch.bmm(weighted0, rows0.mT), weighted1, rows1.mT
+        )  # (B, 7, 7): [[H, grad], [grad^T, sum w e^T e]]
         return _Linearization(
-            cost=torch.where(used, rho, 0.0).sum(-1).mul_(0.5),
-            grad=grad[..., 0],
-            hessian=H,
+            cost=torch.where(used, rho, self.zero).sum(-1).mul_(0.5),
+            grad=products[:, :6, 6],
+            hessian=products[:, :6, :6],
             support=weight.sum(-1, keepdim=True).mul_(2.0),
             projection=projection,
+            kernel_values=kernel_values,
         )
 
     def linearize(self, T_cw: torch.Tensor, used: torch.Tensor, kernel: KernelFn) -> _Linearization:
@@ -510,9 +577,8 @@ class _RoundProblem:
         return self.linearize(T_cw).cost
 
     def retract(self, T_cw: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-        T_new = cayley_rotation(delta[:, 3:]) @ T_cw
-        T_new[:, :, 3] += delta[:, :3]
-        return T_new
+        shift = torch.nn.functional.pad(delta[:, :3, None], (3, 0))  # (B, 3, 4): [0 | v]
+        return torch.baddbmm(shift, cayley_rotation(delta[:, 3:]), T_cw)
 
 
 def refine_pose(
@@ -554,60 +620,76 @@ def refine_pose(
     """
     config = config or MotionRefineConfig()
     batched, T0, X, kp, sig, valid = _prepare_inputs(T_wc, points_world, keypoints, sigmas, mask)
-    camera = camera.to(torch.float64)
+    if camera.dtype != torch.float64:
+        camera = camera.to(torch.float64)
     problem = _Problem.make(camera, X.detach(), kp.detach(), sig.detach(), valid)
     # Rounds before the last only re-classify the matches: they stop at a looser tolerance.
     classify_lm = dataclasses.replace(
         config.lm, cost_tolerance=max(config.lm.cost_tolerance, config.round_cost_tolerance)
     )
-    projection = problem.project(invert(T0.detach())[:, :3])
+    projection = problem.project(_world_to_camera(T0.detach()))
+    B = T0.shape[0]
     inliers = valid
-    iterations = [0] * T0.shape[0]
-    converged = torch.ones(T0.shape[0], dtype=torch.bool)
+    iterations, converged = [0] * B, [True] * B
     kernel = used = None
+    system, system_kernel = None, None  # the last round's final normal equations, its kernel
     with torch.no_grad():
         for round_index in range(config.rounds):
             previous_kernel, previous_used = kernel, used
             kernel = config.kernel if round_index < config.robust_rounds else RobustKernel()
-            enough = inliers.sum(-1) >= config.min_inliers
-            converged &= enough
-            used = inliers & enough[:, None]
+            enough = [n >= config.min_inliers for n in inliers.sum(-1).tolist()]
+            converged = [c and e for c, e in zip(converged, enough, strict=True)]
+            used = (
+                inliers
+                if all(enough)
+                else inliers & torch.tensor(enough, device=inliers.device)[:, None]
+            )
             # A round with the previous round's kernel and matches would restart at that
             # round's optimum: only the problems whose matches changed are optimised again.
             rerun = enough
             if kernel == previous_kernel:
-                rerun = rerun & (used != previous_used).any(-1)
-            rerun = rerun.tolist()
-            if kernel == previous_kernel and not any(rerun):
-                continue
-            kernel_fn = make_robust_kernel(kernel)
-            # The previous round ended at these poses: only its weights change.
-            state = problem.normal_equations(projection, used, kernel_fn)
-            lm_config = config.lm if round_index == config.rounds - 1 else classify_lm
-            run = minimize(
-                _RoundProblem(problem, used, kernel_fn),
-                projection.T_cw,
-                lm_config,
-                system=state,
-                active=rerun,
-            )
-            projection = run.system.projection
-            iterations = [i + s for i, s in zip(iterations, run.iterations, strict=True)]
+                changed = (used != previous_used).any(-1).tolist()
+                rerun = [r and c for r, c in zip(rerun, changed, strict=True)]
+            if not any(rerun):
+                if round_index:  # the inliers are those of the unchanged poses already
+                    continue
+            else:
+                kernel_fn = make_robust_kernel(kernel)
+                # The previous round ended at these poses: only its weights change (and not
+                # the kernel's values if the kernel is the same).
+                values = system.kernel_values if kernel == system_kernel else None
+                state = problem.normal_equations(projection, used, kernel_fn, values)
+                lm_config = config.lm if round_index == config.rounds - 1 else classify_lm
+                run = minimize(
+                    _RoundProblem(problem, used, kernel_fn),
+                    projection.T_cw,
+                    lm_config,
+                    system=state,
+                    active=rerun,
+                )
+                system, system_kernel = run.system, kernel
+                projection = system.projection
+                iterations = [i + s for i, s in zip(iterations, run.iterations, strict=True)]
             chi2 = projection.chi2
             inliers = chi2 <= config.chi2_threshold
-        T_star = invert(torch.cat((projection.T_cw, T0[:, 3:]), dim=1))
-    converged &= inliers.sum(-1) >= config.min_inliers
-    rho = make_robust_kernel(kernel)
-    cost = MotionOnlyCost(camera)
+        bottom = projection.T_cw.new_tensor((0.0, 0.0, 0.0, 1.0)).expand(B, 1, 4)
+        T_star = torch.cat((_world_to_camera(projection.T_cw), bottom), dim=1)
+    counts = inliers.sum(-1).tolist()
+    converged_t = torch.tensor(
+        [c and n >= config.min_inliers for c, n in zip(converged, counts, strict=True)]
+    )
+    T_out = T_star
+    if torch.is_grad_enabled() and (kp.requires_grad or X.requires_grad or sig.requires_grad):
+        rho = make_robust_kernel(kernel)
 
-    def objective(
-        theta: torch.Tensor, kp_: torch.Tensor, X_: torch.Tensor, sig_: torch.Tensor
-    ) -> torch.Tensor:
-        r = cost(T_star @ se3_exp(theta), X_, kp_, sig_, used)
-        return 0.5 * torch.where(used, rho((r * r).sum(-1))[0], 0.0).sum(-1)
+        def objective(
+            theta: torch.Tensor, kp_: torch.Tensor, X_: torch.Tensor, sig_: torch.Tensor
+        ) -> torch.Tensor:
+            r = MotionOnlyCost(camera)(T_star @ se3_exp(theta), X_, kp_, sig_, used)
+            return 0.5 * torch.where(used, rho((r * r).sum(-1))[0], 0.0).sum(-1)
 
-    T_out = _ImplicitPose.apply(T_star, objective, kp, X, sig)
-    out = RefineResult(T_out, inliers, chi2, torch.tensor(iterations), converged)
+        T_out = _ImplicitPose.apply(T_star, objective, kp, X, sig)
+    out = RefineResult(T_out, inliers, chi2, torch.tensor(iterations), converged_t)
     if batched:
         return out
-    return RefineResult(out.T_wc[0], inliers[0], chi2[0], out.iterations[0], converged[0])
+    return RefineResult(out.T_wc[0], inliers[0], chi2[0], out.iterations[0], converged_t[0])
