@@ -227,12 +227,12 @@ def test_epipolar_3d_gate_keeps_only_points_near_the_keypoint_surfels(
     distances: dict[float | None, list[torch.Tensor]] = {None: [], 0.25: []}
     for gate, found in distances.items():
 
-        def spy(db, covisible, features, *args, keypoint_positions, found=found, **kwargs):
-            kp, pts = match_epipolar(
-                db, covisible, features, *args, keypoint_positions=keypoint_positions, **kwargs
-            )
-            offsets = keypoint_positions[kp] - db.point_positions[pts, None]
-            found.append(offsets.norm(dim=-1).nan_to_num(torch.inf).amin(-1))
+        def spy(db, covisible, features, *args, found=found, **kwargs):
+            kp, pts = match_epipolar(db, covisible, features, *args, **kwargs)
+            seen = kwargs["keypoint_surfels"][kp]
+            centres = kwargs["surfel_centers"][seen.clamp(min=0)].double()
+            offsets = (centres - db.point_positions[pts, None]).norm(dim=-1)
+            found.append(torch.where(seen >= 0, offsets, torch.inf).amin(-1))
             return kp, pts
 
         monkeypatch.setattr(builder_module, "match_epipolar", spy)
@@ -247,7 +247,7 @@ def test_epipolar_3d_gate_keeps_only_points_near_the_keypoint_surfels(
         EpipolarMatchingConfig(max_point_distance_m=0.0)
     features = make_extractor(EXTRACTOR).extract(seq.load_rgb(0))
     no_candidates = torch.zeros(0, dtype=torch.int64)
-    with pytest.raises(ValueError, match="keypoint_positions"):
+    with pytest.raises(ValueError, match="keypoint_surfels"):
         match_epipolar(
             VisualDatabase(64),
             no_candidates,

@@ -285,8 +285,6 @@ class DatabaseBuilder:
         ``seen``: (N, S) int64 surfels each keypoint sees at ``T_wc`` (at its pixel and its
         neighbours; -1 padding)."""
         if self.config.association == "epipolar":
-            centres = self.surfel_map.centers[seen.clamp(min=0)].double()
-            centres[seen < 0] = torch.nan
             keypoint_ids, point_ids = match_epipolar(
                 db,
                 covisible,
@@ -294,7 +292,8 @@ class DatabaseBuilder:
                 camera,
                 self.config.epipolar,
                 self.generator,
-                keypoint_positions=centres,
+                keypoint_surfels=seen,
+                surfel_centers=self.surfel_map.centers,
                 ratio=self.config.ratio,
                 max_descriptor_distance=self.config.max_descriptor_distance,
             )

@@ -103,7 +103,8 @@ def match_epipolar(
     camera: PinholeCamera,
     config: EpipolarMatchingConfig,
     generator: torch.Generator,
-    keypoint_positions: torch.Tensor | None = None,
+    keypoint_surfels: torch.Tensor | None = None,
+    surfel_centers: torch.Tensor | None = None,
     ratio: float | None = 0.8,
     max_descriptor_distance: float | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -116,10 +117,11 @@ def match_epipolar(
         camera: the new keyframe's camera.
         config: matching and verification settings.
         generator: the RANSAC random source.
-        keypoint_positions: (N, S, 3) world positions of the surfels each keypoint sees at
-            the new keyframe's pose (its own and its neighbours; NaN padding); needed by the
-            3D gate (``config.max_point_distance_m``), which rejects the matches of keypoints
-            that see no surfel.
+        keypoint_surfels: (N, S) int64 surfels each keypoint sees at the new keyframe's pose
+            (its own and its neighbours; -1 padding); needed by the 3D gate
+            (``config.max_point_distance_m``), which rejects the matches of keypoints that
+            see no surfel.
+        surfel_centers: (M, 3) centres of the surfel map (world frame), for the 3D gate.
         ratio: Lowe's ratio test over all candidate map points (``None`` to skip).
         max_descriptor_distance: largest accepted descriptor distance, or ``None``.
 
@@ -128,19 +130,20 @@ def match_epipolar(
         distinct map points they observe.
 
     Raises:
-        ValueError: the 3D gate is on but ``keypoint_positions`` is missing or not (N, S, 3).
+        ValueError: the 3D gate is on but ``keypoint_surfels`` is missing or not (N, S), or
+            ``surfel_centers`` is missing.
     """
     gate = config.max_point_distance_m
     if gate is not None and (
-        keypoint_positions is None
-        or keypoint_positions.dim() != 3
-        or keypoint_positions.shape[0] != len(features)
-        or keypoint_positions.shape[2] != 3
+        surfel_centers is None
+        or keypoint_surfels is None
+        or keypoint_surfels.dim() != 2
+        or keypoint_surfels.shape[0] != len(features)
     ):
         raise ValueError(
-            "the 3D gate (max_point_distance_m) needs keypoint_positions of shape "
-            f"({len(features)}, S, 3), got "
-            f"{None if keypoint_positions is None else tuple(keypoint_positions.shape)}"
+            f"the 3D gate (max_point_distance_m) needs keypoint_surfels of shape "
+            f"({len(features)}, S) and surfel_centers, got keypoint_surfels "
+            f"{None if keypoint_surfels is None else tuple(keypoint_surfels.shape)}"
         )
     empty = torch.zeros(0, dtype=torch.int64)
     points = db.points_observed_by(covisible)
@@ -156,8 +159,9 @@ def match_epipolar(
     )
     keypoint_ids, point_ids = matches.indices[:, 0], points[matches.indices[:, 1]]
     if gate is not None:
-        offsets = keypoint_positions[keypoint_ids].double() - db.point_positions[point_ids, None]
-        distance = offsets.norm(dim=-1).nan_to_num(torch.inf).amin(-1)
+        seen = keypoint_surfels[keypoint_ids]  # (M, S), -1 padding
+        offsets = surfel_centers[seen.clamp(min=0)].double() - db.point_positions[point_ids, None]
+        distance = torch.where(seen >= 0, offsets.norm(dim=-1), torch.inf).amin(-1)
         near = distance <= gate
         keypoint_ids, point_ids = keypoint_ids[near], point_ids[near]
     # Observations of the matched points in covisible keyframes: their keypoint rows, the

@@ -734,11 +734,12 @@ def optimize_keyframe_poses(
     if not bool(valid.any()):
         raise ValueError("the database has no valid surfel pairs to optimise")
     used = torch.cat([pairs.alpha[valid], pairs.beta[valid]])
-    fixed = torch.bincount(used, minlength=db.num_keyframes) < config.min_pairs
+    counts = torch.bincount(used, minlength=db.num_keyframes)
+    fixed = counts < config.min_pairs
     if bool(fixed.all()):
         raise ValueError(
             f"no keyframe is in min_pairs={config.min_pairs} valid surfel pairs "
-            f"(most: {int(torch.bincount(used).max())}); lower min_pairs to optimise"
+            f"(most: {int(counts.max())}); lower min_pairs to optimise"
         )
     if config.fix_first_keyframe:
         fixed[0] = True
