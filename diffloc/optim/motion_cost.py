@@ -59,7 +59,7 @@ from torch import nn
 
 from diffloc.checks import ShapeError, check_finite, check_positive_int, check_shape
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera, pose_jacobian_map
-from diffloc.geometry.se3 import se3_exp
+from diffloc.geometry.se3 import invert, se3_exp
 from diffloc.optim.lm import LMConfig, PoseSystem, cayley_rotation, minimize, solve_spd
 from diffloc.optim.robust import KernelFn, RobustKernel, make_robust_kernel
 
@@ -373,13 +373,6 @@ def _raise_value_error(
     raise ValueError("sigmas must be positive for every unmasked match")
 
 
-def _world_to_camera(T_wc: torch.Tensor) -> torch.Tensor:
-    """(B, 3, 4) top rows ``[R^T | -R^T t]`` of the inverses of rigid poses (B, 4, 4) or
-    (B, 3, 4) ``[R | t]`` (the same products as :func:`~diffloc.geometry.se3.invert`)."""
-    R_t = T_wc[:, :3, :3].mT
-    return torch.cat((R_t, torch.bmm(R_t, T_wc[:, :3, 3:]).neg_()), dim=-1)
-
-
 @functools.lru_cache(maxsize=8)
 def _projection_map(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """(14, 16) map from the outer products ``(u u^T).flatten()`` of ``u = (x, y, 1, 1/z)`` to
@@ -627,7 +620,7 @@ def refine_pose(
     classify_lm = dataclasses.replace(
         config.lm, cost_tolerance=max(config.lm.cost_tolerance, config.round_cost_tolerance)
     )
-    projection = problem.project(_world_to_camera(T0.detach()))
+    projection = problem.project(invert(T0.detach())[:, :3])
     B = T0.shape[0]
     inliers = valid
     iterations, converged = [0] * B, [True] * B
@@ -672,8 +665,7 @@ def refine_pose(
                 iterations = [i + s for i, s in zip(iterations, run.iterations, strict=True)]
             chi2 = projection.chi2
             inliers = chi2 <= config.chi2_threshold
-        bottom = projection.T_cw.new_tensor((0.0, 0.0, 0.0, 1.0)).expand(B, 1, 4)
-        T_star = torch.cat((_world_to_camera(projection.T_cw), bottom), dim=1)
+        T_star = invert(torch.cat((projection.T_cw, T0[:, 3:]), dim=1))
     counts = inliers.sum(-1).tolist()
     converged_t = torch.tensor(
         [c and n >= config.min_inliers for c, n in zip(converged, counts, strict=True)]
