@@ -27,8 +27,10 @@ Design notes:
   ``(n.d)^2`` makes the test a quadratic (conic) in the pixel coordinates and ``1 / t`` an
   affine function of them, so a chunk of same-sized candidate windows is evaluated with small
   matrix products. Candidate windows are the pixels of the analytic bounding box of the
-  projected ellipse (clipped to the image), grouped in buckets of a few window sizes (sparse
-  buckets merged into larger ones). Surfels are first culled against the view frustum with
+  projected ellipse (clipped to the image), grouped in buckets of a few window sizes chosen
+  per surfel, so that a surfel's window, and every key it writes, is the same whatever else
+  is drawn (masked renders skip the surfels whose disk reaches no pixel to render). Surfels
+  are first culled against the view frustum with
   their bounding spheres (one ``4 x 3`` product over the world-frame map) and the survivors
   numbered in map order. Their z-buffer key holds the float32 *inverse* depth (high word) and
   a tie-breaker decreasing with that number (low word), max-reduced: the matrix product writes
@@ -57,7 +59,6 @@ Design notes:
 
 from __future__ import annotations
 
-import bisect
 import functools
 import math
 import sys
@@ -92,6 +93,9 @@ _GRAZING_COS = 1e-6
 """Surfels seen exactly edge-on (|cos| of the view angle below this) cover no pixel centre."""
 _BBOX_MARGIN_PX = 1e-2
 """Slack added to the analytic ellipse bounding box against float32 rounding."""
+_PREFILTER_MARGIN_PX = 0.05
+"""Slack of the disk-box test of masked renders: far above the float32 rounding of a pixel
+coordinate (~1e-4 px) and of the ray-disk test (~1e-6 of the disk)."""
 _ELLIPSE_CONDITION = 1e-3
 """Ellipses with ``4AC - B^2 <= 1e-3 * 4AC`` (aspect ratio above ~30) use the sphere bound."""
 _CULL_SLACK = 1e-5
@@ -106,14 +110,10 @@ _MAX_SURFELS = _TIE_TOP - 0x00800000 + 1
 """Surfels per render, so that every tie-breaker is a positive normal float32."""
 _SURFEL_CHUNK = 1 << 16
 """Surfels per chunk of the per-surfel stages of :func:`_surfel_windows`."""
-_MERGE_PIXELS = 4096
-"""A bucket of windows joins a larger one when that adds at most this many candidate pixels
-(about the cost of the few tensor operations that every bucket takes)."""
 _GEMM_COLUMNS = 12
-"""Fewest windows per matrix product of :func:`_rasterise_surfels` (but for wider windows than
-``_CHUNK / 12`` pixels): from 12 columns on, the CPU sgemm (MKL, AVX2) rounds every output
-column alike, whatever the other columns; narrower products take other kernels whose
-roundings differ. Renders restricted to some pixels draw fewer windows and rely on this."""
+"""Fewest windows per matrix product of :func:`_rasterise_surfels`: from 12 columns on, the
+CPU sgemm (MKL, AVX2) rounds every output column alike, whatever the other columns; narrower
+products take other kernels whose roundings differ."""
 _BASIS_CACHE_AREA = 1024
 """Window bases up to this many pixels are memoised (a few MB at most)."""
 _PROBE_DIRECTION = (1.0, 0.7548776662466927, 0.5698402909980532)
@@ -361,6 +361,15 @@ class _SurfelCandidates:
     centers: torch.Tensor  # (3, M) float32 camera-frame centres (coordinates as rows)
     normals: torch.Tensor  # (3, M) float32 unit camera-frame normals
     radii: torch.Tensor  # (M,) float32
+
+    def select(self, index: torch.Tensor) -> _SurfelCandidates:
+        """The (K,) surfels ``index``."""
+        return _SurfelCandidates(
+            self.ids.index_select(0, index),
+            self.centers.index_select(1, index),
+            self.normals.index_select(1, index),
+            self.radii.index_select(0, index),
+        )
 
 
 @dataclass(frozen=True)
@@ -622,10 +631,11 @@ def _surfel_windows(
 ) -> _Windows:
     """Conics and candidate windows of the surfels that may be visible in one camera.
 
-    With ``pixel_sums``, the per-surfel stages (conic, box, bucket, whether the box holds a
-    pixel to render) run on chunks of :data:`_SURFEL_CHUNK` surfels, whose temporaries stay in
-    the CPU caches (they are elementwise, so the chunks change no value), and the conics of the
-    few drawn windows are computed again; a full render keeps the conics of all surfels.
+    With ``pixel_sums``, a first test drops, in chunks of :data:`_SURFEL_CHUNK` surfels
+    (elementwise, so the chunks change no value), the surfels whose disk can reach no pixel
+    to render (:func:`_disk_box_touches`); the others take the exact stages
+    (conic, box, bucket, whether the box holds a pixel to render). A window depends on its
+    surfel alone, so those drawn are drawn as in the full render.
 
     Args:
         surfels: the frustum-culled surfels.
@@ -637,19 +647,47 @@ def _surfel_windows(
             ``None`` for all pixels.
     """
     layout = _bucket_layout(width, height, surfels.radii.device)
-    if pixel_sums is None:  # nearly all windows are drawn: keep the conics, in one chunk
-        lo, group, untouched, conics = _surfel_groups(
-            surfels, slice(None), view, layout, cull_backfaces, None
-        )
-        return _bucket_windows(surfels, view, layout, lo, group, untouched, conics)
-    parts = [
-        _surfel_groups(
-            surfels, slice(start, start + _SURFEL_CHUNK), view, layout, cull_backfaces, pixel_sums
-        )
-        for start in range(0, max(surfels.radii.shape[0], 1), _SURFEL_CHUNK)
-    ]
-    lo, group, untouched = (torch.cat(part, dim=-1) for part in list(zip(*parts, strict=True))[:3])
-    return _bucket_windows(surfels, view, layout, lo, group, untouched, None)
+    if pixel_sums is not None:
+        touches = [
+            _disk_box_touches(surfels, slice(start, start + _SURFEL_CHUNK), view, pixel_sums)
+            for start in range(0, surfels.radii.shape[0], _SURFEL_CHUNK)
+        ]
+        touches.append(surfels.ids.new_zeros(0, dtype=torch.bool))  # (no surfels at all)
+        surfels = surfels.select(torch.cat(touches).nonzero().view(-1))
+    lo, group, untouched, conics = _surfel_groups(
+        surfels, slice(None), view, layout, cull_backfaces, pixel_sums
+    )
+    return _bucket_windows(surfels, view, layout, lo, group, untouched, conics)
+
+
+def _disk_box_touches(
+    surfels: _SurfelCandidates, chunk: slice, view: _View, pixel_sums: torch.Tensor
+) -> torch.Tensor:
+    """(m,) bool: the chunk's surfels in front of the near plane whose disk may reach a pixel of
+    ``pixel_sums``.
+
+    The disk lies in its axis-aligned box, ``c +- r sqrt(1 - n^2)`` per axis, so the ``u`` of
+    its points lies between the extremes of ``fx x / z + cx`` over the box's ``x`` and ``z``
+    ranges (at its corners). Only the pixel centres in that range, widened by
+    :data:`_PREFILTER_MARGIN_PX` against rounding, can see the disk (the whole image when the
+    box reaches the near plane).
+    """
+    c, n, r = surfels.centers[:, chunk], surfels.normals[:, chunk], surfels.radii[chunk]
+    extent = (1.0 - n * n).clamp_(min=0.0).sqrt_().mul_(r)  # (3, m) half-extents
+    z_near, z_far = c[2] - extent[2], c[2] + extent[2]
+    low, high = c[:2] - extent[:2], c[:2] + extent[:2]
+    low = torch.minimum(low / z_near, low / z_far)
+    high = torch.maximum(high / z_near, high / z_far)
+    f = c.new_tensor([[view.fx], [view.fy]])
+    principal = c.new_tensor([[view.cx], [view.cy]])
+    lo = low.mul_(f).add_(principal).sub_(_PREFILTER_MARGIN_PX).ceil_()
+    hi = high.mul_(f).add_(principal).add_(_PREFILTER_MARGIN_PX).floor_()
+    unbounded = (z_near <= MIN_DEPTH) | ~torch.isfinite(lo).all(0) | ~torch.isfinite(hi).all(0)
+    size = c.new_tensor([[view.camera.width], [view.camera.height]])
+    lo = torch.clamp(lo.masked_fill_(unbounded, 0.0), torch.zeros_like(size), size)
+    hi = torch.clamp(hi.masked_fill_(unbounded, math.inf), torch.full_like(size, -1.0), size - 1)
+    reach = _box_sums(pixel_sums, lo.to(torch.int32), hi.to(torch.int32), view.camera.width) > 0
+    return reach & (c[2] > MIN_DEPTH)
 
 
 def _surfel_groups(
@@ -773,7 +811,6 @@ class _BucketLayout:
     shapes: tuple[tuple[int, int], ...]  # (G,)
     level: torch.Tensor  # (max(W, H) + 1,) int32 level of a box extent
     sizes: torch.Tensor  # (2, G + 1) int32 (size_u, size_v) of each group, then 1 (dropped)
-    wide: torch.Tensor  # (G + 1,) bool, windows too large for _GEMM_COLUMNS per chunk
 
 
 @functools.lru_cache(maxsize=16)
@@ -789,9 +826,7 @@ def _bucket_layout(width: int, height: int, device: torch.device) -> _BucketLayo
     table = torch.tensor(sizes, device=device)
     level = torch.bucketize(torch.arange(limit + 1, device=device), table, out_int32=True)
     sizes = torch.tensor([*shapes, (1, 1)], dtype=torch.int32, device=device).T.contiguous()
-    wide = [_chunk_windows(u * v) < _GEMM_COLUMNS for u, v in shapes]
-    wide = torch.tensor([*wide, False], device=device)
-    return _BucketLayout(width, height, levels, shapes, level, sizes, wide)
+    return _BucketLayout(width, height, levels, shapes, level, sizes)
 
 
 def _bucket_windows(
@@ -803,39 +838,29 @@ def _bucket_windows(
     untouched: torch.Tensor,
     conics: _Conics | None,
 ) -> _Windows:
-    """Sort the visible windows into buckets of one (width, height) and place them in the image.
+    """Sort the drawn windows into buckets of one (width, height) and place them in the image.
 
     Each box widens to its bucket's size and shifts left / up to lie inside the image (extra
     pixels fail the exact test). Surfels that may reach the near plane get buckets of their own,
-    which add a depth test. Sparse buckets join larger ones (see :func:`_merge_sparse_buckets`).
-    Only the visible surfels' windows are placed and given polynomials (without ``conics``,
-    theirs are computed again, elementwise, for those alone); of those, only the ones not
-    ``untouched``, whose box holds a pixel to render (the full render draws no pixel outside a
-    surfel's box, which bounds its disk with a margin against rounding), and all the windows
-    of the wide buckets, which :func:`_rasterise_surfels` evaluates in chunks of fewer than
-    :data:`_GEMM_COLUMNS`. The buckets are chosen from all visible windows in both cases and
-    keep their order, so every drawn window is evaluated bit for bit as in the full render (no
-    ``untouched`` window).
+    which add a depth test. A window's bucket, place and polynomials depend on its surfel
+    alone, so a surfel is drawn bit for bit alike whatever else is drawn with it. Only the
+    visible surfels' windows that are not ``untouched`` (their box holds a pixel to render; the
+    full render draws no pixel outside a surfel's box, which bounds its disk with a margin
+    against rounding) are placed and given polynomials (without ``conics``, theirs are computed
+    again, elementwise, for those alone).
 
     Args:
         surfels: the frustum-culled surfels (M).
         view: the camera.
         layout: the image's window buckets.
         lo: (2, M) int32 top-left pixel ``(u, v)`` of each box.
-        group: (M,) int32 bucket of each window before merging (see :func:`_surfel_groups`).
+        group: (M,) int32 bucket of each window (see :func:`_surfel_groups`).
         untouched: (M,) bool, the window holds no pixel to render.
         conics: the conics of all M surfels, or ``None`` to compute those of the drawn ones.
     """
     height, width = layout.height, layout.width
     dropped = len(layout.shapes)
-    counts = torch.bincount(group, minlength=dropped + 1).tolist()
-    target = _merge_sparse_buckets(counts[:-1], layout.shapes)
-    group = torch.tensor([*target, dropped], dtype=torch.int16, device=lo.device).index_select(
-        0, group
-    )
-    if bool(untouched.any()):  # after the merge, which sees all windows
-        wide = layout.wide.index_select(0, group.to(torch.int32))
-        group = group.masked_fill_(untouched & ~wide, dropped)
+    group = group.masked_fill(untouched, dropped)
     buckets, start = [], 0
     for g, count in enumerate(torch.bincount(group, minlength=dropped + 1)[:-1].tolist()):
         if count:
@@ -882,40 +907,6 @@ def _box_sums(sums: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, width: int
     corners = torch.stack((bottom + last[0], top + lo[0], top + last[0], bottom + lo[0]))
     value = sums.index_select(0, corners.view(-1)).view(4, -1)
     return value[0] + value[1] - value[2] - value[3]
-
-
-def _merge_sparse_buckets(counts: list[int], shapes: tuple[tuple[int, int], ...]) -> list[int]:
-    """The bucket each bucket's windows go to: sparse ones join the smallest that holds them.
-
-    Every bucket costs a few tensor operations whatever its size, so a bucket of ``c`` windows
-    of ``A`` pixels moves to the smallest-area bucket (same near flag, both sides at least as
-    large) when that adds at most :data:`_MERGE_PIXELS` candidate pixels, ``c (A' - A)``.
-    Sparsest buckets go first; a bucket that received windows may move on later.
-
-    Args:
-        counts: windows per bucket (group index ``g``, near flag ``g % 2``).
-        shapes: ``(size_u, size_v)`` of each bucket.
-
-    Returns:
-        The target group of every group.
-    """
-    alive = {g: c for g, c in enumerate(counts) if c}
-    by_area = sorted((shapes[g][0] * shapes[g][1], g) for g in alive)
-    target = list(range(len(counts)))
-    for g in sorted(alive, key=counts.__getitem__):
-        area, (size_u, size_v) = shapes[g][0] * shapes[g][1], shapes[g]
-        for other_area, h in by_area[bisect.bisect_left(by_area, (area, -1)) :]:
-            if alive[g] * (other_area - area) > _MERGE_PIXELS:
-                break
-            other_u, other_v = shapes[h]
-            if h != g and h in alive and h % 2 == g % 2 and other_u >= size_u and other_v >= size_v:
-                alive[h] += alive.pop(g)
-                target[g] = h
-                break
-    for g in range(len(target)):  # follow chains of moves
-        while target[target[g]] != target[g]:
-            target[g] = target[target[g]]
-    return target
 
 
 def _window_polynomials(conics: _Conics, corner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -987,17 +978,12 @@ def _window_basis(
     return _make_window_basis(size_u, size_v, width, device)
 
 
-def _chunk_windows(area: int) -> int:
-    """Windows of ``area`` pixels per chunk of :func:`_rasterise_surfels`."""
-    return max(1, _CHUNK // area)
-
-
-def _chunk_columns(start: int, stop: int, step: int) -> slice | torch.Tensor:
-    """The windows ``start .. stop - 1`` of a chunk, repeated up to :data:`_GEMM_COLUMNS` when
-    fewer and chunks of ``step`` windows allow it (repeats write the same keys again)."""
-    if stop - start >= _GEMM_COLUMNS or step < _GEMM_COLUMNS:
-        return slice(start, stop)
-    return torch.arange(_GEMM_COLUMNS).remainder_(stop - start).add_(start)
+def _chunk_shape(area: int) -> tuple[int, int]:
+    """``(columns, rows)``: windows of ``area`` pixels per matrix product of
+    :func:`_rasterise_surfels` (at least :data:`_GEMM_COLUMNS`) and pixels of each per product
+    (all but for windows wider than ``_CHUNK / _GEMM_COLUMNS``)."""
+    columns = max(_GEMM_COLUMNS, _CHUNK // area)
+    return columns, min(area, _CHUNK // columns)
 
 
 def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> None:
@@ -1009,9 +995,10 @@ def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> Non
     max-reduction keeps per pixel the largest inverse depth, i.e. the nearest hit, and of equal
     ones the lowest surfel; misses are negative keys and never win. A matrix product per chunk
     of windows writes the keys in place (the tie-breaker is a constant polynomial), a second
-    one ``1 - q``, and one ``copysign`` applies the test. Chunks of fewer than
-    :data:`_GEMM_COLUMNS` small windows repeat some, so that every window of a bucket takes the
-    same matrix product kernel, whatever other windows share its chunk.
+    one ``1 - q``, and one ``copysign`` applies the test. Every product has at least
+    :data:`_GEMM_COLUMNS` columns (a chunk of fewer windows repeats some, which writes the same
+    keys again; wide windows go by blocks of pixel rows), so that every window takes the same
+    matrix product kernel, whatever other windows share its chunk.
 
     Args:
         windows: the candidate windows of one camera.
@@ -1022,21 +1009,30 @@ def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> Non
     for size_u, size_v, near, first, count in windows.buckets:
         area = size_u * size_v
         basis, offsets = _window_basis(size_u, size_v, width, keys.device)
-        step = _chunk_windows(area)
-        for start in range(first, first + count, step):
-            stop = min(start + step, first + count)
-            chunk = _chunk_columns(start, stop, step)
+        columns, rows = _chunk_shape(area)
+        for start in range(first, first + count, columns):
+            stop = min(start + columns, first + count)
+            chunk = (
+                slice(start, stop)
+                if stop - start >= _GEMM_COLUMNS
+                else torch.arange(_GEMM_COLUMNS).remainder_(stop - start).add_(start)
+            )
             keys_pairs = pairs[:, chunk].reshape(3, -1)
-            candidates = torch.mm(basis[:, 3:], keys_pairs)  # (area, 2 m)
-            inside = torch.mm(basis, windows.inside[:, chunk])  # (area, m)
-            inverse_depth = candidates[:, _HIGH_WORD::2]
-            if near:  # hits must also be in front of the near plane
-                miss = (inside < 0) | (inverse_depth <= 0) | (inverse_depth >= 1.0 / MIN_DEPTH)
-                inverse_depth.masked_fill_(miss, -1.0)
-            else:
-                inverse_depth.copysign_(inside)
-            slots = torch.add(windows.base[chunk], offsets)
-            keys.scatter_reduce_(0, slots.view(-1), candidates.view(torch.int64).view(-1), "amax")
+            polynomials, base = windows.inside[:, chunk], windows.base[chunk]
+            for row in range(0, area, rows):
+                block = basis[row : row + rows]
+                candidates = torch.mm(block[:, 3:], keys_pairs)  # (rows, 2 m)
+                inside = torch.mm(block, polynomials)  # (rows, m)
+                inverse_depth = candidates[:, _HIGH_WORD::2]
+                if near:  # hits must also be in front of the near plane
+                    miss = (inside < 0) | (inverse_depth <= 0) | (inverse_depth >= 1.0 / MIN_DEPTH)
+                    inverse_depth.masked_fill_(miss, -1.0)
+                else:
+                    inverse_depth.copysign_(inside)
+                slots = torch.add(base, offsets[row : row + rows])
+                keys.scatter_reduce_(
+                    0, slots.view(-1), candidates.view(torch.int64).view(-1), "amax"
+                )
 
 
 def _resolve_surfel_keys(
