@@ -483,6 +483,56 @@ def test_masked_render_checks_the_mask(camera):
         renderer.render(identity(), camera, pixels=torch.ones(1, camera.height, camera.width))
 
 
+def test_disk_box_test_keeps_every_surfel_that_covers_a_masked_pixel():
+    """The first test of masked renders drops a surfel only if no ray through a pixel to
+    render hits its disk (dense float64 check), and drops most of those far from the mask."""
+    from diffloc.render.splat import _disk_box_touches, _summed_area, _views
+
+    centers, normals, radii, T_wc, camera = _masked_scene()
+    renderer = SurfelIndexRenderer(centers, normals, radii, cell_size_m=None)
+    g = torch.Generator().manual_seed(9)
+    keypoints = torch.rand(12, 2, generator=g) * torch.tensor([72.0, 56.0])
+    pixels = keypoint_disk_mask(keypoints, torch.full((12,), 3.0), 56, 72)
+    uv = torch.nonzero(pixels).flip(1).double()  # (P, 2) masked pixel centres (u, v)
+    dropped_total = 0
+    for b, view in enumerate(_views(T_wc[:3], camera.to(torch.float32))):
+        surfels = renderer._candidates(view, 56, 72, None)
+        touches = _disk_box_touches(surfels, slice(None), view, _summed_area(pixels))
+        c, n = surfels.centers.double(), surfels.normals.double()  # (3, M) camera frame
+        rays = torch.stack(
+            ((uv[:, 0] - view.cx) / view.fx, (uv[:, 1] - view.cy) / view.fy, torch.ones(len(uv)))
+        )  # (3, P)
+        t = (n * c).sum(0)[:, None] / (n.T @ rays)  # (M, P) hit depths
+        hit = t[:, None] * rays[None] - c.T[:, :, None]  # (M, 3, P)
+        covers = (hit.norm(dim=1) <= surfels.radii.double()[:, None]) & (t > MIN_DEPTH)
+        covers &= (c[2] > MIN_DEPTH)[:, None]
+        assert bool(touches[covers.any(1)].all()), f"view {b}"
+        dropped_total += int((~touches).sum())
+        assert int(touches.sum()) < len(touches)
+    assert dropped_total > 1000
+
+
+def test_surfels_that_win_nowhere_change_no_pixel(camera):
+    """A surfel is drawn bit for bit alike whatever else is drawn: many more disks hidden
+    behind a wall (other window buckets, other merges) leave the render unchanged."""
+    g = torch.Generator().manual_seed(21)
+    centers, normals, radii = random_surfel_scene(g, 1500)
+    centers[:, 2] = centers[:, 2] * 0.5 + 2.2  # in front of the wall, 1.45 .. 2.95 m
+    radii *= 0.3
+    wall = (torch.tensor([[0.0, 0.0, 3.5]]), torch.tensor([[0.0, 0.0, -1.0]]), torch.tensor([50.0]))
+    hidden = random_surfel_scene(g, 3000)
+    hidden[0][:, 2] += 6.0  # behind the wall
+    scene = [torch.cat(parts) for parts in zip((centers, normals, radii), wall, strict=True)]
+    more = [torch.cat(parts) for parts in zip(scene, hidden, strict=True)]
+    T_wc = torch.stack((identity()[0], look_at((0.3, -0.2, 0.2), (0.0, 0.1, 3.0)).float()))
+    for cell_size_m in (None, 0.3):
+        one = SurfelIndexRenderer(*scene, cell_size_m=cell_size_m).render(T_wc, camera)
+        two = SurfelIndexRenderer(*more, cell_size_m=cell_size_m).render(T_wc, camera)
+        _assert_same_render(one, two)
+        assert bool((one.ids == 1500).any()) and int((one.ids < 1500).sum()) > 1000
+    assert float(render_surfel_index(*hidden, T_wc, camera).mask.float().mean()) > 0.4
+
+
 def test_keypoint_disk_mask_is_what_neighbour_surfels_reads():
     g = torch.Generator().manual_seed(4)
     keypoints = torch.rand(30, 2, generator=g) * torch.tensor([40.0, 30.0]) - 2.0

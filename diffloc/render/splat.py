@@ -27,10 +27,11 @@ Design notes:
   ``(n.d)^2`` makes the test a quadratic (conic) in the pixel coordinates and ``1 / t`` an
   affine function of them, so a chunk of same-sized candidate windows is evaluated with small
   matrix products. Candidate windows are the pixels of the analytic bounding box of the
-  projected ellipse (clipped to the image), grouped in buckets of a few window sizes chosen
-  per surfel, so that a surfel's window, and every key it writes, is the same whatever else
-  is drawn (masked renders skip the surfels whose disk reaches no pixel to render). Surfels
-  are first culled against the view frustum with
+  projected ellipse (clipped to the image), grouped in buckets of a few window sizes (sparse
+  buckets merged into larger ones where the windows fit without a shift at the image border),
+  so that a surfel's window, and every key it writes, is the same whatever else is drawn
+  (masked renders skip the cells and surfels that reach no pixel to render). Surfels are
+  first culled against the view frustum with
   their bounding spheres (one ``4 x 3`` product over the world-frame map) and the survivors
   numbered in map order. Their z-buffer key holds the float32 *inverse* depth (high word) and
   a tie-breaker decreasing with that number (low word), max-reduced: the matrix product writes
@@ -59,6 +60,7 @@ Design notes:
 
 from __future__ import annotations
 
+import bisect
 import functools
 import math
 import sys
@@ -110,6 +112,9 @@ _MAX_SURFELS = _TIE_TOP - 0x00800000 + 1
 """Surfels per render, so that every tie-breaker is a positive normal float32."""
 _SURFEL_CHUNK = 1 << 16
 """Surfels per chunk of the per-surfel stages of :func:`_surfel_windows`."""
+_MERGE_PIXELS = 4096
+"""A bucket of windows joins a larger one when that adds at most this many candidate pixels
+(about the cost of the few tensor operations that every bucket takes)."""
 _GEMM_COLUMNS = 12
 """Fewest windows per matrix product of :func:`_rasterise_surfels`: from 12 columns on, the
 CPU sgemm (MKL, AVX2) rounds every output column alike, whatever the other columns; narrower
@@ -510,14 +515,17 @@ class _SurfelCells:
             bound.mul_(1.0 + 1e-6).add_(1e-6),
         )
 
-    def cull(self, view: _View, height: int, width: int) -> torch.Tensor:
+    def cull(
+        self, view: _View, height: int, width: int, pixel_sums: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """(M,) int64 positions (into the cell-ordered data) of the surfels that may be in view.
 
         Cells whose bounding sphere is inside all four frustum half-spaces (with a margin far
         above the float32 rounding of :func:`_frustum_candidates`) keep all their surfels,
         cells outside one of them none; the surfels of the others are tested one by one by
         :func:`_frustum_candidates`. The result is the set that it would select on the whole
-        map.
+        map. With ``pixel_sums`` (see :func:`_summed_area`), the cells whose sphere can reach
+        no pixel to render (:meth:`_reach`) are dropped first.
         """
         planes, slack = _frustum_planes(view, height, width)
         planes = torch.tensor(planes, dtype=torch.float64, device=self.starts.device)
@@ -526,13 +534,47 @@ class _SurfelCells:
         nearest = distances.amin(1)
         margin = 100.0 * slack
         inside = nearest - self.sphere_radii >= margin - slack
-        cut = ~inside & (nearest + self.sphere_radii >= -slack - margin)
-        counts = self.starts.diff()
-        kept = _concat_ranges(self.starts[:-1][inside], counts[inside])
-        tested = _concat_ranges(self.starts[:-1][cut], counts[cut])
+        cells = torch.nonzero(inside | (nearest + self.sphere_radii >= -slack - margin)).view(-1)
+        inside = inside.index_select(0, cells)
+        if pixel_sums is not None:
+            reach = self._reach(cells, view, height, width, pixel_sums)
+            cells, inside = cells[reach], inside[reach]
+        starts = self.starts.index_select(0, cells)
+        counts = self.starts.diff().index_select(0, cells)
+        kept = _concat_ranges(starts[inside], counts[inside])
+        tested = _concat_ranges(starts[~inside], counts[~inside])
         centers, radii = self.centers.index_select(0, tested), self.radii.index_select(0, tested)
         near = tested.index_select(0, _frustum_candidates(centers, radii, view, height, width))
         return torch.cat((kept, near))
+
+    def _reach(
+        self, cells: torch.Tensor, view: _View, height: int, width: int, pixel_sums: torch.Tensor
+    ) -> torch.Tensor:
+        """(C,) bool: the (C,) ``cells`` whose bounding sphere may cover a pixel of
+        ``pixel_sums``.
+
+        A point of a sphere lies in its bounding cube, so its ``u = fx x / z + cx`` lies
+        between the extremes of ``x / z`` over the cube's ``x`` and ``z`` ranges; the pixel
+        box of those extremes (rounded outwards, the sphere grown by 1 mm plus the frustum
+        slack against the float32 rounding of the surfels' camera-frame coordinates) holds
+        every pixel centre that sees the sphere. Spheres reaching the near plane reach all.
+        """
+        _, slack = _frustum_planes(view, height, width)
+        centres = torch.addmm(
+            view.t_cw.double(), view.R_cw.double(), self.sphere_centres.index_select(0, cells).T
+        )
+        radii = self.sphere_radii.index_select(0, cells) + (1e-3 + 100.0 * slack)
+        z_near, z_far = centres[2] - radii, centres[2] + radii
+        low, high = centres[:2] - radii, centres[:2] + radii
+        low = torch.minimum(low / z_near, low / z_far)
+        high = torch.maximum(high / z_near, high / z_far)
+        f = centres.new_tensor([[view.fx], [view.fy]])
+        principal = centres.new_tensor([[view.cx], [view.cy]])
+        size = centres.new_tensor([[width], [height]])
+        lo = torch.fmin(torch.fmax(low.mul_(f).add_(principal).floor_(), size * 0), size)
+        hi = torch.fmax(torch.fmin(high.mul_(f).add_(principal).ceil_(), size - 1), size * 0 - 1)
+        reach = _box_sums(pixel_sums, lo.to(torch.int32), hi.to(torch.int32), width) > 0
+        return reach | (z_near <= MIN_DEPTH)
 
 
 def _surfel_candidates(
@@ -654,10 +696,8 @@ def _surfel_windows(
         ]
         touches.append(surfels.ids.new_zeros(0, dtype=torch.bool))  # (no surfels at all)
         surfels = surfels.select(torch.cat(touches).nonzero().view(-1))
-    lo, group, untouched, conics = _surfel_groups(
-        surfels, slice(None), view, layout, cull_backfaces, pixel_sums
-    )
-    return _bucket_windows(surfels, view, layout, lo, group, untouched, conics)
+    lo, group, conics = _surfel_groups(surfels, view, layout, cull_backfaces, pixel_sums)
+    return _bucket_windows(surfels, layout, lo, group, conics)
 
 
 def _disk_box_touches(
@@ -673,36 +713,33 @@ def _disk_box_touches(
     box reaches the near plane).
     """
     c, n, r = surfels.centers[:, chunk], surfels.normals[:, chunk], surfels.radii[chunk]
-    extent = (1.0 - n * n).clamp_(min=0.0).sqrt_().mul_(r)  # (3, m) half-extents
+    extent = torch.rsub(n * n, 1.0).clamp_(min=0.0).sqrt_().mul_(r)  # (3, m) half-extents
     z_near, z_far = c[2] - extent[2], c[2] + extent[2]
     low, high = c[:2] - extent[:2], c[:2] + extent[:2]
-    low = torch.minimum(low / z_near, low / z_far)
-    high = torch.maximum(high / z_near, high / z_far)
-    f = c.new_tensor([[view.fx], [view.fy]])
-    principal = c.new_tensor([[view.cx], [view.cy]])
-    lo = low.mul_(f).add_(principal).sub_(_PREFILTER_MARGIN_PX).ceil_()
-    hi = high.mul_(f).add_(principal).add_(_PREFILTER_MARGIN_PX).floor_()
-    unbounded = (z_near <= MIN_DEPTH) | ~torch.isfinite(lo).all(0) | ~torch.isfinite(hi).all(0)
-    size = c.new_tensor([[view.camera.width], [view.camera.height]])
-    lo = torch.clamp(lo.masked_fill_(unbounded, 0.0), torch.zeros_like(size), size)
-    hi = torch.clamp(hi.masked_fill_(unbounded, math.inf), torch.full_like(size, -1.0), size - 1)
-    reach = _box_sums(pixel_sums, lo.to(torch.int32), hi.to(torch.int32), view.camera.width) > 0
-    return reach & (c[2] > MIN_DEPTH)
+    low.div_(torch.where(low < 0, z_near, z_far))  # smallest x / z, y / z
+    high.div_(torch.where(high < 0, z_far, z_near))
+    unbounded = (z_near > MIN_DEPTH).logical_not_()  # (and NaN normals)
+    low.masked_fill_(unbounded, -math.inf)
+    high.masked_fill_(unbounded, math.inf)
+    width, height = view.camera.width, view.camera.height
+    for row, f, principal, size in ((0, view.fx, view.cx, width), (1, view.fy, view.cy, height)):
+        low[row].mul_(f).add_(principal - _PREFILTER_MARGIN_PX).ceil_().clamp_(0, size)
+        high[row].mul_(f).add_(principal + _PREFILTER_MARGIN_PX).floor_().clamp_(-1, size - 1)
+    reach = _box_sums(pixel_sums, low.to(torch.int32), high.to(torch.int32), width) > 0
+    return reach.logical_and_(c[2] > MIN_DEPTH)
 
 
 def _surfel_groups(
     surfels: _SurfelCandidates,
-    chunk: slice,
     view: _View,
     layout: _BucketLayout,
     cull_backfaces: bool,
     pixel_sums: torch.Tensor | None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, _Conics]:
-    """Boxes and buckets of a chunk of m surfels.
+    """Boxes and buckets of M surfels.
 
     Args:
         surfels: the frustum-culled surfels.
-        chunk: the chunk's surfels.
         view: the camera.
         layout: the image's window buckets.
         cull_backfaces: drop surfels whose normal points away from the camera.
@@ -710,12 +747,12 @@ def _surfel_groups(
             ``None`` for all pixels.
 
     Returns:
-        ``(lo, group, untouched, conics)``: (2, m) int32 top-left box corners ``(u, v)`` (see
-        :func:`_surfel_boxes`), (m,) int32 bucket before merging (:class:`_BucketLayout`),
-        ``len(layout.shapes)`` for the surfels not drawn, (m,) bool, the box holds no pixel
-        of ``pixel_sums`` (all false without it), and the surfels' conics.
+        ``(lo, group, conics)``: (2, M) int32 top-left box corners ``(u, v)`` (see
+        :func:`_surfel_boxes`), (M,) int32 bucket before merging (:class:`_BucketLayout`),
+        ``len(layout.shapes)`` for the surfels not drawn (not visible, or their box holds no
+        pixel of ``pixel_sums``), and the surfels' conics.
     """
-    c, n, r = surfels.centers[:, chunk], surfels.normals[:, chunk], surfels.radii[chunk]
+    c, n, r = surfels.centers, surfels.normals, surfels.radii
     conics, k, cc = _surfel_conics(c, n, r, view)
     total = c.sum(0) + n.sum(0) + r
     visible = (total - total) == 0  # false for NaN / inf
@@ -730,10 +767,9 @@ def _surfel_groups(
     level = layout.level.index_select(0, extent.clamp_(0, layout.level.shape[0] - 1).view(-1))
     level = level.view(2, -1)  # (2, m)
     group = level[0].mul_(layout.levels).add_(level[1]).mul_(2).add_(near)
-    group = group.masked_fill_(~visible, len(layout.shapes))
-    if pixel_sums is None:
-        return lo, group, torch.zeros_like(visible), conics
-    return lo, group, _box_sums(pixel_sums, lo, hi, layout.width) <= 0, conics
+    if pixel_sums is not None:
+        visible &= _box_sums(pixel_sums, lo, hi, layout.width) > 0
+    return lo, group.masked_fill_(~visible, len(layout.shapes)), conics
 
 
 def _ellipse_box_offsets(conics: _Conics) -> tuple[torch.Tensor, torch.Tensor]:
@@ -811,6 +847,7 @@ class _BucketLayout:
     shapes: tuple[tuple[int, int], ...]  # (G,)
     level: torch.Tensor  # (max(W, H) + 1,) int32 level of a box extent
     sizes: torch.Tensor  # (2, G + 1) int32 (size_u, size_v) of each group, then 1 (dropped)
+    last_corner: torch.Tensor  # (2, G + 1) int32 largest top-left pixel of a window that fits
 
 
 @functools.lru_cache(maxsize=16)
@@ -826,41 +863,50 @@ def _bucket_layout(width: int, height: int, device: torch.device) -> _BucketLayo
     table = torch.tensor(sizes, device=device)
     level = torch.bucketize(torch.arange(limit + 1, device=device), table, out_int32=True)
     sizes = torch.tensor([*shapes, (1, 1)], dtype=torch.int32, device=device).T.contiguous()
-    return _BucketLayout(width, height, levels, shapes, level, sizes)
+    last_corner = torch.tensor([[width], [height]], dtype=torch.int32, device=device) - sizes
+    return _BucketLayout(width, height, levels, shapes, level, sizes, last_corner)
 
 
 def _bucket_windows(
     surfels: _SurfelCandidates,
-    view: _View,
     layout: _BucketLayout,
     lo: torch.Tensor,
     group: torch.Tensor,
-    untouched: torch.Tensor,
-    conics: _Conics | None,
+    conics: _Conics,
 ) -> _Windows:
     """Sort the drawn windows into buckets of one (width, height) and place them in the image.
 
     Each box widens to its bucket's size and shifts left / up to lie inside the image (extra
     pixels fail the exact test). Surfels that may reach the near plane get buckets of their own,
-    which add a depth test. A window's bucket, place and polynomials depend on its surfel
-    alone, so a surfel is drawn bit for bit alike whatever else is drawn with it. Only the
-    visible surfels' windows that are not ``untouched`` (their box holds a pixel to render; the
-    full render draws no pixel outside a surfel's box, which bounds its disk with a margin
-    against rounding) are placed and given polynomials (without ``conics``, theirs are computed
-    again, elementwise, for those alone).
+    which add a depth test. Sparse buckets join larger ones (see :func:`_merge_sparse_buckets`),
+    but a window moves only if it fits there without a shift, so its top-left pixel and
+    polynomials depend on its surfel alone, and a larger window evaluates the same pixels the
+    same way (:func:`_rasterise_surfels`): a surfel is drawn bit for bit alike whatever else is
+    drawn with it. Only the drawn windows (group below ``len(layout.shapes)``: visible, and
+    their box holds a pixel to render; the full render draws no pixel outside a surfel's box,
+    which bounds its disk with a margin against rounding) are placed and given polynomials.
 
     Args:
         surfels: the frustum-culled surfels (M).
-        view: the camera.
         layout: the image's window buckets.
         lo: (2, M) int32 top-left pixel ``(u, v)`` of each box.
         group: (M,) int32 bucket of each window (see :func:`_surfel_groups`).
-        untouched: (M,) bool, the window holds no pixel to render.
-        conics: the conics of all M surfels, or ``None`` to compute those of the drawn ones.
+        conics: the conics of the M surfels.
     """
     height, width = layout.height, layout.width
     dropped = len(layout.shapes)
-    group = group.masked_fill(untouched, dropped)
+    counts = torch.bincount(group, minlength=dropped + 1).tolist()
+    target = [*_merge_sparse_buckets(counts[:-1], layout.shapes), dropped]
+    # int16 groups: the stable sort below is twice as fast as on int32.
+    merged = torch.tensor(target, dtype=torch.int16, device=lo.device).index_select(0, group)
+    if target != list(range(dropped + 1)):
+        # Only windows that fit in the larger bucket without a shift at the image border
+        # move: their top-left pixel stays ``lo``, so every pixel is evaluated as before.
+        moving = torch.nonzero(merged != group).view(-1)
+        last = layout.last_corner.index_select(1, merged.index_select(0, moving).to(torch.int32))
+        stays = moving[(lo.index_select(1, moving) > last).any(0)]
+        merged.index_copy_(0, stays, group.index_select(0, stays).to(torch.int16))
+    group = merged
     buckets, start = [], 0
     for g, count in enumerate(torch.bincount(group, minlength=dropped + 1)[:-1].tolist()):
         if count:
@@ -874,12 +920,7 @@ def _bucket_windows(
         order = drawn.index_select(0, torch.argsort(group.index_select(0, drawn), stable=True))
     size = layout.sizes.index_select(1, group.index_select(0, order).to(torch.int32))
     corner = torch.minimum(lo.index_select(1, order), lo.new_tensor([[width], [height]]) - size)
-    if conics is None:
-        c, n = surfels.centers.index_select(1, order), surfels.normals.index_select(1, order)
-        conics = _surfel_conics(c, n, surfels.radii.index_select(0, order), view)[0]
-    else:
-        conics = conics.select(order)
-    inside, inverse_depth = _window_polynomials(conics, corner)
+    inside, inverse_depth = _window_polynomials(conics.select(order), corner)
     keys = inside.new_empty(3, start, 2)  # (tie-breaker, inverse depth) words of int64 keys
     keys[:2, :, 1 - _HIGH_WORD] = 0.0
     keys[2, :, 1 - _HIGH_WORD] = _tie_breakers(surfels.ids.index_select(0, order))
@@ -907,6 +948,40 @@ def _box_sums(sums: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, width: int
     corners = torch.stack((bottom + last[0], top + lo[0], top + last[0], bottom + lo[0]))
     value = sums.index_select(0, corners.view(-1)).view(4, -1)
     return value[0] + value[1] - value[2] - value[3]
+
+
+def _merge_sparse_buckets(counts: list[int], shapes: tuple[tuple[int, int], ...]) -> list[int]:
+    """The bucket each bucket's windows go to: sparse ones join the smallest that holds them.
+
+    Every bucket costs a few tensor operations whatever its size, so a bucket of ``c`` windows
+    of ``A`` pixels moves to the smallest-area bucket (same near flag, both sides at least as
+    large) when that adds at most :data:`_MERGE_PIXELS` candidate pixels, ``c (A' - A)``.
+    Sparsest buckets go first; a bucket that received windows may move on later.
+
+    Args:
+        counts: windows per bucket (group index ``g``, near flag ``g % 2``).
+        shapes: ``(size_u, size_v)`` of each bucket.
+
+    Returns:
+        The target group of every group.
+    """
+    alive = {g: c for g, c in enumerate(counts) if c}
+    by_area = sorted((shapes[g][0] * shapes[g][1], g) for g in alive)
+    target = list(range(len(counts)))
+    for g in sorted(alive, key=counts.__getitem__):
+        area, (size_u, size_v) = shapes[g][0] * shapes[g][1], shapes[g]
+        for other_area, h in by_area[bisect.bisect_left(by_area, (area, -1)) :]:
+            if alive[g] * (other_area - area) > _MERGE_PIXELS:
+                break
+            other_u, other_v = shapes[h]
+            if h != g and h in alive and h % 2 == g % 2 and other_u >= size_u and other_v >= size_v:
+                alive[h] += alive.pop(g)
+                target[g] = h
+                break
+    for g in range(len(target)):  # follow chains of moves
+        while target[target[g]] != target[g]:
+            target[g] = target[target[g]]
+    return target
 
 
 def _window_polynomials(conics: _Conics, corner: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1010,6 +1085,9 @@ def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> Non
         area = size_u * size_v
         basis, offsets = _window_basis(size_u, size_v, width, keys.device)
         columns, rows = _chunk_shape(area)
+        blocks = [
+            (basis[row : row + rows], offsets[row : row + rows]) for row in range(0, area, rows)
+        ]
         for start in range(first, first + count, columns):
             stop = min(start + columns, first + count)
             chunk = (
@@ -1019,8 +1097,7 @@ def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> Non
             )
             keys_pairs = pairs[:, chunk].reshape(3, -1)
             polynomials, base = windows.inside[:, chunk], windows.base[chunk]
-            for row in range(0, area, rows):
-                block = basis[row : row + rows]
+            for block, block_offsets in blocks:
                 candidates = torch.mm(block[:, 3:], keys_pairs)  # (rows, 2 m)
                 inside = torch.mm(block, polynomials)  # (rows, m)
                 inverse_depth = candidates[:, _HIGH_WORD::2]
@@ -1029,7 +1106,7 @@ def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> Non
                     inverse_depth.masked_fill_(miss, -1.0)
                 else:
                     inverse_depth.copysign_(inside)
-                slots = torch.add(base, offsets[row : row + rows])
+                slots = torch.add(base, block_offsets)
                 keys.scatter_reduce_(
                     0, slots.view(-1), candidates.view(torch.int64).view(-1), "amax"
                 )
@@ -1146,13 +1223,16 @@ class SurfelIndexRenderer:
     def __len__(self) -> int:
         return self.centers.shape[0]
 
-    def _candidates(self, view: _View, height: int, width: int) -> _SurfelCandidates:
-        """The surfels that may be visible in ``view``, in the camera frame."""
+    def _candidates(
+        self, view: _View, height: int, width: int, pixel_sums: torch.Tensor | None
+    ) -> _SurfelCandidates:
+        """The surfels that may be visible in ``view`` (and, with cells, reach a pixel of
+        ``pixel_sums``), in the camera frame."""
         if self.cells is None:
             ids = _frustum_candidates(self.centers, self.radii, view, height, width)
             data, positions = (self.centers, self.normals, self.radii), ids
         else:
-            positions = self.cells.cull(view, height, width)
+            positions = self.cells.cull(view, height, width, pixel_sums)
             ids = self.cells.ids.index_select(0, positions)
             data = (self.cells.centers, self.cells.normals, self.cells.radii)
         centers, normals, radii = (x.index_select(0, positions) for x in data)
@@ -1195,8 +1275,8 @@ class SurfelIndexRenderer:
         depth = torch.empty((batch, height * width), dtype=torch.float32, device=device)
         normals_cam = torch.empty((batch, 3, height * width), dtype=torch.float32, device=device)
         for b, view in enumerate(_views(T_wc, camera)):
-            surfels = self._candidates(view, height, width)
             sums = None if pixels is None else _summed_area(pixels[b])
+            surfels = self._candidates(view, height, width, sums)
             windows = _surfel_windows(surfels, view, height, width, cull_backfaces, sums)
             keys = torch.full((height * width,), _NO_KEY, dtype=torch.int64, device=device)
             _rasterise_surfels(windows, keys, width)
