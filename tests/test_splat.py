@@ -483,21 +483,22 @@ def test_masked_render_checks_the_mask(camera):
         renderer.render(identity(), camera, pixels=torch.ones(1, camera.height, camera.width))
 
 
-def test_disk_box_test_keeps_every_surfel_that_covers_a_masked_pixel():
-    """The first test of masked renders drops a surfel only if no ray through a pixel to
-    render hits its disk (dense float64 check), and drops most of those far from the mask."""
-    from diffloc.render.splat import _disk_box_touches, _summed_area, _views
+@pytest.mark.parametrize("cell_size_m", [None, 0.3])
+def test_masked_candidates_keep_every_surfel_that_covers_a_masked_pixel(cell_size_m):
+    """Masked renders drop a cell or surfel only if no ray through a pixel to render hits a
+    disk in it (dense float64 check), and drop most of those far from the mask."""
+    from diffloc.render.splat import _summed_area, _views
 
     centers, normals, radii, T_wc, camera = _masked_scene()
-    renderer = SurfelIndexRenderer(centers, normals, radii, cell_size_m=None)
+    renderer = SurfelIndexRenderer(centers, normals, radii, cell_size_m=cell_size_m)
     g = torch.Generator().manual_seed(9)
     keypoints = torch.rand(12, 2, generator=g) * torch.tensor([72.0, 56.0])
     pixels = keypoint_disk_mask(keypoints, torch.full((12,), 3.0), 56, 72)
     uv = torch.nonzero(pixels).flip(1).double()  # (P, 2) masked pixel centres (u, v)
-    dropped_total = 0
+    dropped = 0
     for b, view in enumerate(_views(T_wc[:3], camera.to(torch.float32))):
         surfels = renderer._candidates(view, 56, 72, None)
-        touches = _disk_box_touches(surfels, slice(None), view, _summed_area(pixels))
+        kept = renderer._candidates(view, 56, 72, _summed_area(pixels)).ids
         c, n = surfels.centers.double(), surfels.normals.double()  # (3, M) camera frame
         rays = torch.stack(
             ((uv[:, 0] - view.cx) / view.fx, (uv[:, 1] - view.cy) / view.fy, torch.ones(len(uv)))
@@ -506,10 +507,9 @@ def test_disk_box_test_keeps_every_surfel_that_covers_a_masked_pixel():
         hit = t[:, None] * rays[None] - c.T[:, :, None]  # (M, 3, P)
         covers = (hit.norm(dim=1) <= surfels.radii.double()[:, None]) & (t > MIN_DEPTH)
         covers &= (c[2] > MIN_DEPTH)[:, None]
-        assert bool(touches[covers.any(1)].all()), f"view {b}"
-        dropped_total += int((~touches).sum())
-        assert int(touches.sum()) < len(touches)
-    assert dropped_total > 1000
+        assert bool(torch.isin(surfels.ids[covers.any(1)], kept).all()), f"view {b}"
+        dropped += len(surfels.ids) - len(kept)
+    assert dropped > 1000
 
 
 def test_surfels_that_win_nowhere_change_no_pixel(camera):

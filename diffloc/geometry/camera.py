@@ -297,7 +297,8 @@ class PinholeCamera:
         return torch.stack(rows, dim=-1).reshape(*self.batch_shape, 3, 3)
 
     def to(self, *args: Any, **kwargs: Any) -> PinholeCamera:
-        """Copy with all tensors moved/cast as by ``torch.Tensor.to``.
+        """Copy with all tensors moved/cast as by ``torch.Tensor.to`` (``self`` when nothing
+        changes).
 
         Example:
             >>> PinholeCamera.from_fov(64, 48, 1.0).to(torch.float64).dtype
@@ -307,28 +308,39 @@ class PinholeCamera:
         def move(t: torch.Tensor) -> torch.Tensor:
             return t.to(*args, **kwargs)
 
-        return dataclasses.replace(
-            self,
-            fx=move(self.fx),
-            fy=move(self.fy),
-            cx=move(self.cx),
-            cy=move(self.cy),
-            distortion=None if self.distortion is None else move(self.distortion),
-        )
+        fields = {name: move(getattr(self, name)) for name in ("fx", "fy", "cx", "cy")}
+        fields["distortion"] = None if self.distortion is None else move(self.distortion)
+        if all(fields[name] is getattr(self, name) for name in fields):
+            return self
+        if not fields["fx"].is_floating_point():  # cast back to floats and checked
+            return dataclasses.replace(self, **fields)
+        return self._derived(**fields)
 
     def __getitem__(self, index: Any) -> PinholeCamera:
         """Index the camera batch dimensions, e.g. ``cams[0]`` or ``cams[1:, None]``."""
         if len(self.batch_shape) == 0:
             raise IndexError("cannot index a single (unbatched) camera")
         index_d = (*index, slice(None)) if isinstance(index, tuple) else (index, slice(None))
-        return dataclasses.replace(
-            self,
+        return self._derived(
             fx=self.fx[index],
             fy=self.fy[index],
             cx=self.cx[index],
             cy=self.cy[index],
             distortion=None if self.distortion is None else self.distortion[index_d],
         )
+
+    def _derived(self, **fields: torch.Tensor | None) -> PinholeCamera:
+        """A copy with tensor fields taken (cast, moved or indexed) from this validated camera.
+
+        They keep its checked properties, so the copy skips :meth:`__post_init__` (a dozen
+        reductions, most of the cost of ``to`` in inner loops).
+        """
+        camera = object.__new__(PinholeCamera)
+        for field in dataclasses.fields(self):
+            object.__setattr__(
+                camera, field.name, fields.get(field.name, getattr(self, field.name))
+            )
+        return camera
 
     def scaled(self, factor: float) -> PinholeCamera:
         """Camera of the image resized by ``factor`` (e.g. 0.5 halves width and height).

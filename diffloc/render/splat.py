@@ -367,15 +367,6 @@ class _SurfelCandidates:
     normals: torch.Tensor  # (3, M) float32 unit camera-frame normals
     radii: torch.Tensor  # (M,) float32
 
-    def select(self, index: torch.Tensor) -> _SurfelCandidates:
-        """The (K,) surfels ``index``."""
-        return _SurfelCandidates(
-            self.ids.index_select(0, index),
-            self.centers.index_select(1, index),
-            self.normals.index_select(1, index),
-            self.radii.index_select(0, index),
-        )
-
 
 @dataclass(frozen=True)
 class _Windows:
@@ -473,17 +464,21 @@ class _SurfelCells:
     """The finite surfels of a map grouped by cubic cells, for frustum culling by cell.
 
     Cell ``g`` holds the surfels ``ids[starts[g] : starts[g + 1]]`` (increasing map indices),
-    whose data are stored cell by cell in ``centers``, ``normals`` and ``radii``; its bounding
-    sphere (float64, slightly inflated) holds all their bounding spheres.
+    whose data are stored cell by cell in ``centers``, ``normals``, ``radii`` and ``extents``;
+    its bounding sphere (float64, slightly inflated) holds all their bounding spheres, and its
+    box (``box_centres +- box_extents``) all their disks' axis-aligned boxes.
     """
 
     ids: torch.Tensor  # (N',) int64 map indices, cell by cell
     centers: torch.Tensor  # (N', 3) float32
     normals: torch.Tensor  # (N', 3) float32
     radii: torch.Tensor  # (N',) float32
+    extents: torch.Tensor  # (N', 3) float32 half-extents of the disks (:func:`_disk_extents`)
     starts: torch.Tensor  # (G + 1,) int64
     sphere_centres: torch.Tensor  # (G, 3) float64
     sphere_radii: torch.Tensor  # (G,) float64
+    box_centres: torch.Tensor  # (G, 3) float64
+    box_extents: torch.Tensor  # (G, 3) float64
 
     @classmethod
     def build(
@@ -505,14 +500,23 @@ class _SurfelCells:
         bound = torch.zeros_like(counts, dtype=torch.float64).scatter_reduce_(
             0, cell, reach, "amax"
         )
+        radii, normals = radii.index_select(0, ids), normals.index_select(0, ids)
+        extents = _disk_extents(normals, radii)
+        corners = (c - extents.double(), c + extents.double())
+        index = cell[:, None].expand(-1, 3)
+        low = torch.full_like(mean, math.inf).scatter_reduce_(0, index, corners[0], "amin")
+        high = torch.full_like(mean, -math.inf).scatter_reduce_(0, index, corners[1], "amax")
         return cls(
             ids,
             centers.index_select(0, ids),
-            normals.index_select(0, ids),
-            radii.index_select(0, ids),
+            normals,
+            radii,
+            extents,
             starts,
             mean,
             bound.mul_(1.0 + 1e-6).add_(1e-6),
+            (low + high) / 2,
+            (high - low) / 2,
         )
 
     def cull(
@@ -524,8 +528,8 @@ class _SurfelCells:
         above the float32 rounding of :func:`_frustum_candidates`) keep all their surfels,
         cells outside one of them none; the surfels of the others are tested one by one by
         :func:`_frustum_candidates`. The result is the set that it would select on the whole
-        map. With ``pixel_sums`` (see :func:`_summed_area`), the cells whose sphere can reach
-        no pixel to render (:meth:`_reach`) are dropped first.
+        map. With ``pixel_sums`` (see :func:`_summed_area`), the cells whose box can reach no
+        pixel to render (:meth:`_reach`) are dropped first.
         """
         planes, slack = _frustum_planes(view, height, width)
         planes = torch.tensor(planes, dtype=torch.float64, device=self.starts.device)
@@ -550,53 +554,39 @@ class _SurfelCells:
     def _reach(
         self, cells: torch.Tensor, view: _View, height: int, width: int, pixel_sums: torch.Tensor
     ) -> torch.Tensor:
-        """(C,) bool: the (C,) ``cells`` whose bounding sphere may cover a pixel of
-        ``pixel_sums``.
-
-        A point of a sphere lies in its bounding cube, so its ``u = fx x / z + cx`` lies
-        between the extremes of ``x / z`` over the cube's ``x`` and ``z`` ranges; the pixel
-        box of those extremes (rounded outwards, the sphere grown by 1 mm plus the frustum
-        slack against the float32 rounding of the surfels' camera-frame coordinates) holds
-        every pixel centre that sees the sphere. Spheres reaching the near plane reach all.
-        """
+        """(C,) bool: the (C,) ``cells`` whose box may reach a pixel of ``pixel_sums``
+        (:func:`_box_touches`; camera-frame boxes that hold the world-frame ones, grown by 1 mm
+        plus the frustum slack against the float32 rounding of the surfels' camera-frame
+        coordinates)."""
         _, slack = _frustum_planes(view, height, width)
-        centres = torch.addmm(
-            view.t_cw.double(), view.R_cw.double(), self.sphere_centres.index_select(0, cells).T
-        )
-        radii = self.sphere_radii.index_select(0, cells) + (1e-3 + 100.0 * slack)
-        z_near, z_far = centres[2] - radii, centres[2] + radii
-        low, high = centres[:2] - radii, centres[:2] + radii
-        low = torch.minimum(low / z_near, low / z_far)
-        high = torch.maximum(high / z_near, high / z_far)
-        f = centres.new_tensor([[view.fx], [view.fy]])
-        principal = centres.new_tensor([[view.cx], [view.cy]])
-        size = centres.new_tensor([[width], [height]])
-        lo = torch.fmin(torch.fmax(low.mul_(f).add_(principal).floor_(), size * 0), size)
-        hi = torch.fmax(torch.fmin(high.mul_(f).add_(principal).ceil_(), size - 1), size * 0 - 1)
-        reach = _box_sums(pixel_sums, lo.to(torch.int32), hi.to(torch.int32), width) > 0
-        return reach | (z_near <= MIN_DEPTH)
+        R = view.R_cw.double()
+        centres = torch.addmm(view.t_cw.double(), R, self.box_centres.index_select(0, cells).T)
+        extents = (R.abs() @ self.box_extents.index_select(0, cells).T).add_(1e-3 + 100 * slack)
+        return _box_touches(centres.float(), extents.float(), view, pixel_sums)
 
 
-def _surfel_candidates(
-    ids: torch.Tensor,
-    centers: torch.Tensor,
-    normals: torch.Tensor,
-    radii: torch.Tensor,
-    view: _View,
-) -> _SurfelCandidates:
-    """Move the surfels that passed the frustum cull to the camera frame.
+def _rigid_columns(R: torch.Tensor, x: torch.Tensor, t: torch.Tensor | None = None) -> torch.Tensor:
+    """``R x + t`` for (3, M) columns ``x``, elementwise: every column rounds alike whatever M.
+
+    A matrix product picks its kernel by the number of columns, and its roundings with it
+    (``(3, 3) x (3, M)`` products differ in the last bit between M = 10^4 and M = 10^5); the
+    renderer draws varying subsets of a map (frustum, masks) and needs each surfel bit for bit
+    alike in all of them.
 
     Args:
-        ids: (M,) int64 map indices of the surfels.
-        centers: (M, 3) their world-frame centres.
-        normals: (M, 3) their world-frame normals (any non-zero length).
-        radii: (M,) their radii.
-        view: the camera.
+        R: (3, 3) rotation.
+        x: (3, M) columns.
+        t: (3, 1) translation, or ``None``.
     """
-    c = view.to_camera(centers.T)
-    n = view.R_cw @ normals.T
-    n = n / (n * n).sum(0).sqrt_()
-    return _SurfelCandidates(ids, c, n, radii)
+    out = R[:, :1] * x[:1] if t is None else torch.addcmul(t, R[:, :1], x[:1])
+    return out.addcmul_(R[:, 1:2], x[1:2]).addcmul_(R[:, 2:], x[2:])
+
+
+def _disk_extents(normals: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
+    """(N, 3) half-extents ``r sqrt(1 - n_i^2)`` of the axis-aligned boxes of disks with
+    (N, 3) normals (any non-zero length; NaN for non-finite ones) and (N,) radii."""
+    unit = normals / normals.norm(dim=1, keepdim=True)
+    return torch.rsub(unit * unit, 1.0).clamp_(min=0.0).sqrt_().mul_(radii[:, None])
 
 
 @dataclass(frozen=True)
@@ -673,12 +663,6 @@ def _surfel_windows(
 ) -> _Windows:
     """Conics and candidate windows of the surfels that may be visible in one camera.
 
-    With ``pixel_sums``, a first test drops, in chunks of :data:`_SURFEL_CHUNK` surfels
-    (elementwise, so the chunks change no value), the surfels whose disk can reach no pixel
-    to render (:func:`_disk_box_touches`); the others take the exact stages
-    (conic, box, bucket, whether the box holds a pixel to render). A window depends on its
-    surfel alone, so those drawn are drawn as in the full render.
-
     Args:
         surfels: the frustum-culled surfels.
         view: the camera.
@@ -689,44 +673,33 @@ def _surfel_windows(
             ``None`` for all pixels.
     """
     layout = _bucket_layout(width, height, surfels.radii.device)
-    if pixel_sums is not None:
-        touches = [
-            _disk_box_touches(surfels, slice(start, start + _SURFEL_CHUNK), view, pixel_sums)
-            for start in range(0, surfels.radii.shape[0], _SURFEL_CHUNK)
-        ]
-        touches.append(surfels.ids.new_zeros(0, dtype=torch.bool))  # (no surfels at all)
-        surfels = surfels.select(torch.cat(touches).nonzero().view(-1))
     lo, group, conics = _surfel_groups(surfels, view, layout, cull_backfaces, pixel_sums)
     return _bucket_windows(surfels, layout, lo, group, conics)
 
 
-def _disk_box_touches(
-    surfels: _SurfelCandidates, chunk: slice, view: _View, pixel_sums: torch.Tensor
+def _box_touches(
+    centres: torch.Tensor, extents: torch.Tensor, view: _View, pixel_sums: torch.Tensor
 ) -> torch.Tensor:
-    """(m,) bool: the chunk's surfels in front of the near plane whose disk may reach a pixel of
-    ``pixel_sums``.
+    """(m,) bool: the camera-frame boxes ``centres +- extents`` ((3, m) each) that may be seen
+    at a pixel of ``pixel_sums``.
 
-    The disk lies in its axis-aligned box, ``c +- r sqrt(1 - n^2)`` per axis, so the ``u`` of
-    its points lies between the extremes of ``fx x / z + cx`` over the box's ``x`` and ``z``
-    ranges (at its corners). Only the pixel centres in that range, widened by
-    :data:`_PREFILTER_MARGIN_PX` against rounding, can see the disk (the whole image when the
-    box reaches the near plane).
+    The ``u = fx x / z + cx`` of a box's points lies between the extremes of ``x / z`` over
+    its ``x`` and ``z`` ranges (at its corners); only the pixel centres in that range, widened
+    by :data:`_PREFILTER_MARGIN_PX` against rounding, can see the box. Boxes reaching the near
+    plane (or with NaN entries) may be seen anywhere.
     """
-    c, n, r = surfels.centers[:, chunk], surfels.normals[:, chunk], surfels.radii[chunk]
-    extent = torch.rsub(n * n, 1.0).clamp_(min=0.0).sqrt_().mul_(r)  # (3, m) half-extents
-    z_near, z_far = c[2] - extent[2], c[2] + extent[2]
-    low, high = c[:2] - extent[:2], c[:2] + extent[:2]
+    z_near, z_far = centres[2] - extents[2], centres[2] + extents[2]
+    low, high = centres[:2] - extents[:2], centres[:2] + extents[:2]
     low.div_(torch.where(low < 0, z_near, z_far))  # smallest x / z, y / z
     high.div_(torch.where(high < 0, z_far, z_near))
-    unbounded = (z_near > MIN_DEPTH).logical_not_()  # (and NaN normals)
+    unbounded = (z_near > MIN_DEPTH).logical_not_()
     low.masked_fill_(unbounded, -math.inf)
     high.masked_fill_(unbounded, math.inf)
     width, height = view.camera.width, view.camera.height
     for row, f, principal, size in ((0, view.fx, view.cx, width), (1, view.fy, view.cy, height)):
         low[row].mul_(f).add_(principal - _PREFILTER_MARGIN_PX).ceil_().clamp_(0, size)
         high[row].mul_(f).add_(principal + _PREFILTER_MARGIN_PX).floor_().clamp_(-1, size - 1)
-    reach = _box_sums(pixel_sums, low.to(torch.int32), high.to(torch.int32), width) > 0
-    return reach.logical_and_(c[2] > MIN_DEPTH)
+    return _box_sums(pixel_sums, low.to(torch.int32), high.to(torch.int32), width) > 0
 
 
 def _surfel_groups(
@@ -1214,6 +1187,7 @@ class SurfelIndexRenderer:
         self.centers = centers.to(torch.float32)
         self.normals = normals.to(torch.float32)
         self.radii = radii.to(torch.float32)
+        self.extents = _disk_extents(self.normals, self.radii) if cell_size_m is None else None
         self.cells = (
             None
             if cell_size_m is None
@@ -1226,17 +1200,34 @@ class SurfelIndexRenderer:
     def _candidates(
         self, view: _View, height: int, width: int, pixel_sums: torch.Tensor | None
     ) -> _SurfelCandidates:
-        """The surfels that may be visible in ``view`` (and, with cells, reach a pixel of
-        ``pixel_sums``), in the camera frame."""
+        """The surfels that may be visible in ``view``, in the camera frame.
+
+        With ``pixel_sums`` (see :func:`_summed_area`), only those that may be seen at a pixel
+        to render: the cells, then the surfels, whose axis-aligned boxes (world-frame boxes
+        rotated into the camera frame) reach one (:func:`_box_touches`). Every transform is
+        elementwise (:func:`_rigid_columns`), so a surfel is drawn alike in any subset.
+        """
         if self.cells is None:
-            ids = _frustum_candidates(self.centers, self.radii, view, height, width)
-            data, positions = (self.centers, self.normals, self.radii), ids
+            positions = _frustum_candidates(self.centers, self.radii, view, height, width)
+            ids, data = positions, (self.centers, self.normals, self.radii, self.extents)
         else:
             positions = self.cells.cull(view, height, width, pixel_sums)
             ids = self.cells.ids.index_select(0, positions)
-            data = (self.cells.centers, self.cells.normals, self.cells.radii)
-        centers, normals, radii = (x.index_select(0, positions) for x in data)
-        return _surfel_candidates(ids, centers, normals, radii, view)
+            cells = self.cells
+            data = (cells.centers, cells.normals, cells.radii, cells.extents)
+        centers, normals, radii, extents = data
+        c = _rigid_columns(view.R_cw, centers.index_select(0, positions).T, view.t_cw)
+        if pixel_sums is not None:
+            e = view.R_cw.abs() @ extents.index_select(0, positions).T
+            touches = [ids.new_zeros(0, dtype=torch.bool)]  # (no surfels at all)
+            for start in range(0, ids.shape[0], _SURFEL_CHUNK):
+                chunk = slice(start, start + _SURFEL_CHUNK)
+                touches.append(_box_touches(c[:, chunk], e[:, chunk], view, pixel_sums))
+            keep = torch.cat(touches).nonzero().view(-1)
+            positions, ids, c = positions[keep], ids[keep], c.index_select(1, keep)
+        n = _rigid_columns(view.R_cw, normals.index_select(0, positions).T)
+        n = n / (n * n).sum(0).sqrt_()
+        return _SurfelCandidates(ids, c, n, radii.index_select(0, positions))
 
     @torch.no_grad()
     def render(
