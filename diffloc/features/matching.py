@@ -126,6 +126,20 @@ def _unpack_bits(desc: torch.Tensor) -> torch.Tensor:
     return _BITS.to(desc.device)[desc.long()].flatten(-2)
 
 
+def _l2_rows(desc0: torch.Tensor) -> torch.Tensor:
+    """(N, D + 2) augmented rows ``[-2 a, |a|^2, 1]`` of (N, D) float descriptors."""
+    desc0 = desc0.float()
+    norm0 = (desc0 * desc0).sum(1, keepdim=True)
+    return torch.cat((desc0 * -2.0, norm0, torch.ones_like(norm0)), dim=1)
+
+
+def _l2_columns(desc1: torch.Tensor) -> torch.Tensor:
+    """(M, D + 2) augmented rows ``[b, 1, |b|^2]`` of (M, D) float descriptors."""
+    desc1 = desc1.float()
+    norm1 = (desc1 * desc1).sum(1, keepdim=True)
+    return torch.cat((desc1, torch.ones_like(norm1), norm1), dim=1)
+
+
 def _squared_l2(desc0: torch.Tensor, desc1: torch.Tensor) -> torch.Tensor:
     """(N, M) squared Euclidean distances of float descriptors (N, D), (M, D) by one GEMM.
 
@@ -133,12 +147,7 @@ def _squared_l2(desc0: torch.Tensor, desc1: torch.Tensor) -> torch.Tensor:
     ``[-2 a, |a|^2, 1]`` and ``[b, 1, |b|^2]`` (what :func:`torch.cdist` does before its
     square root); values may be slightly negative from rounding.
     """
-    desc0, desc1 = desc0.float(), desc1.float()
-    norm0 = (desc0 * desc0).sum(1, keepdim=True)
-    norm1 = (desc1 * desc1).sum(1, keepdim=True)
-    left = torch.cat((desc0 * -2.0, norm0, torch.ones_like(norm0)), dim=1)
-    right = torch.cat((desc1, torch.ones_like(norm1), norm1), dim=1)
-    return left @ right.T
+    return _l2_rows(desc0) @ _l2_columns(desc1).T
 
 
 def _all_pairs(desc0: torch.Tensor, desc1: torch.Tensor, metric: Metric) -> torch.Tensor:
@@ -170,7 +179,8 @@ def _nearest_two(
     The distance matrix (squared for L2) is made and reduced in blocks of columns of about
     :data:`_MATCH_BLOCK` entries; a block's entries are bit for bit those of the whole matrix
     (the same products, checked for the CPU GEMM) and the reductions are exact, so the results
-    are those of the whole matrix.
+    are those of the whole matrix. L2 blocks are written into one buffer: a fresh one per
+    block would be page-faulted anew each time (about half of the cost).
 
     Returns:
         ``(best, nearest, second, column_min)``: (N,) smallest value of each row and its first
@@ -178,11 +188,19 @@ def _nearest_two(
         the smallest value of each column.
     """
     step = max(_ROW_BLOCK, _MATCH_BLOCK // max(desc0.shape[0], 1))
+    rows = desc0.shape[0]
+    if metric == "l2":
+        left = _l2_rows(desc0)
+        buffer = left.new_empty(rows * min(step, desc1.shape[0]))
     column_min = []
     best = nearest = second = None
     for start in range(0, desc1.shape[0], step):
         block = desc1[start : start + step]
-        values = _squared_l2(desc0, block) if metric == "l2" else _all_pairs(desc0, block, metric)
+        if metric == "l2":
+            out = buffer[: rows * block.shape[0]].view(rows, block.shape[0])
+            values = torch.mm(left, _l2_columns(block).T, out=out)
+        else:
+            values = _all_pairs(desc0, block, metric)
         block_best, block_nearest = _row_min(values)
         column_min.append(values.amin(dim=0))
         # The block's second smallest: its smallest once the nearest is masked (in place).
