@@ -115,6 +115,8 @@ _SURFEL_CHUNK = 1 << 16
 _MERGE_PIXELS = 4096
 """A bucket of windows joins a larger one when that adds at most this many candidate pixels
 (about the cost of the few tensor operations that every bucket takes)."""
+_PAD_STEP = 32
+"""The z-buffer row padding is a multiple of this (few distinct strides for the basis cache)."""
 _GEMM_COLUMNS = 12
 """Fewest windows per matrix product of :func:`_rasterise_surfels`: from 12 columns on, the
 CPU sgemm (MKL, AVX2) rounds every output column alike, whatever the other columns; narrower
@@ -372,7 +374,9 @@ class _SurfelCandidates:
 class _Windows:
     """Candidate pixel windows of one camera, sorted into buckets of one window size.
 
-    Window ``w`` tests the ``size_v x size_u`` pixels from flat index ``base[w]``, with
+    Window ``w`` tests the ``size_v x size_u`` pixels from flat index ``base[w]`` of a
+    z-buffer of ``rows x stride`` pixels (the image, padded right and below so that every
+    window fits from the top-left pixel of its surfel's box), with
     polynomials in the offsets ``(i, j)`` from that top-left pixel: ``inside[:, w]`` holds the
     coefficients of ``1 - q`` (>= 0 on the disk, see :class:`_Conics`) on the monomials
     ``(i^2, i j, j^2, i, j, 1)``, ``keys[:, 2 w + 1]`` those of the inverse depth on
@@ -386,6 +390,8 @@ class _Windows:
     keys: torch.Tensor  # (3, 2 K) float32
     base: torch.Tensor  # (K,) int64 flat index of the top-left pixel
     buckets: list[tuple[int, int, bool, int, int]]  # size_u, size_v, near, start, count
+    stride: int  # z-buffer row length, >= W
+    rows: int  # z-buffer rows, >= H
 
 
 def _frustum_planes(view: _View, height: int, width: int) -> tuple[list[list[float]], float]:
@@ -820,7 +826,6 @@ class _BucketLayout:
     shapes: tuple[tuple[int, int], ...]  # (G,)
     level: torch.Tensor  # (max(W, H) + 1,) int32 level of a box extent
     sizes: torch.Tensor  # (2, G + 1) int32 (size_u, size_v) of each group, then 1 (dropped)
-    last_corner: torch.Tensor  # (2, G + 1) int32 largest top-left pixel of a window that fits
 
 
 @functools.lru_cache(maxsize=16)
@@ -836,8 +841,7 @@ def _bucket_layout(width: int, height: int, device: torch.device) -> _BucketLayo
     table = torch.tensor(sizes, device=device)
     level = torch.bucketize(torch.arange(limit + 1, device=device), table, out_int32=True)
     sizes = torch.tensor([*shapes, (1, 1)], dtype=torch.int32, device=device).T.contiguous()
-    last_corner = torch.tensor([[width], [height]], dtype=torch.int32, device=device) - sizes
-    return _BucketLayout(width, height, levels, shapes, level, sizes, last_corner)
+    return _BucketLayout(width, height, levels, shapes, level, sizes)
 
 
 def _bucket_windows(
@@ -849,12 +853,12 @@ def _bucket_windows(
 ) -> _Windows:
     """Sort the drawn windows into buckets of one (width, height) and place them in the image.
 
-    Each box widens to its bucket's size and shifts left / up to lie inside the image (extra
-    pixels fail the exact test). Surfels that may reach the near plane get buckets of their own,
-    which add a depth test. Sparse buckets join larger ones (see :func:`_merge_sparse_buckets`),
-    but a window moves only if it fits there without a shift, so its top-left pixel and
-    polynomials depend on its surfel alone, and a larger window evaluates the same pixels the
-    same way (:func:`_rasterise_surfels`): a surfel is drawn bit for bit alike whatever else is
+    Each box widens (right and down, into the z-buffer's padding at the image border) to its
+    bucket's size: the extra pixels fail the exact test. Surfels that may reach the near plane
+    get buckets of their own, which add a depth test. Sparse buckets join larger ones (see
+    :func:`_merge_sparse_buckets`); a window's top-left pixel and polynomials depend on its
+    surfel alone, and a larger window evaluates the same pixels the same way
+    (:func:`_rasterise_surfels`), so a surfel is drawn bit for bit alike whatever else is
     drawn with it. Only the drawn windows (group below ``len(layout.shapes)``: visible, and
     their box holds a pixel to render; the full render draws no pixel outside a surfel's box,
     which bounds its disk with a margin against rounding) are placed and given polynomials.
@@ -871,15 +875,7 @@ def _bucket_windows(
     counts = torch.bincount(group, minlength=dropped + 1).tolist()
     target = [*_merge_sparse_buckets(counts[:-1], layout.shapes), dropped]
     # int16 groups: the stable sort below is twice as fast as on int32.
-    merged = torch.tensor(target, dtype=torch.int16, device=lo.device).index_select(0, group)
-    if target != list(range(dropped + 1)):
-        # Only windows that fit in the larger bucket without a shift at the image border
-        # move: their top-left pixel stays ``lo``, so every pixel is evaluated as before.
-        moving = torch.nonzero(merged != group).view(-1)
-        last = layout.last_corner.index_select(1, merged.index_select(0, moving).to(torch.int32))
-        stays = moving[(lo.index_select(1, moving) > last).any(0)]
-        merged.index_copy_(0, stays, group.index_select(0, stays).to(torch.int16))
-    group = merged
+    group = torch.tensor(target, dtype=torch.int16, device=lo.device).index_select(0, group)
     buckets, start = [], 0
     for g, count in enumerate(torch.bincount(group, minlength=dropped + 1)[:-1].tolist()):
         if count:
@@ -891,15 +887,21 @@ def _bucket_windows(
     else:
         drawn = torch.nonzero(group != dropped).view(-1)
         order = drawn.index_select(0, torch.argsort(group.index_select(0, drawn), stable=True))
+    corner = lo.index_select(1, order)
     size = layout.sizes.index_select(1, group.index_select(0, order).to(torch.int32))
-    corner = torch.minimum(lo.index_select(1, order), lo.new_tensor([[width], [height]]) - size)
+    pad_u, pad_v = (
+        ((corner + size).amax(1) - corner.new_tensor([width, height])).clamp_(min=0).tolist()
+        if start
+        else (0, 0)
+    )
+    stride = width + -(-pad_u // _PAD_STEP) * _PAD_STEP  # few distinct strides: basis cache
     inside, inverse_depth = _window_polynomials(conics.select(order), corner)
     keys = inside.new_empty(3, start, 2)  # (tie-breaker, inverse depth) words of int64 keys
     keys[:2, :, 1 - _HIGH_WORD] = 0.0
     keys[2, :, 1 - _HIGH_WORD] = _tie_breakers(surfels.ids.index_select(0, order))
     keys[:, :, _HIGH_WORD] = inverse_depth
-    base = corner[1].to(torch.int64).mul_(width).add_(corner[0])
-    return _Windows(inside, keys.view(3, -1), base, buckets)
+    base = corner[1].to(torch.int64).mul_(stride).add_(corner[0])
+    return _Windows(inside, keys.view(3, -1), base, buckets, stride, height + pad_v)
 
 
 def _summed_area(pixels: torch.Tensor) -> torch.Tensor:
@@ -1034,7 +1036,7 @@ def _chunk_shape(area: int) -> tuple[int, int]:
     return columns, min(area, _CHUNK // columns)
 
 
-def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> None:
+def _rasterise_surfels(windows: _Windows, keys: torch.Tensor) -> None:
     """Ray-disk test of all candidate pixels, z-buffered into ``keys`` in place.
 
     A candidate's key is the int64 read from two adjacent float32: the low word is the
@@ -1050,13 +1052,13 @@ def _rasterise_surfels(windows: _Windows, keys: torch.Tensor, width: int) -> Non
 
     Args:
         windows: the candidate windows of one camera.
-        keys: (H * W,) int64 flat z-buffer, in place (:data:`_NO_KEY` where empty).
-        width: image width W.
+        keys: (windows.rows * windows.stride,) int64 flat z-buffer, in place
+            (:data:`_NO_KEY` where empty).
     """
     pairs = windows.keys.view(3, -1, 2)
     for size_u, size_v, near, first, count in windows.buckets:
         area = size_u * size_v
-        basis, offsets = _window_basis(size_u, size_v, width, keys.device)
+        basis, offsets = _window_basis(size_u, size_v, windows.stride, keys.device)
         columns, rows = _chunk_shape(area)
         blocks = [
             (basis[row : row + rows], offsets[row : row + rows]) for row in range(0, area, rows)
@@ -1269,16 +1271,20 @@ class SurfelIndexRenderer:
             sums = None if pixels is None else _summed_area(pixels[b])
             surfels = self._candidates(view, height, width, sums)
             windows = _surfel_windows(surfels, view, height, width, cull_backfaces, sums)
-            keys = torch.full((height * width,), _NO_KEY, dtype=torch.int64, device=device)
-            _rasterise_surfels(windows, keys, width)
+            size = windows.rows * windows.stride
+            keys = torch.full((size,), _NO_KEY, dtype=torch.int64, device=device)
+            _rasterise_surfels(windows, keys)
             if pixels is None:
+                if windows.stride != width or windows.rows != height:  # drop the padding
+                    keys = keys.view(windows.rows, windows.stride)[:height, :width].reshape(-1)
                 _resolve_surfel_keys(keys, surfels, len(self), ids[b], depth[b], normals_cam[b])
                 continue
             # The other pixels saw only some of their surfels: -1, 0, 0 there.
             index = torch.nonzero(pixels[b].reshape(-1)).view(-1)
             found_ids, found_depth = ids.new_empty(len(index)), depth.new_empty(len(index))
             found_normals = normals_cam.new_empty(3, len(index))
-            keys = keys.index_select(0, index)
+            row_padding = windows.stride - width
+            keys = keys.index_select(0, index + index // width * row_padding)
             _resolve_surfel_keys(keys, surfels, len(self), found_ids, found_depth, found_normals)
             ids[b].fill_(-1).index_copy_(0, index, found_ids)
             depth[b].zero_().index_copy_(0, index, found_depth)
