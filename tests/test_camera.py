@@ -128,6 +128,11 @@ def test_dtype_follows_distortion_and_to_casts() -> None:
     assert cam32.fx.dtype == torch.float32 and cam32.distortion.dtype == torch.float32
     assert (cam32.width, cam32.height) == (64, 48)
     assert PinholeCamera.from_fov(64, 48, 1.0).dtype == torch.get_default_dtype()
+    assert cam32.to(torch.float32) is cam32  # nothing to change
+    back = cam32.to(torch.float64)
+    assert back.dtype == F64 and torch.equal(back.K, cam32.K.double())
+    with pytest.raises(ValueError, match="fx"):  # other dtypes are checked: float16 overflows
+        PinholeCamera.from_fov(64, 48, 1e-6).to(torch.float16)
 
 
 def test_indexing_a_camera_batch() -> None:

@@ -312,7 +312,7 @@ class PinholeCamera:
         fields["distortion"] = None if self.distortion is None else move(self.distortion)
         if all(fields[name] is getattr(self, name) for name in fields):
             return self
-        if not fields["fx"].is_floating_point():  # cast back to floats and checked
+        if fields["fx"].dtype not in (torch.float32, torch.float64):  # converted and checked
             return dataclasses.replace(self, **fields)
         return self._derived(**fields)
 

@@ -28,10 +28,10 @@ Design notes:
   affine function of them, so a chunk of same-sized candidate windows is evaluated with small
   matrix products. Candidate windows are the pixels of the analytic bounding box of the
   projected ellipse (clipped to the image), grouped in buckets of a few window sizes (sparse
-  buckets merged into larger ones where the windows fit without a shift at the image border),
-  so that a surfel's window, and every key it writes, is the same whatever else is drawn
-  (masked renders skip the cells and surfels that reach no pixel to render). Surfels are
-  first culled against the view frustum with
+  buckets merged into larger ones); a window starts at its box's top-left pixel (reaching
+  into a padded z-buffer past the image border), so that a surfel's window, and every key it
+  writes, is the same whatever else is drawn (masked renders skip the cells and surfels that
+  reach no pixel to render). Surfels are first culled against the view frustum with
   their bounding spheres (one ``4 x 3`` product over the world-frame map) and the survivors
   numbered in map order. Their z-buffer key holds the float32 *inverse* depth (high word) and
   a tie-breaker decreasing with that number (low word), max-reduced: the matrix product writes
@@ -111,7 +111,7 @@ _TIE_TOP = 0x7F7FFFFF
 _MAX_SURFELS = _TIE_TOP - 0x00800000 + 1
 """Surfels per render, so that every tie-breaker is a positive normal float32."""
 _SURFEL_CHUNK = 1 << 16
-"""Surfels per chunk of the per-surfel stages of :func:`_surfel_windows`."""
+"""Surfels per chunk of the box test of masked renders (temporaries stay in the CPU caches)."""
 _MERGE_PIXELS = 4096
 """A bucket of windows joins a larger one when that adds at most this many candidate pixels
 (about the cost of the few tensor operations that every bucket takes)."""
@@ -375,7 +375,7 @@ class _Windows:
     """Candidate pixel windows of one camera, sorted into buckets of one window size.
 
     Window ``w`` tests the ``size_v x size_u`` pixels from flat index ``base[w]`` of a
-    z-buffer of ``rows x stride`` pixels (the image, padded right and below so that every
+    z-buffer of ``buffer_rows x stride`` pixels (the image, padded right and below so that every
     window fits from the top-left pixel of its surfel's box), with
     polynomials in the offsets ``(i, j)`` from that top-left pixel: ``inside[:, w]`` holds the
     coefficients of ``1 - q`` (>= 0 on the disk, see :class:`_Conics`) on the monomials
@@ -391,7 +391,7 @@ class _Windows:
     base: torch.Tensor  # (K,) int64 flat index of the top-left pixel
     buckets: list[tuple[int, int, bool, int, int]]  # size_u, size_v, near, start, count
     stride: int  # z-buffer row length, >= W
-    rows: int  # z-buffer rows, >= H
+    buffer_rows: int  # z-buffer rows, >= H
 
 
 def _frustum_planes(view: _View, height: int, width: int) -> tuple[list[list[float]], float]:
@@ -714,7 +714,7 @@ def _surfel_groups(
     layout: _BucketLayout,
     cull_backfaces: bool,
     pixel_sums: torch.Tensor | None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, _Conics]:
+) -> tuple[torch.Tensor, torch.Tensor, _Conics]:
     """Boxes and buckets of M surfels.
 
     Args:
@@ -996,14 +996,15 @@ def _tie_breakers(ids: torch.Tensor) -> torch.Tensor:
 
 
 def _make_window_basis(
-    size_u: int, size_v: int, width: int, device: torch.device
+    size_u: int, size_v: int, stride: int, device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Monomials and flat pixel offsets of the row-major pixels ``(i, j)`` of a window.
 
     Returns:
         ``(basis, offsets)``: (A, 6) float32 monomials ``(i^2, i j, j^2, i, j, 1)`` with
         ``A = size_u * size_v`` (a matrix product with (6, m) coefficients evaluates m
-        polynomials at every pixel) and (A, 1) int64 offsets ``j W + i``.
+        polynomials at every pixel) and (A, 1) int64 offsets ``j stride + i`` in a z-buffer
+        with rows of ``stride`` pixels.
     """
     j, i = torch.meshgrid(
         torch.arange(size_v, device=device, dtype=torch.float32),
@@ -1012,7 +1013,7 @@ def _make_window_basis(
     )
     i, j = i.reshape(-1), j.reshape(-1)
     basis = torch.stack((i * i, i * j, j * j, i, j, torch.ones_like(i)), dim=1)
-    offsets = j.to(torch.int64).mul_(width).add_(i.to(torch.int64))
+    offsets = j.to(torch.int64).mul_(stride).add_(i.to(torch.int64))
     return basis, offsets[:, None]
 
 
@@ -1020,12 +1021,12 @@ _cached_window_basis = functools.lru_cache(maxsize=256)(_make_window_basis)
 
 
 def _window_basis(
-    size_u: int, size_v: int, width: int, device: torch.device
+    size_u: int, size_v: int, stride: int, device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`_make_window_basis`, memoised for small windows (read-only constants)."""
     if size_u * size_v <= _BASIS_CACHE_AREA:
-        return _cached_window_basis(size_u, size_v, width, device)
-    return _make_window_basis(size_u, size_v, width, device)
+        return _cached_window_basis(size_u, size_v, stride, device)
+    return _make_window_basis(size_u, size_v, stride, device)
 
 
 def _chunk_shape(area: int) -> tuple[int, int]:
@@ -1052,7 +1053,7 @@ def _rasterise_surfels(windows: _Windows, keys: torch.Tensor) -> None:
 
     Args:
         windows: the candidate windows of one camera.
-        keys: (windows.rows * windows.stride,) int64 flat z-buffer, in place
+        keys: (windows.buffer_rows * windows.stride,) int64 flat z-buffer, in place
             (:data:`_NO_KEY` where empty).
     """
     pairs = windows.keys.view(3, -1, 2)
@@ -1271,20 +1272,19 @@ class SurfelIndexRenderer:
             sums = None if pixels is None else _summed_area(pixels[b])
             surfels = self._candidates(view, height, width, sums)
             windows = _surfel_windows(surfels, view, height, width, cull_backfaces, sums)
-            size = windows.rows * windows.stride
-            keys = torch.full((size,), _NO_KEY, dtype=torch.int64, device=device)
+            rows, stride = windows.buffer_rows, windows.stride
+            keys = torch.full((rows * stride,), _NO_KEY, dtype=torch.int64, device=device)
             _rasterise_surfels(windows, keys)
             if pixels is None:
-                if windows.stride != width or windows.rows != height:  # drop the padding
-                    keys = keys.view(windows.rows, windows.stride)[:height, :width].reshape(-1)
+                if (rows, stride) != (height, width):  # drop the padding
+                    keys = keys.view(rows, stride)[:height, :width].reshape(-1)
                 _resolve_surfel_keys(keys, surfels, len(self), ids[b], depth[b], normals_cam[b])
                 continue
             # The other pixels saw only some of their surfels: -1, 0, 0 there.
             index = torch.nonzero(pixels[b].reshape(-1)).view(-1)
             found_ids, found_depth = ids.new_empty(len(index)), depth.new_empty(len(index))
             found_normals = normals_cam.new_empty(3, len(index))
-            row_padding = windows.stride - width
-            keys = keys.index_select(0, index + index // width * row_padding)
+            keys = keys.index_select(0, index + index // width * (stride - width))
             _resolve_surfel_keys(keys, surfels, len(self), found_ids, found_depth, found_normals)
             ids[b].fill_(-1).index_copy_(0, index, found_ids)
             depth[b].zero_().index_copy_(0, index, found_depth)
