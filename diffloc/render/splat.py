@@ -1190,7 +1190,6 @@ class SurfelIndexRenderer:
         self.centers = centers.to(torch.float32)
         self.normals = normals.to(torch.float32)
         self.radii = radii.to(torch.float32)
-        self.extents = _disk_extents(self.normals, self.radii) if cell_size_m is None else None
         self.cells = (
             None
             if cell_size_m is None
@@ -1199,6 +1198,12 @@ class SurfelIndexRenderer:
 
     def __len__(self) -> int:
         return self.centers.shape[0]
+
+    @functools.cached_property
+    def _extents(self) -> torch.Tensor:
+        """(N, 3) half-extents of the disks' boxes (:func:`_disk_extents`), for masked renders
+        without cells (made at the first)."""
+        return _disk_extents(self.normals, self.radii)
 
     def _candidates(
         self, view: _View, height: int, width: int, pixel_sums: torch.Tensor | None
@@ -1212,15 +1217,15 @@ class SurfelIndexRenderer:
         """
         if self.cells is None:
             positions = _frustum_candidates(self.centers, self.radii, view, height, width)
-            ids, data = positions, (self.centers, self.normals, self.radii, self.extents)
+            ids, data = positions, (self.centers, self.normals, self.radii)
         else:
             positions = self.cells.cull(view, height, width, pixel_sums)
             ids = self.cells.ids.index_select(0, positions)
-            cells = self.cells
-            data = (cells.centers, cells.normals, cells.radii, cells.extents)
-        centers, normals, radii, extents = data
+            data = (self.cells.centers, self.cells.normals, self.cells.radii)
+        centers, normals, radii = data
         c = _rigid_columns(view.R_cw, centers.index_select(0, positions).T, view.t_cw)
         if pixel_sums is not None:
+            extents = self._extents if self.cells is None else self.cells.extents
             e = view.R_cw.abs() @ extents.index_select(0, positions).T
             touches = [ids.new_zeros(0, dtype=torch.bool)]  # (no surfels at all)
             for start in range(0, ids.shape[0], _SURFEL_CHUNK):
