@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import statistics
 import time
 from collections.abc import Callable
@@ -39,12 +41,24 @@ def peak_rss_mb() -> float:
     return round(_status_kb("VmHWM") / 1024, 1)
 
 
+def _release_free_heap() -> None:
+    """Give the heap memory that is free but still resident back to the system (glibc's
+    ``malloc_trim``; nothing elsewhere)."""
+    name = ctypes.util.find_library("c")
+    malloc_trim = getattr(ctypes.CDLL(name), "malloc_trim", None) if name else None
+    if malloc_trim is not None:
+        malloc_trim(0)
+
+
 def peak_added_mb(function: Callable[[], object]) -> float:
     """Peak resident memory added while ``function()`` runs, in MB (Linux only).
 
-    Resets the process's peak (``VmHWM``) through ``/proc/self/clear_refs`` first, so the
-    figure is the memory this call added on top of what was resident before it.
+    Returns freed heap memory to the system and resets the process's peak (``VmHWM``)
+    through ``/proc/self/clear_refs`` first, so the figure is the memory this call needs on
+    top of what was in use before it (without the trim, temporaries that fit in memory that
+    earlier calls freed but the allocator kept would count as nothing).
     """
+    _release_free_heap()
     Path("/proc/self/clear_refs").write_text("5")
     before = _status_kb("VmRSS")
     function()
