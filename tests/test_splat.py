@@ -533,6 +533,22 @@ def test_surfels_that_win_nowhere_change_no_pixel(camera):
     assert float(render_surfel_index(*hidden, T_wc, camera).mask.float().mean()) > 0.4
 
 
+def test_camera_frame_transform_rounds_alike_for_any_number_of_surfels():
+    """A (3, 3) x (3, M) matrix product rounds differently for small and large M; the
+    renderer's transform must not, or a surfel would differ between renders of subsets."""
+    from diffloc.render.splat import _rigid_columns
+
+    g = torch.Generator().manual_seed(6)
+    R = se3_exp(torch.randn(6, generator=g, dtype=torch.float64))[:3, :3].float()
+    t = torch.randn(3, 1, generator=g)
+    x = torch.randn(3, 100_000, generator=g) * 5.0
+    everything = _rigid_columns(R, x, t)
+    assert_close(everything, torch.addmm(t, R, x), atol=1e-5, rtol=1e-6)
+    for m in (1, 7, 100, 5000, 40_000):
+        assert torch.equal(_rigid_columns(R, x[:, :m], t), everything[:, :m])
+        assert torch.equal(_rigid_columns(R, x[:, -m:]), _rigid_columns(R, x)[:, -m:])
+
+
 def test_keypoint_disk_mask_is_what_neighbour_surfels_reads():
     g = torch.Generator().manual_seed(4)
     keypoints = torch.rand(30, 2, generator=g) * torch.tensor([40.0, 30.0]) - 2.0
