@@ -363,7 +363,8 @@ def _gather_channels_first(values: torch.Tensor, ids: torch.Tensor) -> torch.Ten
 
 @dataclass(frozen=True)
 class _SurfelCandidates:
-    """The surfels of one camera that pass the frustum cull, in the camera frame.
+    """The surfels of one camera that pass the frustum cull (and, in a masked render, the box
+    test), in the camera frame.
 
     They may come in any order: the z-buffer breaks ties with the map index, not the position.
     """
