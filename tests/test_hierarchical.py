@@ -6,6 +6,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from evo.tools import file_interface
@@ -51,12 +52,32 @@ def test_main_job_writes_results_tables_and_plots(main_run):
     saved = json.loads((out / "results.json").read_text())
     for key in ("recall", "mATE_m", "queries", "median_reloc_ms", "peak_rss_mb"):
         assert key in saved
-    assert set(saved["sequences"]) == {"query_same", "changed"}
+    assert set(saved["sequences"]) == {"query_same", "query_lane", "query_reverse", "changed"}
     assert saved["queries"] == len(read_sequence(root, "query_same"))
     for entry in saved["sequences"].values():
         for path in entry["plots"].values():
             assert Path(path).stat().st_size > 1000
-    assert "recall@0.3m" in (out / "results.md").read_text()
+        assert set(entry["recall_at"]) == {"0.1", "0.3", "1.0"}
+        assert entry["recall_at"]["0.1"] <= entry["recall_at"]["0.3"] <= entry["recall_at"]["1.0"]
+        assert entry["recall_at"]["0.3"] == entry["recall"]
+        near = entry["nearest_db_pose"]
+        assert 0.0 <= near["distance_median_m"] <= near["distance_p90_m"]
+    table = (out / "results.md").read_text()
+    for header in ("recall@0.3m", "precision", "to nearest db pose", "seed 1's rule"):
+        assert header in table
+
+
+def test_precision_counts_the_accepted_poses_that_are_right(main_run):
+    _, out, results = main_run
+    for name, entry in results["sequences"].items():
+        queries = json.loads((out / name / "queries.json").read_text())
+        accepted = [q for q in queries if q["accepted"]]
+        right = [q for q in accepted if q["correct"]]
+        assert entry["accepted"] == len(accepted)
+        if accepted:
+            assert entry["precision"] == pytest.approx(len(right) / len(accepted))
+        else:
+            assert entry["precision"] is None
 
 
 def test_main_job_localizes_the_tiny_scene_above_a_floor(main_run):
@@ -70,6 +91,36 @@ def test_estimates_are_a_tum_trajectory_evo_reads(main_run):
     entry = results["sequences"]["query_same"]
     trajectory = file_interface.read_tum_trajectory_file(entry["estimates"])
     assert trajectory.num_poses == entry["accepted"]
+
+
+def test_relocalisation_never_reads_the_query_ground_truth(main_run, tmp_path):
+    """Ground-truth firewall: garbage query poses on disk change the scores, not the output."""
+    root, out, results = main_run
+    spoiled = tmp_path / "indoor"
+    shutil.copytree(root, spoiled)
+    poses = spoiled / "query_same" / "poses.txt"
+    rows = np.loadtxt(poses, ndmin=2)
+    rng = np.random.default_rng(7)
+    rows[:, 1:4] = rng.uniform(-50.0, 50.0, (len(rows), 3))
+    quaternions = rng.normal(size=(len(rows), 4))
+    rows[:, 4:] = quaternions / np.linalg.norm(quaternions, axis=1, keepdims=True)
+    np.savetxt(poses, rows, fmt="%.9f")
+    out_spoiled = tmp_path / "results"
+    overrides = [f"dataset={spoiled}", f"task.out_dir={out_spoiled}", "task.optimize=false"]
+    run(compose_config(TINY + FINE + ["task=relocalize", "reloc.database=database", *overrides]))
+    name = "query_same"
+    assert (out_spoiled / name / "estimates.tum").read_bytes() == (
+        out / name / "estimates.tum"
+    ).read_bytes()
+    decisions = ("found", "accepted", "accepted_seed1", "inliers", "candidates")
+    clean = json.loads((out / name / "queries.json").read_text())
+    garbage = json.loads((out_spoiled / name / "queries.json").read_text())
+    for a, b in zip(clean, garbage, strict=True):
+        assert {k: a[k] for k in decisions} == {k: b[k] for k in decisions}
+    # the scores did see the garbage, so the test would notice a relocaliser that reads it
+    assert [q["translation_error_m"] for q in clean] != [
+        q["translation_error_m"] for q in garbage
+    ]
 
 
 @pytest.fixture(scope="module")

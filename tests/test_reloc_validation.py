@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from diffloc.checks import ShapeError
+from diffloc.reloc.hierarchical import Candidate, RelocResult
 from diffloc.reloc.validation import PoseValidator, ValidationConfig
 
 
@@ -70,3 +71,66 @@ def test_bad_poses_are_clear_errors():
         v.validate(bad, 30, 0.0)
     with pytest.raises(ValueError, match="timestamp"):
         v.validate(pose_at(0.0), 30, math.nan)
+
+
+def candidate(x: float, inliers: int, matches: int = 100, coverage: float = 1.0) -> Candidate:
+    return Candidate(pose_at(x), inliers, matches, coverage, canonical=0)
+
+
+def result_of(*candidates: Candidate) -> RelocResult:
+    best = max(candidates, key=lambda c: c.num_inliers)
+    retrieved = torch.zeros(0, dtype=torch.int64)
+    return RelocResult(best.T_wc, True, best.num_inliers, 0, retrieved, {}, list(candidates))
+
+
+STRICT = ValidationConfig(
+    theta_in=15, theta_dist_m=0.3, min_inlier_ratio=0.3, min_coverage=0.25, ambiguity_ratio=0.5
+)
+
+
+@pytest.mark.parametrize(
+    ("evidence", "reason"),
+    [
+        ((candidate(0.1, 20, matches=100),), "inlier ratio 0.2 < 0.3"),
+        ((candidate(0.1, 60, coverage=0.125),), "inliers on 2 of 16 cells"),
+        ((candidate(0.1, 60), candidate(4.0, 30)), "a rival 3.9 m away with half the inliers"),
+    ],
+)
+def test_implausible_poses_are_rejected_and_do_not_become_the_reference(evidence, reason):
+    v = PoseValidator(STRICT)
+    assert not v.validate_result(result_of(candidate(0.0, 60)), 0.0)  # the reference
+    assert not v.validate_result(result_of(*evidence), 1.0), reason
+    # the rejected pose did not replace the reference: a pose near 0 still verifies
+    assert v.validate_result(result_of(candidate(0.2, 60)), 2.0)
+    # seed 1's rule alone accepts the same evidence
+    seed1 = PoseValidator(STRICT.seed1_rule())
+    seed1.validate_result(result_of(candidate(0.0, 60)), 0.0)
+    assert seed1.validate_result(result_of(*evidence), 1.0), reason
+
+
+def test_rivals_near_the_pose_or_with_few_inliers_are_no_ambiguity():
+    v = PoseValidator(STRICT)
+    v.validate_result(result_of(candidate(0.0, 60)), 0.0)
+    assert v.validate_result(result_of(candidate(0.1, 60), candidate(0.3, 59)), 1.0)
+    assert v.validate_result(result_of(candidate(0.1, 60), candidate(5.0, 29)), 2.0)
+
+
+def test_a_result_without_a_pose_is_not_verified():
+    v = PoseValidator(STRICT)
+    eye = torch.eye(4, dtype=torch.float64)
+    nothing = RelocResult(eye, False, 0, -1, torch.zeros(0, dtype=torch.int64), {})
+    assert not v.validate_result(nothing, 0.0)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"min_inlier_ratio": 1.5}, "min_inlier_ratio"),
+        ({"min_coverage": -0.1}, "min_coverage"),
+        ({"ambiguity_ratio": 0.0}, "ambiguity_ratio"),
+        ({"ambiguity_ratio": math.nan}, "ambiguity_ratio"),
+    ],
+)
+def test_bad_plausibility_thresholds_are_clear_errors(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        ValidationConfig(**kwargs)

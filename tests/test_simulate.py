@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from diffloc.io.dataset import read_sequence
+from diffloc.io.dataset import read_dataset_info, read_sequence
 from diffloc.render.raycast import MeshRaycaster
 from diffloc.sim import dataset as sim_dataset
 from diffloc.sim.dataset import DatasetSimulator, simulate_dataset
@@ -40,6 +40,18 @@ def test_dataset_layout(tiny_indoor_dataset):
     for item in ("lidar_map.ply", "tls_map.ply", "mesh/scene.obj", "mesh_changed/scene.obj"):
         assert (root / "map" / item).exists()
     assert (root / "preview.png").stat().st_size > 10_000
+
+
+def test_dataset_records_how_far_each_sequence_is_from_the_mapping_run(tiny_indoor_dataset):
+    info = read_dataset_info(tiny_indoor_dataset)
+    offsets = info["nearest_mapping_pose"]
+    assert set(offsets) == set(info["sequences"])
+    assert offsets["mapping"]["distance_p90_m"] == 0.0
+    for name in ("query_same", "query_lane", "query_reverse", "changed"):
+        entry = offsets[name]
+        assert 0.0 < entry["distance_median_m"] <= entry["distance_p90_m"]
+        assert 0.0 < entry["angle_median_deg"] <= entry["angle_p90_deg"] <= 180.0
+    assert offsets["query_reverse"]["angle_median_deg"] > 150.0
 
 
 def test_sequences_read_back_consistently(tiny_indoor_dataset):
@@ -110,6 +122,9 @@ def test_outdoor_dataset_simulates(tmp_path):
         ("scene.camera.height=-4", "height"),
         ("scene.camera.hfov_deg=0", "hfov"),
         ("scene.map.lidar_sequence=nowhere", "lidar_sequence"),
+        ("scene.sequences.1.frame_rate_hz=-1", "sequences.1.frame_rate_hz"),
+        ("scene.sequences.2.speed_mps=-0.5", "sequences.2.speed_mps"),
+        ("scene.sequences.3.start_offset_m=nan", "sequences.3.start_offset_m"),
     ],
 )
 def test_bad_config_values_are_refused_before_writing(tmp_path, override, message):

@@ -226,6 +226,33 @@ def test_max_frames_truncates():
     assert torch.equal(T_all[:7], T_wb)
 
 
+def test_speed_profile_and_start_offset_place_frames_at_the_integrated_arc_length():
+    cfg = still_config(
+        speed_mps=0.8, speed_variation_mps=0.2, speed_period_s=6.0, frame_rate_hz=1.0
+    )
+    straight = np.array([[0.0, 0.0, 0.0], [40.0, 0.0, 0.0]])
+    phase, offset = 0.7, 0.37
+    t, T_wb = make_trajectory(straight, cfg, phase=phase, start_offset_m=offset)
+    x = T_wb[:, 0, 3].numpy()
+    omega = 2.0 * math.pi / 6.0
+    expected = offset + 0.8 * t + 0.2 * (math.cos(phase) - np.cos(omega * t + phase)) / omega
+    np.testing.assert_allclose(x, expected, atol=1e-12)
+    steps = np.diff(x)
+    assert 0.6 - 1e-9 <= steps.min() < 0.65 and 0.95 < steps.max() <= 1.0 + 1e-9
+    assert x[-1] <= 40.0 < x[-1] + steps.max()
+
+
+def test_other_offset_and_speed_do_not_retrace_the_frames():
+    mapping = still_config(speed_mps=0.8, frame_rate_hz=2.0)
+    query = still_config(speed_mps=0.85, speed_variation_mps=0.15, frame_rate_hz=1.0)
+    _, T_map = make_trajectory(ROUTE, mapping)
+    _, T_query = make_trajectory(ROUTE, query, start_offset_m=0.23, phase=1.7)
+    gaps = torch.cdist(T_query[:, :3, 3], T_map[:, :3, 3]).min(dim=1).values
+    assert float(gaps.median()) > 0.05
+    _, T_same = make_trajectory(ROUTE, still_config(speed_mps=0.8, frame_rate_hz=1.0))
+    assert float(torch.cdist(T_same[:, :3, 3], T_map[:, :3, 3]).min(dim=1).values.max()) < 1e-9
+
+
 def test_duplicate_waypoints_and_a_short_route():
     cfg = still_config(speed_mps=1.0, frame_rate_hz=1.0)
     route = np.array([[0.0, 0, 0], [0.0, 0, 0], [0.5, 0, 0]])
@@ -252,6 +279,14 @@ def test_bad_inputs():
         make_trajectory(ROUTE, TrajectoryConfig(max_frames=-1))
     with pytest.raises(ValueError, match="corner_smoothing_m"):
         make_trajectory(ROUTE, TrajectoryConfig(corner_smoothing_m=-1.0))
+    with pytest.raises(ValueError, match="speed_variation_mps"):
+        make_trajectory(ROUTE, TrajectoryConfig(speed_mps=0.8, speed_variation_mps=0.8))
+    with pytest.raises(ValueError, match="speed_period_s"):
+        make_trajectory(ROUTE, TrajectoryConfig(speed_period_s=0.0))
+    with pytest.raises(ValueError, match="start_offset_m"):
+        make_trajectory(ROUTE, cfg, start_offset_m=-0.1)
+    with pytest.raises(ValueError, match="start_offset_m"):
+        make_trajectory(ROUTE, cfg, start_offset_m=100.0)
     with pytest.raises(ValueError, match="finite"):
         make_trajectory(ROUTE, cfg, lateral_offset_m=float("nan"))
     with pytest.raises(ValueError, match="horizontal"):

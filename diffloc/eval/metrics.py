@@ -50,6 +50,7 @@ __all__ = [
     "localization_metrics",
     "mean_ate",
     "pose_errors",
+    "precision",
     "precision_recall_curve",
     "recall",
     "rmse_ate",
@@ -176,6 +177,26 @@ def recall(
     return float(correct.mean()) if correct.size else math.nan
 
 
+def precision(
+    errors: PoseErrors, max_trans_m: float = DEFAULT_MAX_TRANS_M, max_rot_deg: float = math.inf
+) -> float:
+    """Fraction of the localized (accepted) queries that are within the thresholds.
+
+    A relocaliser that says "not localized" loses recall but keeps precision; a confident
+    wrong pose costs precision. No localized query gives NaN.
+
+    Example:
+        >>> T = np.tile(np.eye(4), (2, 1, 1))
+        >>> wrong = T.copy()
+        >>> wrong[1, 0, 3] = 5.0
+        >>> precision(pose_errors(wrong, T, np.array([True, True])))
+        0.5
+    """
+    correct = is_correct(errors, max_trans_m, max_rot_deg)
+    count = int(errors.localized.sum())
+    return float(correct.sum() / count) if count else math.nan
+
+
 def mean_ate(errors: PoseErrors, max_trans_m: float = math.inf) -> float:
     """mATE: mean translation error (metres) of the localized queries.
 
@@ -281,6 +302,7 @@ class LocalizationMetrics:
         queries: number of queries.
         localized: number of queries with a pose.
         recall: see :func:`recall`.
+        precision: see :func:`precision`.
         mATE_m: see :func:`mean_ate`.
         ate_rmse_m: see :func:`rmse_ate`.
         median_translation_m: median translation error of the localized queries.
@@ -293,6 +315,7 @@ class LocalizationMetrics:
     queries: int
     localized: int
     recall: float
+    precision: float
     mATE_m: float
     ate_rmse_m: float
     median_translation_m: float
@@ -345,6 +368,7 @@ def localization_metrics(
         queries=errors.num_queries,
         localized=int(errors.localized.sum()),
         recall=recall(errors, max_trans_m, max_rot_deg),
+        precision=precision(errors, max_trans_m, max_rot_deg),
         mATE_m=mean_ate(errors),
         ate_rmse_m=rmse_ate(errors),
         median_translation_m=float(np.median(t)) if t.size else math.nan,

@@ -28,21 +28,30 @@ import torch
 
 from diffloc.database.database import VisualDatabase
 from diffloc.eval.metrics import (
+    is_correct,
     localization_metrics,
     pose_errors,
+    precision,
     precision_recall_curve,
+    recall,
     write_localized_tum,
 )
 from diffloc.eval.plots import plot_error_histogram, plot_precision_recall, plot_trajectory_topdown
 from diffloc.eval.tables import Column, markdown_table
 from diffloc.features.local import make_extractor
+from diffloc.geometry.pose_offsets import nearest_pose_offsets, offset_summary
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.io.trajectory import write_tum
 from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
 from diffloc.progress import progress
-from diffloc.reloc.hierarchical import HierarchicalRelocalizer, RelocConfig, RelocResult
+from diffloc.reloc.hierarchical import (
+    Candidate,
+    HierarchicalRelocalizer,
+    RelocConfig,
+    RelocResult,
+)
 from diffloc.reloc.retrieval import (
     BowConfig,
     BowRetriever,
@@ -56,6 +65,9 @@ __all__ = ["RelocStageConfig", "relocalize_dataset"]
 
 EXTRACTION_STAGES = ("features", "global_descriptor")
 """Stages counted as feature extraction (left out of ``median_reloc_ms``)."""
+
+RECALL_THRESHOLDS_M = (0.1, 0.3, 1.0)
+"""Position thresholds of the reported recalls (``recall_at``), metres."""
 
 
 @dataclass
@@ -135,15 +147,21 @@ def _retriever(
 
 @dataclass
 class _SequenceRun:
-    """Per-query outcomes of one sequence."""
+    """Per-query outcomes of one sequence.
+
+    ``accepted`` is the verdict of the configured validation, ``accepted_seed1`` that of seed
+    1's own tests (inlier count and distance to the previous inlier pose) alone.
+    """
 
     timestamps: np.ndarray
     T_wc_true: np.ndarray
     T_wc_est: np.ndarray
     found: np.ndarray
     accepted: np.ndarray
+    accepted_seed1: np.ndarray
     inliers: np.ndarray
     timings: list[dict[str, float]]
+    candidates: list[list[dict]]
 
 
 def _relocalize_sequence(
@@ -157,41 +175,69 @@ def _relocalize_sequence(
     sequence = read_sequence(dataset, name)
     frames = list(range(0, len(sequence), cfg.query_stride))
     validator = PoseValidator(cfg.validation)
-    estimates, found, accepted, inliers, timings = [], [], [], [], []
+    seed1 = PoseValidator(cfg.validation.seed1_rule())
+    estimates, found, accepted, accepted_seed1, inliers, timings, candidates = (
+        [] for _ in range(7)
+    )
     for i in progress(frames, f"relocalise {name}", show_progress):
         image = sequence.load_rgb(i)
         start = time.perf_counter()
         features = extractor.extract(image)
         extract_ms = (time.perf_counter() - start) * 1e3
         result: RelocResult = relocalizer.relocalize(image, features, sequence.camera)
-        ok = result.found and validator.validate(
-            result.T_wc, result.num_inliers, float(sequence.timestamps[i])
-        )
+        timestamp = float(sequence.timestamps[i])
+        accepted.append(result.found and validator.validate_result(result, timestamp))
+        accepted_seed1.append(result.found and seed1.validate_result(result, timestamp))
         estimates.append(result.T_wc if result.found else torch.full((4, 4), math.nan))
         found.append(result.found)
-        accepted.append(ok)
         inliers.append(result.num_inliers)
         timings.append({"features": extract_ms, **result.timings_ms})
+        candidates.append([_candidate_entry(c, result.T_wc) for c in result.candidates])
     return _SequenceRun(
         timestamps=np.asarray(sequence.timestamps)[frames],
         T_wc_true=sequence.T_wc[frames].double().numpy(),
         T_wc_est=torch.stack(estimates).double().numpy(),
         found=np.array(found),
         accepted=np.array(accepted),
+        accepted_seed1=np.array(accepted_seed1),
         inliers=np.array(inliers, dtype=np.float64),
         timings=timings,
+        candidates=candidates,
     )
 
 
-def _report_sequence(run: _SequenceRun, cfg: RelocStageConfig, out: Path, name: str) -> dict:
-    """Metrics, TUM files and plots of one sequence; returns its results entry."""
+def _candidate_entry(candidate: Candidate, T_wc_best: torch.Tensor) -> dict:
+    """A candidate's figures for ``queries.json``, with its distance to the chosen pose."""
+    distance = torch.linalg.vector_norm(candidate.T_wc[:3, 3] - T_wc_best[:3, 3])
+    return {
+        "canonical": candidate.canonical,
+        "inliers": candidate.num_inliers,
+        "matches": candidate.num_matches,
+        "coverage": round(candidate.coverage, 4),
+        "distance_to_chosen_m": round(float(distance), 4),
+    }
+
+
+def _report_sequence(
+    run: _SequenceRun, cfg: RelocStageConfig, out: Path, name: str, T_wc_db_true: torch.Tensor
+) -> dict:
+    """Metrics, TUM files and plots of one sequence; returns its results entry.
+
+    ``T_wc_db_true`` (K, 4, 4) are the true poses of the database keyframes, read for scoring
+    only: how far each query lies from the nearest of them.
+    """
     out.mkdir(parents=True, exist_ok=True)
     verified = pose_errors(run.T_wc_est, run.T_wc_true, run.accepted)
+    seed1 = pose_errors(run.T_wc_est, run.T_wc_true, run.accepted_seed1)
     raw = pose_errors(run.T_wc_est, run.T_wc_true, run.found)
     reloc_ms = [sum(v for k, v in t.items() if k not in EXTRACTION_STAGES) for t in run.timings]
     total_ms = [sum(t.values()) for t in run.timings]
     metrics = localization_metrics(verified, reloc_ms, cfg.max_trans_m)
     metrics_rot = localization_metrics(verified, None, cfg.max_trans_m, cfg.max_rot_deg)
+    correct = is_correct(verified, cfg.max_trans_m)
+    offsets = offset_summary(
+        *nearest_pose_offsets(torch.from_numpy(run.T_wc_true), T_wc_db_true.double())
+    )
     write_localized_tum(out / "estimates.tum", run.timestamps, run.T_wc_est, run.accepted)
     write_tum(out / "groundtruth.tum", run.timestamps, torch.from_numpy(run.T_wc_true))
     curves = {
@@ -222,16 +268,29 @@ def _report_sequence(run: _SequenceRun, cfg: RelocStageConfig, out: Path, name: 
             "timestamp": float(run.timestamps[q]),
             "found": bool(run.found[q]),
             "accepted": bool(run.accepted[q]),
+            "accepted_seed1": bool(run.accepted_seed1[q]),
+            "correct": bool(correct[q]),
             "inliers": int(run.inliers[q]),
             "translation_error_m": _finite(raw.translation_m[q]),
             "rotation_error_deg": _finite(raw.rotation_deg[q]),
             "timings_ms": {k: round(v, 3) for k, v in run.timings[q].items()},
+            "candidates": run.candidates[q],
         }
         for q in range(len(run.found))
     ]
     atomic_write_text(out / "queries.json", json.dumps(per_query, indent=1) + "\n")
     return {
         "recall": metrics.recall,
+        "recall_at": {
+            f"{threshold:.1f}": recall(verified, threshold) for threshold in RECALL_THRESHOLDS_M
+        },
+        "precision": _finite(metrics.precision),
+        "seed1_rule": {
+            "accepted": int(run.accepted_seed1.sum()),
+            "recall": recall(seed1, cfg.max_trans_m),
+            "precision": _finite(precision(seed1, cfg.max_trans_m)),
+        },
+        "nearest_db_pose": offsets,
         "mATE_m": _finite(metrics.mATE_m),
         "queries": metrics.queries,
         "median_reloc_ms": _finite(metrics.median_reloc_ms),
@@ -244,6 +303,38 @@ def _report_sequence(run: _SequenceRun, cfg: RelocStageConfig, out: Path, name: 
         },
         "plots": {k: str(v) for k, v in plots.items()},
         "estimates": str(out / "estimates.tum"),
+    }
+
+
+RESULT_COLUMNS = [
+    Column("sequence"),
+    Column("queries"),
+    Column("db_distance", "to nearest db pose: median / p90 [m]"),
+    Column("db_angle", "angle: median / p90 [deg]"),
+    *[
+        Column(f"recall_{t:.1f}", f"recall@{t:g}m [%]", ".1f", scale=100)
+        for t in RECALL_THRESHOLDS_M
+    ],
+    Column("precision", "precision [%]", ".1f", scale=100),
+    Column("seed1", "seed 1's rule: recall / precision [%]"),
+    Column("mATE_m", "mATE [cm]", ".1f", scale=100),
+    Column("median_reloc_ms", "reloc [ms]", ".1f"),
+    Column("median_total_ms", "with features [ms]", ".1f"),
+]
+"""The columns of ``results.md``; mATE is over all accepted poses, right or wrong."""
+
+
+def _table_row(name: str, entry: dict) -> dict:
+    """One ``results.md`` row of a sequence's results entry."""
+    near, rule = entry["nearest_db_pose"], entry["seed1_rule"]
+    rule_precision = "-" if rule["precision"] is None else f"{100 * rule['precision']:.1f}"
+    return {
+        "sequence": name,
+        **entry,
+        **{f"recall_{k}": v for k, v in entry["recall_at"].items()},
+        "db_distance": f"{near['distance_median_m']:.2f} / {near['distance_p90_m']:.2f}",
+        "db_angle": f"{near['angle_median_deg']:.1f} / {near['angle_p90_deg']:.1f}",
+        "seed1": f"{100 * rule['recall']:.1f} / {rule_precision}",
     }
 
 
@@ -287,27 +378,18 @@ def relocalize_dataset(
     extractor = make_extractor(db_cfg.extractor_config())
     results: dict = {"sequences": {}}
     rows = []
+    T_wc_db_true = read_sequence(dataset, db_cfg.sequence).T_wc[built["keyframe_frames"]]
     for name in cfg.sequences:
         run = _relocalize_sequence(dataset, name, cfg, extractor, relocalizer, show_progress)
-        entry = _report_sequence(run, cfg, out / name, name)
+        entry = _report_sequence(run, cfg, out / name, name, T_wc_db_true)
         results["sequences"][name] = entry
-        rows.append({"sequence": name, **entry})
+        rows.append(_table_row(name, entry))
     headline = results["sequences"].get("query_same") or next(iter(results["sequences"].values()))
     for key in ("recall", "mATE_m", "queries", "median_reloc_ms"):
         results[key] = headline[key]
     results["database"] = str(database_dir(dataset, db_cfg) / cfg.database)
     results["config"] = asdict(cfg)
-    table = markdown_table(
-        rows,
-        [
-            Column("sequence"),
-            Column("queries"),
-            Column("recall", "recall@0.3m [%]", ".1f", scale=100),
-            Column("mATE_m", "mATE [cm]", ".1f", scale=100),
-            Column("median_reloc_ms", "reloc [ms]", ".1f"),
-            Column("median_total_ms", "with features [ms]", ".1f"),
-        ],
-    )
+    table = markdown_table(rows, RESULT_COLUMNS)
     results["table"] = table
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.md", table + "\n")

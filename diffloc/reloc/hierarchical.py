@@ -51,7 +51,14 @@ from diffloc.reloc.essential import EssentialCheckConfig, essential_check
 from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
 from diffloc.reloc.retrieval import KeyframeRetriever
 
-__all__ = ["HierarchicalRelocalizer", "RelocConfig", "RelocResult"]
+__all__ = [
+    "Candidate",
+    "HierarchicalRelocalizer",
+    "RelocConfig",
+    "RelocResult",
+    "covisibility_clusters",
+    "grid_coverage",
+]
 
 POINT_MODES = ("naive", "F", "FN")
 
@@ -74,6 +81,8 @@ class RelocConfig:
         projection_ratio: ratio test of the projection search, or ``None``.
         stop_inliers: stop processing further canonical keyframes once a candidate pose has
             this many inliers (``None``: always process ``min(N_db, N_max)``, as seed 1).
+        coverage_grid: the image is split into this many cells per side to measure how much
+            of it a candidate's inliers cover (:attr:`Candidate.coverage`).
         essential: settings of the essential check. It only pre-filters matches for PnP, so
             its local optimisation is off by default: on the default scene that halves its
             time and leaves the refined inlier counts unchanged.
@@ -93,6 +102,7 @@ class RelocConfig:
     projection_radius_px: float = 10.0
     projection_ratio: float | None = 0.9
     stop_inliers: int | None = None
+    coverage_grid: int = 4
     essential: EssentialCheckConfig = field(
         default_factory=lambda: EssentialCheckConfig(
             min_iterations=64, lo_rounds=0, refine_iterations=0
@@ -105,7 +115,7 @@ class RelocConfig:
     def __post_init__(self) -> None:
         if self.points not in POINT_MODES:
             raise ValueError(f"points must be one of {POINT_MODES}, got {self.points!r}")
-        for name in ("top_k", "n_max", "min_matches"):
+        for name in ("top_k", "n_max", "min_matches", "coverage_grid"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.n_co < 0 or self.min_shared_points < 1:
@@ -126,6 +136,8 @@ class RelocResult:
         retrieved: (k,) int64 retrieved keyframes, best first.
         timings_ms: milliseconds per stage (global_descriptor, retrieval, clustering, matching,
             essential, pnp, projection, refine).
+        candidates: every refined candidate in processing order (the best one among them),
+            for pose validation.
     """
 
     T_wc: torch.Tensor
@@ -134,12 +146,32 @@ class RelocResult:
     canonical: int
     retrieved: torch.Tensor
     timings_ms: dict[str, float]
+    candidates: list[Candidate] = field(default_factory=list)
+
+    @property
+    def best(self) -> Candidate | None:
+        """The candidate the pose comes from (``None`` when nothing was found)."""
+        return max(self.candidates, key=lambda c: c.num_inliers) if self.candidates else None
 
 
 @dataclass
-class _Candidate:
+class Candidate:
+    """One canonical keyframe's refined pose (every processed cluster yields at most one).
+
+    Attributes:
+        T_wc: (4, 4) float64 refined camera-to-world pose.
+        num_inliers: inliers ``n_in`` of the refinement.
+        num_matches: 2D-3D matches the refinement started from (``n_in`` of them survived).
+        coverage: fraction of the cells of a ``coverage_grid`` x ``coverage_grid`` grid over
+            the image that hold at least one inlier keypoint (inliers bunched on one repeated
+            structure cover little of the image).
+        canonical: the canonical keyframe.
+    """
+
     T_wc: torch.Tensor
     num_inliers: int
+    num_matches: int
+    coverage: float
     canonical: int
 
 
@@ -161,6 +193,30 @@ def _concat_ranges(starts: torch.Tensor, ends: torch.Tensor) -> torch.Tensor:
     lengths = ends - starts
     first = torch.repeat_interleave(starts - torch.cumsum(lengths, 0) + lengths, lengths)
     return first + torch.arange(len(first))
+
+
+def grid_coverage(uv: torch.Tensor, camera: PinholeCamera, cells: int) -> float:
+    """Fraction of the ``cells x cells`` grid over the image holding at least one pixel.
+
+    Args:
+        uv: (N, 2) pixel coordinates (pixel centres at integers).
+        camera: the image's camera (batch shape ``()``), for its size.
+        cells: grid cells per side (>= 1).
+
+    Returns:
+        The covered fraction in [0, 1] (0 for no pixels).
+
+    Example:
+        >>> cam = PinholeCamera.from_fov(100, 100, 1.0)
+        >>> grid_coverage(torch.tensor([[10.0, 10.0], [90.0, 90.0]]), cam, 2)
+        0.5
+    """
+    check_shape(uv, "N,2", "uv")
+    col = (uv[:, 0] * cells / camera.width).floor().clamp(0, cells - 1).long()
+    row = (uv[:, 1] * cells / camera.height).floor().clamp(0, cells - 1).long()
+    occupied = torch.zeros(cells * cells, dtype=torch.bool)
+    occupied[row * cells + col] = True
+    return float(occupied.sum()) / (cells * cells)
 
 
 def covisibility_clusters(
@@ -279,34 +335,42 @@ class HierarchicalRelocalizer:
         generator = torch.Generator().manual_seed(self.config.seed)
         camera = camera.to(torch.float64)
         if len(features) < self.config.min_matches:
-            return self._result(None, retrieved, timer)
+            return self._result([], retrieved, timer)
         if self.config.points == "naive":
             best = self._naive(int(retrieved[0]), features, camera, generator, timer)
-            return self._result(best, retrieved, timer)
+            return self._result([] if best is None else [best], retrieved, timer)
         clusters = covisibility_clusters(
             retrieved, self.covisibility, self.config.min_shared_points
         )
         timer.lap("clustering")
-        best = None
+        candidates: list[Candidate] = []
         for cluster in clusters[: self.config.n_max]:
             candidate = self._candidate(int(cluster[0]), features, camera, generator, timer)
-            if candidate is not None and (best is None or candidate.num_inliers > best.num_inliers):
-                best = candidate
+            if candidate is not None:
+                candidates.append(candidate)
             stop = self.config.stop_inliers
-            if best is not None and stop is not None and best.num_inliers >= stop:
+            if stop is not None and max((c.num_inliers for c in candidates), default=0) >= stop:
                 break
-        return self._result(best, retrieved, timer)
+        return self._result(candidates, retrieved, timer)
 
     # ------------------------------------------------------------------ stages
 
     def _result(
-        self, best: _Candidate | None, retrieved: torch.Tensor, timer: _Timer
+        self, candidates: list[Candidate], retrieved: torch.Tensor, timer: _Timer
     ) -> RelocResult:
-        if best is None:
+        """The result of the candidate with the most inliers (the first of equals)."""
+        if not candidates:
             eye = torch.eye(4, dtype=torch.float64)
             return RelocResult(eye, False, 0, -1, retrieved, dict(timer.ms))
+        best = max(candidates, key=lambda c: c.num_inliers)
         return RelocResult(
-            best.T_wc, True, best.num_inliers, best.canonical, retrieved, dict(timer.ms)
+            best.T_wc,
+            True,
+            best.num_inliers,
+            best.canonical,
+            retrieved,
+            dict(timer.ms),
+            candidates,
         )
 
     def _local_points(self, canonical: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -371,8 +435,9 @@ class HierarchicalRelocalizer:
         generator: torch.Generator,
         timer: _Timer,
         search_points: torch.Tensor | None,
+        canonical: int,
         points_world: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, int] | None:
+    ) -> Candidate | None:
         """PnP RANSAC, projection search (unless ``search_points`` is None) and refinement."""
         if len(matches) < self.config.min_matches:
             return None
@@ -396,7 +461,14 @@ class HierarchicalRelocalizer:
         sigmas = (features.sizes[matches[:, 0]] / features.sizes.min()).double().clamp_min(1.0)
         refined = refine_pose(camera, T0, X, uv, sigmas, mask, self.config.refine)
         timer.lap("refine")
-        return refined.T_wc.detach(), int(refined.num_inliers)
+        inliers = refined.inliers  # masked matches have chi2 = inf, so never inliers
+        return Candidate(
+            T_wc=refined.T_wc.detach(),
+            num_inliers=int(refined.num_inliers),
+            num_matches=int(len(uv) if mask is None else mask.sum()),
+            coverage=grid_coverage(uv[inliers], camera, self.config.coverage_grid),
+            canonical=canonical,
+        )
 
     def _projection_search(
         self,
@@ -432,7 +504,7 @@ class HierarchicalRelocalizer:
         camera: PinholeCamera,
         generator: torch.Generator,
         timer: _Timer,
-    ) -> _Candidate | None:
+    ) -> Candidate | None:
         points_f, points_n = self._local_points(canonical)
         matches = self._match(features, points_f, torch.ones(len(features), dtype=torch.bool))
         free = torch.ones(len(features), dtype=torch.bool)
@@ -457,10 +529,9 @@ class HierarchicalRelocalizer:
             if not check.success:
                 return None
             matches = matches[check.inliers]
-        out = self._pnp_and_refine(
-            matches, features, camera, generator, timer, torch.cat([points_f, points_n])
+        return self._pnp_and_refine(
+            matches, features, camera, generator, timer, torch.cat([points_f, points_n]), canonical
         )
-        return None if out is None else _Candidate(out[0], out[1], canonical)
 
     def _naive(
         self,
@@ -469,7 +540,7 @@ class HierarchicalRelocalizer:
         camera: PinholeCamera,
         generator: torch.Generator,
         timer: _Timer,
-    ) -> _Candidate | None:
+    ) -> Candidate | None:
         """Seed 1's Naive baseline: keyframe keypoints tied to their surfel centres."""
         db = self.db
         rows = db.keyframe_slice(keyframe)
@@ -483,7 +554,6 @@ class HierarchicalRelocalizer:
         ).indices
         timer.lap("matching")
         X = self.surfel_centers[surfels[on_surfel[matches[:, 1]]]]
-        out = self._pnp_and_refine(
-            matches, features, camera, generator, timer, None, points_world=X
+        return self._pnp_and_refine(
+            matches, features, camera, generator, timer, None, keyframe, points_world=X
         )
-        return None if out is None else _Candidate(out[0], out[1], keyframe)

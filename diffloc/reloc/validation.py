@@ -11,6 +11,19 @@ bounds the motion between consecutive queries. For sparser query streams the thr
 with the time since the reference: ``theta_dist + max_speed_mps * dt`` (``max_speed_mps = 0``
 gives the paper's test exactly).
 
+Seed 1's tests let confident wrong poses through where the scene repeats or is seen from the
+other side: a chain of consistently wrong poses passes the distance test. Three further tests,
+on the evidence of the relocaliser's candidates (:class:`~diffloc.reloc.hierarchical.Candidate`),
+make an *inlier pose* also need
+
+- an inlier ratio ``n_in / matches >= min_inlier_ratio``;
+- inliers spread over the image: ``coverage >= min_coverage``;
+- no competing candidate (another covisibility cluster) with at least ``ambiguity_ratio`` times
+  its inliers at a pose farther than ``theta_dist`` away: two well-supported places for one
+  image mean the image is ambiguous.
+
+:meth:`ValidationConfig.seed1_rule` switches them off, giving seed 1's rule.
+
 Example:
     >>> v = PoseValidator(ValidationConfig(theta_in=15, theta_dist_m=0.3))
     >>> T = torch.eye(4, dtype=torch.float64)
@@ -21,11 +34,12 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 from diffloc.checks import check_finite, check_shape
+from diffloc.reloc.hierarchical import Candidate, RelocResult
 
 __all__ = ["PoseValidator", "ValidationConfig"]
 
@@ -41,12 +55,19 @@ class ValidationConfig:
         max_speed_mps: allowance per second since the previous inlier pose, for query streams
             sparser than seed 1's 20 Hz (0 disables it).
         temporal: apply the distance test (sequence mode); ``False`` is single-image mode.
+        min_inlier_ratio: fewest inliers per refined match (0 disables the test).
+        min_coverage: smallest fraction of the image grid holding inliers (0 disables it).
+        ambiguity_ratio: a competing candidate with at least this fraction of the inliers,
+            farther than ``theta_dist_m`` from the pose, rejects it (``None`` disables it).
     """
 
     theta_in: int = 15
     theta_dist_m: float = 0.3
     max_speed_mps: float = 0.0
     temporal: bool = True
+    min_inlier_ratio: float = 0.0
+    min_coverage: float = 0.0
+    ambiguity_ratio: float | None = None
 
     def __post_init__(self) -> None:
         if self.theta_in < 0:
@@ -55,6 +76,17 @@ class ValidationConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {value}")
+        for name in ("min_inlier_ratio", "min_coverage"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+                raise ValueError(f"validation.{name} must be in [0, 1], got {value}")
+        ratio = self.ambiguity_ratio
+        if ratio is not None and not (math.isfinite(ratio) and 0.0 < ratio <= 1.0):
+            raise ValueError(f"validation.ambiguity_ratio must be in (0, 1] or null, got {ratio}")
+
+    def seed1_rule(self) -> ValidationConfig:
+        """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity) off."""
+        return replace(self, min_inlier_ratio=0.0, min_coverage=0.0, ambiguity_ratio=None)
 
 
 class PoseValidator:
@@ -72,6 +104,38 @@ class PoseValidator:
         """Forget the previous inlier pose (start of a new sequence)."""
         self._last_position: torch.Tensor | None = None
         self._last_time = 0.0
+
+    def plausible(self, best: Candidate, candidates: list[Candidate]) -> bool:
+        """The tests beyond seed 1's: inlier ratio, coverage and no well-supported rival.
+
+        Args:
+            best: the candidate whose pose is validated.
+            candidates: every candidate of the query (``best`` among them).
+        """
+        cfg = self.config
+        if best.num_inliers < cfg.min_inlier_ratio * max(best.num_matches, 1):
+            return False
+        if best.coverage < cfg.min_coverage:
+            return False
+        if cfg.ambiguity_ratio is None:
+            return True
+        position = best.T_wc[:3, 3]
+        for other in candidates:
+            far = torch.linalg.vector_norm(other.T_wc[:3, 3] - position) > cfg.theta_dist_m
+            if far and other.num_inliers >= cfg.ambiguity_ratio * best.num_inliers:
+                return False
+        return True
+
+    def validate_result(self, result: RelocResult, timestamp: float) -> bool:
+        """Whether a relocaliser's answer is verified (module docstring); ``False`` when it
+        found nothing. A pose that fails the tests beyond seed 1's is not an inlier pose, so
+        it does not become the reference of the distance test."""
+        best = result.best
+        if not result.found or best is None:
+            return False
+        if best.num_inliers >= self.config.theta_in and not self.plausible(best, result.candidates):
+            return False
+        return self.validate(result.T_wc, result.num_inliers, timestamp)
 
     def validate(self, T_wc: torch.Tensor, num_inliers: int, timestamp: float) -> bool:
         """Whether a refined pose is verified; updates the reference on inlier poses.

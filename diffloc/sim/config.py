@@ -52,14 +52,21 @@ class MapConfig:
 
 @dataclass
 class SequenceConfig:
-    """One simulated traversal: route direction, lateral offset, scene state and lighting.
+    """One simulated traversal: route direction, lateral offset, speed, scene state and lighting.
 
-    ``frame_rate_hz`` overrides ``trajectory.frame_rate_hz`` for this sequence (0 keeps it), so
-    queries can be sparser than the mapping run.
+    ``frame_rate_hz`` and ``speed_mps`` override ``trajectory.frame_rate_hz`` / ``speed_mps``
+    for this sequence (0 keeps them) and ``speed_variation_mps`` overrides
+    ``trajectory.speed_variation_mps`` (``None`` keeps it), so queries can be sparser than the
+    mapping run and walk at their own speed profile. ``start_offset_m`` is the arc length along
+    the (reversed, offset) path where the sequence starts: with its own offset and speed a
+    query does not retrace the mapping run's frame positions.
     """
 
     name: str = MISSING
     frame_rate_hz: float = 0.0
+    speed_mps: float = 0.0
+    speed_variation_mps: float | None = None
+    start_offset_m: float = 0.0
     reverse: bool = False
     lateral_offset_m: float = 0.0
     changed_scene: bool = False

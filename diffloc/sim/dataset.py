@@ -20,6 +20,7 @@ from omegaconf import OmegaConf
 from diffloc import __version__
 from diffloc.checks import check_positive_int
 from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.pose_offsets import nearest_pose_offsets, offset_summary
 from diffloc.geometry.rig import SensorRig
 from diffloc.io.atomic import atomic_directory, atomic_write_text
 from diffloc.io.calib import Calibration
@@ -79,6 +80,13 @@ def validate_scene_config(cfg: SceneConfig) -> None:
     if cfg.map.lidar_sequence not in names:
         raise ValueError(f"scene.map.lidar_sequence {cfg.map.lidar_sequence!r} is not in {names}")
     check_positive_int(cfg.sensor.motion_blur_samples, "scene.sensor.motion_blur_samples")
+    for index, seq in enumerate(cfg.sequences):
+        for key in ("frame_rate_hz", "speed_mps", "start_offset_m"):
+            value = getattr(seq, key)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(
+                    f"scene.sequences.{index}.{key} must be finite and >= 0, got {value}"
+                )
 
 
 class DatasetSimulator:
@@ -124,12 +132,17 @@ class DatasetSimulator:
         trajectory = self.cfg.trajectory
         if seq.frame_rate_hz > 0:
             trajectory = replace(trajectory, frame_rate_hz=seq.frame_rate_hz)
+        if seq.speed_mps > 0:
+            trajectory = replace(trajectory, speed_mps=seq.speed_mps)
+        if seq.speed_variation_mps is not None:
+            trajectory = replace(trajectory, speed_variation_mps=seq.speed_variation_mps)
         return make_trajectory(
             self.world.route,
             trajectory,
             lateral_offset_m=seq.lateral_offset_m,
             reverse=seq.reverse,
             phase=seq.sway_phase,
+            start_offset_m=seq.start_offset_m,
         )
 
     def render_frames(
@@ -191,6 +204,7 @@ class DatasetSimulator:
             origins.append(translation)
         writer.close()
         return {
+            "T_wc": T_wc,
             "positions": T_wc[:, :3, 3].numpy(),
             "first_frame": first_frame,
             "sweeps_world": sweeps_world,
@@ -225,6 +239,15 @@ class DatasetSimulator:
         )
         return points
 
+    def nearest_mapping_pose(self, results: dict) -> dict[str, dict[str, float]]:
+        """Per sequence: median and p90 of the distance and angle from each of its camera poses
+        to the nearest camera pose of the map's sequence (``scene.map.lidar_sequence``)."""
+        reference = results[self.cfg.map.lidar_sequence]["T_wc"]
+        return {
+            name: offset_summary(*nearest_pose_offsets(r["T_wc"], reference))
+            for name, r in results.items()
+        }
+
     def write(self, root: Path) -> None:
         """Simulate every sequence and map into the (empty, temporary) folder ``root``."""
         results = {}
@@ -242,6 +265,7 @@ class DatasetSimulator:
             "sequences": list(results),
             "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
             "world": self.world.metadata(),
+            "nearest_mapping_pose": self.nearest_mapping_pose(results),
         }
         atomic_write_text(root / "dataset.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
 

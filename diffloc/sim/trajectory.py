@@ -3,8 +3,11 @@
 A route is an ordered polyline of ground-level waypoints ``(K, 3)`` in the world frame. The body
 path follows it with every interior corner replaced by a circular arc tangent to both adjacent
 segments (a fillet), so the path is C1-continuous and never leaves the polyline by more than
-``corner_smoothing_m``. The path is sampled at a constant arc-length step
-``speed_mps / frame_rate_hz``; each sample gets a body pose ``T_wb`` with
+``corner_smoothing_m``. Frames come at a constant rate; between them the body travels at the
+speed profile ``v(t) = speed_mps + speed_variation_mps * sin(2 pi t / speed_period_s + phase)``
+from an arc length ``start_offset_m`` along the path, so two traversals of one route at other
+speeds, starts or phases do not land on each other's frame positions. Each frame gets a body
+pose ``T_wb`` with
 
 - the ROS body convention: x forward, y left, z up;
 - yaw along the horizontal direction of travel; the body stays upright on slopes and stairs
@@ -27,7 +30,13 @@ import torch
 from diffloc.checks import check_finite, check_shape
 from diffloc.geometry.se3 import compose, invert, se3_exp, se3_log
 
-__all__ = ["TrajectoryConfig", "interpolate_pose", "make_trajectory", "smooth_route"]
+__all__ = [
+    "TrajectoryConfig",
+    "arc_lengths",
+    "interpolate_pose",
+    "make_trajectory",
+    "smooth_route",
+]
 
 # The pitch sway runs at this multiple of the yaw sway frequency, so the two never fall into step.
 GOLDEN_RATIO = 0.5 * (1.0 + math.sqrt(5.0))
@@ -44,8 +53,12 @@ class TrajectoryConfig:
     """How a body moves along a route (the Hydra ``scene.trajectory`` group).
 
     Attributes:
-        speed_mps: speed along the path, m/s (0.8 is a slow indoor walk).
-        frame_rate_hz: camera frame rate, Hz; poses are sampled every ``speed / rate`` metres.
+        speed_mps: mean speed along the path, m/s (0.8 is a slow indoor walk).
+        speed_variation_mps: amplitude of the sinusoidal speed variation around ``speed_mps``,
+            m/s (0 walks at constant speed; must stay below ``speed_mps``).
+        speed_period_s: period of that variation, seconds.
+        frame_rate_hz: camera frame rate, Hz; at constant speed poses are ``speed / rate``
+            metres apart.
         body_height_m: height of the body frame above the route (the floor), metres.
         yaw_sway_deg: amplitude of the periodic head turning around the vertical, degrees.
         pitch_sway_deg: amplitude of the periodic nodding, degrees.
@@ -61,6 +74,8 @@ class TrajectoryConfig:
     """
 
     speed_mps: float = 0.8
+    speed_variation_mps: float = 0.0
+    speed_period_s: float = 15.0
     frame_rate_hz: float = 5.0
     body_height_m: float = 1.5
     yaw_sway_deg: float = 8.0
@@ -75,7 +90,8 @@ class TrajectoryConfig:
 
 def _validate_config(cfg: TrajectoryConfig) -> None:
     """Raise ``ValueError`` naming the first unusable field of ``cfg``."""
-    for name in ("speed_mps", "frame_rate_hz", "sway_period_s", "bob_wavelength_m"):
+    positive = ("speed_mps", "frame_rate_hz", "sway_period_s", "bob_wavelength_m", "speed_period_s")
+    for name in positive:
         value = getattr(cfg, name)
         if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
             raise ValueError(f"trajectory.{name} must be a positive finite number, got {value!r}")
@@ -86,10 +102,16 @@ def _validate_config(cfg: TrajectoryConfig) -> None:
         "bob_amplitude_m",
         "corner_smoothing_m",
         "start_time_s",
+        "speed_variation_mps",
     ):
         value = getattr(cfg, name)
         if not (isinstance(value, int | float) and math.isfinite(value)):
             raise ValueError(f"trajectory.{name} must be a finite number, got {value!r}")
+    if not 0.0 <= cfg.speed_variation_mps < cfg.speed_mps:
+        raise ValueError(
+            f"trajectory.speed_variation_mps must be in [0, speed_mps={cfg.speed_mps}) so the "
+            f"body never stops or reverses, got {cfg.speed_variation_mps}"
+        )
     if cfg.corner_smoothing_m < 0:
         raise ValueError(
             f"trajectory.corner_smoothing_m must be >= 0, got {cfg.corner_smoothing_m}"
@@ -265,6 +287,28 @@ def _fillet(route: np.ndarray, smoothing_m: float) -> _Path:
     return _Path(starts, lengths, origins, directions, bends, radii)
 
 
+def _route_path(
+    route: np.ndarray | torch.Tensor,
+    corner_smoothing_m: float,
+    lateral_offset_m: float,
+    reverse: bool,
+) -> _Path:
+    """The validated, optionally reversed and offset, corner-rounded path of a route."""
+    route = _as_route(route)
+    for name, value in (
+        ("corner_smoothing_m", corner_smoothing_m),
+        ("lateral_offset_m", lateral_offset_m),
+    ):
+        if not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value}")
+    if corner_smoothing_m < 0:
+        raise ValueError(f"corner_smoothing_m must be >= 0, got {corner_smoothing_m}")
+    if reverse:
+        route = route[::-1].copy()
+    route = _offset_route(route, float(lateral_offset_m))
+    return _fillet(route, float(corner_smoothing_m))
+
+
 def smooth_route(
     route: np.ndarray | torch.Tensor,
     corner_smoothing_m: float,
@@ -291,24 +335,43 @@ def smooth_route(
         >>> p[:, 0]
         array([0. , 0.5, 1. , 1.5, 2. ])
     """
-    route = _as_route(route)
-    for name, value in (
-        ("corner_smoothing_m", corner_smoothing_m),
-        ("spacing_m", spacing_m),
-        ("lateral_offset_m", lateral_offset_m),
-    ):
-        if not math.isfinite(value):
-            raise ValueError(f"{name} must be finite, got {value}")
-    if spacing_m <= 0:
-        raise ValueError(f"spacing_m must be positive, got {spacing_m}")
-    if corner_smoothing_m < 0:
-        raise ValueError(f"corner_smoothing_m must be >= 0, got {corner_smoothing_m}")
-    if reverse:
-        route = route[::-1].copy()
-    route = _offset_route(route, float(lateral_offset_m))
-    path = _fillet(route, float(corner_smoothing_m))
+    if not (math.isfinite(spacing_m) and spacing_m > 0):
+        raise ValueError(f"spacing_m must be positive and finite, got {spacing_m}")
+    path = _route_path(route, corner_smoothing_m, lateral_offset_m, reverse)
     count = int(math.floor(path.length / spacing_m + 1e-9)) + 1
     return path.evaluate(np.arange(count) * spacing_m)
+
+
+def arc_lengths(
+    cfg: TrajectoryConfig, length_m: float, start_offset_m: float = 0.0, phase: float = 0.0
+) -> np.ndarray:
+    """Arc lengths (N,) of the frames of a traversal of a path ``length_m`` long.
+
+    Frame ``i`` comes at ``t_i = i / frame_rate_hz`` and lies at
+    ``s(t) = s0 + v t + (A P / 2 pi) (cos(phase) - cos(2 pi t / P + phase))``, the integral of
+    the speed profile ``v + A sin(2 pi t / P + phase)`` (``v = speed_mps``,
+    ``A = speed_variation_mps``, ``P = speed_period_s``, ``s0 = start_offset_m``); frames run
+    while ``s <= length_m`` (at most ``max_frames`` when that is set).
+
+    Raises:
+        ValueError: ``start_offset_m`` outside ``[0, length_m]``.
+
+    Example:
+        >>> arc_lengths(TrajectoryConfig(speed_mps=1.0, frame_rate_hz=2.0), 2.0, 0.3)
+        array([0.3, 0.8, 1.3, 1.8])
+    """
+    if not (math.isfinite(start_offset_m) and 0.0 <= start_offset_m <= length_m):
+        raise ValueError(
+            f"start_offset_m must be in [0, {length_m:.3f}] (the path length), got {start_offset_m}"
+        )
+    slowest = cfg.speed_mps - cfg.speed_variation_mps
+    bound = int(math.floor((length_m - start_offset_m) / slowest * cfg.frame_rate_hz)) + 2
+    t = np.arange(bound) / cfg.frame_rate_hz
+    omega = 2.0 * math.pi / cfg.speed_period_s
+    wave = (math.cos(phase) - np.cos(omega * t + phase)) / omega
+    s = start_offset_m + cfg.speed_mps * t + cfg.speed_variation_mps * wave
+    s = s[s <= length_m + 1e-9]
+    return s[: cfg.max_frames] if cfg.max_frames > 0 else s
 
 
 def _rotation_zy(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
@@ -330,8 +393,9 @@ def make_trajectory(
     lateral_offset_m: float = 0.0,
     reverse: bool = False,
     phase: float = 0.0,
+    start_offset_m: float = 0.0,
 ) -> tuple[np.ndarray, torch.Tensor]:
-    """Timestamped body poses walking along a route at constant speed.
+    """Timestamped body poses walking along a route at the configured speed profile.
 
     Args:
         route: (K, 3) ordered ground-level waypoints in the world frame, K >= 2.
@@ -339,16 +403,20 @@ def make_trajectory(
         lateral_offset_m: shift of the path to the left of the direction of travel, metres
             (a "laterally offset" query route).
         reverse: traverse the route from its last waypoint to its first (facing that way).
-        phase: phase (radians) of the sways and the bob, so repeated traversals differ.
+        phase: phase (radians) of the sways, the bob and the speed variation, so repeated
+            traversals differ.
+        start_offset_m: arc length along the (reversed, offset) path of the first frame, metres.
 
     Returns:
         timestamps (N,) float64 seconds, ``start_time_s + i / frame_rate_hz``, and body-to-world
-        poses T_wb (N, 4, 4) torch.float64 (x forward, y left, z up). Consecutive positions are
-        ``speed_mps / frame_rate_hz`` apart along the path (plus the vertical bob).
+        poses T_wb (N, 4, 4) torch.float64 (x forward, y left, z up). Frames lie at the arc
+        lengths of :func:`arc_lengths` (at constant speed ``speed_mps / frame_rate_hz`` apart),
+        plus the vertical bob.
 
     Raises:
         ValueError: fewer than 2 distinct waypoints, NaN input, a non-positive speed or rate,
-            a lateral offset too large for a route segment, or a purely vertical route.
+            a speed variation not below the speed, a start offset off the path, a lateral
+            offset too large for a route segment, or a purely vertical route.
 
     Example:
         >>> cfg = TrajectoryConfig(speed_mps=1.0, frame_rate_hz=2.0)
@@ -363,19 +431,12 @@ def make_trajectory(
         raise ValueError(
             f"lateral_offset_m and phase must be finite, got {lateral_offset_m}, {phase}"
         )
-    spacing = cfg.speed_mps / cfg.frame_rate_hz
-    positions, tangents = smooth_route(
-        route,
-        cfg.corner_smoothing_m,
-        spacing,
-        lateral_offset_m=lateral_offset_m,
-        reverse=reverse,
-    )
-    if cfg.max_frames > 0:
-        positions, tangents = positions[: cfg.max_frames], tangents[: cfg.max_frames]
+    path = _route_path(route, cfg.corner_smoothing_m, lateral_offset_m, reverse)
+    s = arc_lengths(cfg, path.length, start_offset_m, phase)
+    positions, tangents = path.evaluate(s)
     count = len(positions)
     elapsed = np.arange(count) / cfg.frame_rate_hz
-    travelled = np.arange(count) * spacing
+    travelled = s - start_offset_m
 
     horizontal = np.hypot(tangents[:, 0], tangents[:, 1])
     valid = horizontal > 1e-6
