@@ -82,8 +82,9 @@ def test_precision_counts_the_accepted_poses_that_are_right(main_run):
 
 def test_main_job_localizes_the_tiny_scene_above_a_floor(main_run):
     _, _, results = main_run
-    assert results["recall"] >= 0.4
-    assert results["mATE_m"] <= 0.1
+    recall, mate = results["recall"], results["mATE_m"]
+    assert recall >= 0.4, f"query_same recall@0.3m {recall:.2f} < floor 0.4 (2 of 5 queries)"
+    assert mate <= 0.1, f"query_same mATE {mate:.3f} m > 0.1 m"
 
 
 def test_estimates_are_a_tum_trajectory_evo_reads(main_run):
@@ -106,8 +107,8 @@ def test_relocalisation_never_reads_the_query_ground_truth(main_run, tmp_path):
     rows[:, 4:] = quaternions / np.linalg.norm(quaternions, axis=1, keepdims=True)
     np.savetxt(poses, rows, fmt="%.9f")
     out_spoiled = tmp_path / "results"
-    overrides = [f"dataset={spoiled}", f"task.out_dir={out_spoiled}", "task.optimize=false"]
-    run(compose_config(TINY + FINE + ["task=relocalize", "reloc.database=database", *overrides]))
+    overrides = [f"dataset={spoiled}", f"task.out_dir={out_spoiled}", "reloc.database=database"]
+    run(compose_config(TINY + FINE + ["task=relocalize", *overrides]))
     name = "query_same"
     assert (out_spoiled / name / "estimates.tum").read_bytes() == (
         out / name / "estimates.tum"
@@ -118,9 +119,7 @@ def test_relocalisation_never_reads_the_query_ground_truth(main_run, tmp_path):
     for a, b in zip(clean, garbage, strict=True):
         assert {k: a[k] for k in decisions} == {k: b[k] for k in decisions}
     # the scores did see the garbage, so the test would notice a relocaliser that reads it
-    assert [q["translation_error_m"] for q in clean] != [
-        q["translation_error_m"] for q in garbage
-    ]
+    assert [q["translation_error_m"] for q in clean] != [q["translation_error_m"] for q in garbage]
 
 
 @pytest.fixture(scope="module")
@@ -134,19 +133,27 @@ def relocalizer_parts(main_run):
     return database, retriever, centers, query
 
 
+# Recall@0.3 m (unvalidated) floors of the tiny scene's five `query_same` frames: the mapping
+# run covers the route's first 1.6 m, the queries 0.23-3.6 m, so only the first two or three
+# frames see what the database saw.
+TINY_VARIANT_RECALL_FLOOR = {"naive": 0.2, "F": 0.4, "FN": 0.4}
+
+
 @pytest.mark.parametrize("points", ["naive", "F", "FN"])
-def test_every_variant_localizes_a_query_near_a_keyframe(relocalizer_parts, points):
+def test_every_variant_localizes_the_tiny_queries_above_a_floor(relocalizer_parts, points):
     database, retriever, centers, query = relocalizer_parts
     reloc = HierarchicalRelocalizer(database, retriever, RelocConfig(points=points), centers)
     extractor = make_extractor(XFeatConfig(max_keypoints=512))
-    found = []
+    correct = []
     for i in range(len(query)):
         image = query.load_rgb(i)
         result = reloc.relocalize(image, extractor.extract(image), query.camera)
         error = float((result.T_wc[:3, 3] - query.T_wc[i, :3, 3].double()).norm())
-        found.append(result.found and error < 0.3)
+        correct.append(result.found and error < 0.3)
         assert set(result.timings_ms) >= {"global_descriptor", "retrieval", "matching"}
-    assert any(found)
+    recall = sum(correct) / len(correct)
+    floor = TINY_VARIANT_RECALL_FLOOR[points]
+    assert recall >= floor, f"{points}: recall@0.3m {recall:.2f} < floor {floor} ({correct})"
 
 
 def test_textureless_query_is_not_localized(relocalizer_parts):

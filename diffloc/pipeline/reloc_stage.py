@@ -6,10 +6,16 @@ reuses the keyframe retriever, relocalises every query of each query sequence wi
 into ``out``:
 
 - ``<sequence>/estimates.tum`` (accepted poses, TUM format for evo), ``groundtruth.tum``,
-  ``queries.json`` (per query: found, accepted, inliers, errors, stage times);
+  ``queries.json`` (per query: found, accepted by the configured validation and by seed 1's
+  rule, correct, the found position, inliers, errors, stage times and every candidate's
+  inliers, matches, coverage and distance to the chosen pose);
 - ``<sequence>/precision_recall.png``, ``trajectory.png``, ``errors.png``;
 - ``results.md`` (a Markdown table) and ``results.json`` with, per sequence, ``recall``
-  (verified poses within ``max_trans_m``), ``mATE_m`` (mean error of the verified poses),
+  (verified poses within ``max_trans_m``), ``recall_at`` (within 0.1 / 0.3 / 1.0 m),
+  ``precision`` (the share of verified poses within ``max_trans_m``), ``seed1_rule`` (recall
+  and precision under seed 1's tests alone), ``nearest_db_pose`` (median / p90 distance and
+  angle from each query's true pose to the nearest database keyframe's true pose, a scoring
+  figure), ``mATE_m`` (mean error of the verified poses),
   ``queries``, ``median_reloc_ms`` (per query, local feature extraction and the global
   descriptor network excluded) and ``median_total_ms`` (all included).
 """
@@ -270,6 +276,9 @@ def _report_sequence(
             "accepted": bool(run.accepted[q]),
             "accepted_seed1": bool(run.accepted_seed1[q]),
             "correct": bool(correct[q]),
+            "position_m": (
+                [round(float(x), 6) for x in run.T_wc_est[q, :3, 3]] if run.found[q] else None
+            ),
             "inliers": int(run.inliers[q]),
             "translation_error_m": _finite(raw.translation_m[q]),
             "rotation_error_deg": _finite(raw.rotation_deg[q]),
