@@ -36,6 +36,7 @@ __all__ = [
     "BUILT",
     "OPTIMIZED",
     "UPDATED_PREFIX",
+    "UPDATE_RECORD",
     "SelectedDatabase",
     "check_database_name",
     "db_overrides",
