@@ -7,6 +7,7 @@ Examples:
     diffloc task=build_map dataset=data/indoor_seed0 # surfel map + coloured point maps
     diffloc task=build_db db.noise_sigma=0.2         # visual database with noisy poses
     diffloc task=optimize_db db.noise_sigma=0.2      # surfel reprojection optimisation
+    diffloc task=update_db task.sequence=query_lane  # add a sequence to the built database
     diffloc task=calibrate_rig                      # camera extrinsic + time offset of a database
     diffloc task=relocalize reloc.method.points=F    # relocalise the query sequences
     diffloc task=main                               # all of the above, each stage cached
@@ -32,6 +33,7 @@ from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.database_stage import build_database, database_dir, optimize_database
 from diffloc.pipeline.reloc_stage import relocalize_dataset
 from diffloc.pipeline.rig_stage import calibrate_database_rig
+from diffloc.pipeline.update_stage import update_database
 from diffloc.sim.dataset import simulate_dataset
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -80,6 +82,24 @@ def run_optimize_db(cfg: DictConfig) -> dict:
     print(
         f"optimized: {summary['database']} (keyframe position RMSE "
         f"{summary['kf_pos_rmse_before_m']:.3f} m -> {summary['kf_pos_rmse_after_m']:.3f} m)"
+    )
+    return summary
+
+
+def run_update_db(cfg: DictConfig) -> dict:
+    """``task=update_db``: add the frames of ``task.sequence`` to the ``build_db`` database."""
+    summary = update_database(
+        Path(cfg.dataset), OmegaConf.to_object(cfg.db), OmegaConf.to_object(cfg.task), cfg.progress
+    )
+    before, added, after = summary["before"], summary["after_adding"], summary["after_culling"]
+    culled = summary["culled"]
+    print(
+        f"updated: {summary['database']} with {summary['images']} images of "
+        f"{summary['sequence']}: keyframes {before['keyframes']} -> {added['keyframes']} -> "
+        f"{after['keyframes']} ({culled['keyframes']} culled), map points "
+        f"{before['map_points']} -> {added['map_points']} -> {after['map_points']} "
+        f"({culled['points_unconfirmed']} unconfirmed, {culled['points_of_culled_keyframes']} "
+        "with culled keyframes)"
     )
     return summary
 
@@ -182,6 +202,7 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
     "build_map": run_build_map,
     "build_db": run_build_db,
     "optimize_db": run_optimize_db,
+    "update_db": run_update_db,
     "calibrate_rig": run_calibrate_rig,
     "relocalize": run_relocalize,
     "main": run_main,

@@ -17,6 +17,7 @@ from diffloc.optim.rig_calibration import RigCalibrationConfig
 from diffloc.pipeline.build_map import BuildMapConfig
 from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.reloc_stage import RelocStageConfig
+from diffloc.pipeline.update_stage import UpdateTaskConfig
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
 
 
@@ -103,6 +104,7 @@ def register_configs() -> None:
     store.store(group="task", name="schema_simulate", node=SimulateTaskConfig)
     store.store(group="task", name="schema_build_map", node=BuildMapConfig)
     store.store(group="task", name="schema_database", node=DatabaseTaskConfig)
+    store.store(group="task", name="schema_update_db", node=UpdateTaskConfig)
     store.store(group="task", name="schema_relocalize", node=RelocalizeTaskConfig)
     store.store(group="task", name="schema_calibrate_rig", node=RigCalibrationTaskConfig)
     store.store(group="task", name="schema_main", node=MainTaskConfig)

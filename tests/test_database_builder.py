@@ -256,3 +256,48 @@ def test_epipolar_3d_gate_keeps_only_points_near_the_keypoint_surfels(
             EpipolarMatchingConfig(),
             torch.Generator(),
         )
+
+
+def test_builder_culls_a_keyframe_whose_points_are_observed_by_three_others(
+    scene: Path, surfels: SurfelMap
+):
+    """The same image at the same pose, added again and again: each copy observes the first
+    copy's points, so once three others see them the oldest judged copy is redundant."""
+    seq = read_sequence(scene, "mapping")
+    image, T_wc = seq.load_rgb(0), seq.T_wc[0]
+    builder = DatabaseBuilder(BuilderConfig(), surfels, make_extractor(EXTRACTOR))
+    copies = 6
+    for _ in range(copies):
+        builder.add_image(image, T_wc, seq.camera)
+    db = builder.database
+    counts = builder.counts
+    # From the 4th copy on, each insertion culls one judged copy (the copies then have two
+    # other observers each, below the three of the rule, so no more go).
+    assert counts.keyframes_added == copies
+    assert counts.keyframes_culled == copies - 3
+    assert builder.keyframe_ids.tolist() == [3, 4, 5]
+    assert db.num_keyframes == 3
+    assert counts.points_created - counts.points_unconfirmed - counts.points_orphaned == (
+        db.num_points
+    )
+
+
+def test_builder_updating_a_database_numbers_its_keyframes_first(
+    scene: Path, surfels: SurfelMap, database: VisualDatabase, tmp_path: Path
+):
+    database.save(tmp_path / "db")
+    db = VisualDatabase.load(tmp_path / "db")  # a copy: the fixture stays as built
+    keyframes, points = db.num_keyframes, db.num_points
+    builder = DatabaseBuilder(BuilderConfig(), surfels, make_extractor(EXTRACTOR), database=db)
+    assert builder.keyframe_ids.tolist() == list(range(keyframes))
+    seq = read_sequence(scene, "query_same")
+    builder.build(seq, show_progress=False)
+    counts = builder.counts
+    ids = builder.keyframe_ids
+    assert len(ids) == db.num_keyframes == keyframes + len(seq) - counts.keyframes_culled
+    assert bool((ids.diff() > 0).all()) and int(ids.max()) < keyframes + len(seq)
+    removed = counts.points_unconfirmed + counts.points_orphaned
+    assert db.num_points == points + counts.points_created - removed
+    # The added keyframes are the query_same frames at their poses, in order.
+    added = ids >= keyframes
+    assert torch.equal(db.T_wc[added], seq.T_wc[ids[added] - keyframes])

@@ -52,7 +52,7 @@ from diffloc.maps.surfel import SurfelMap
 from diffloc.progress import progress
 from diffloc.render.splat import KeypointDisks, SurfelIndexRenderer, SurfelRender
 
-__all__ = ["ASSOCIATIONS", "BuilderConfig", "DatabaseBuilder"]
+__all__ = ["ASSOCIATIONS", "BuildCounts", "BuilderConfig", "DatabaseBuilder"]
 
 ASSOCIATIONS = ("projection", "epipolar")
 
@@ -101,6 +101,25 @@ class BuilderConfig:
             raise ValueError(
                 f"occlusion_tolerance_m must be >= 0, got {self.occlusion_tolerance_m}"
             )
+
+
+@dataclass
+class BuildCounts:
+    """What a :class:`DatabaseBuilder` added and culled since it was created.
+
+    Attributes:
+        keyframes_added: images added as keyframes.
+        points_created: map points created for unmatched keypoints.
+        keyframes_culled: keyframes removed as redundant (of the database passed in too).
+        points_unconfirmed: new points removed because the next keyframes did not observe them.
+        points_orphaned: points removed with culled keyframes (no observation left).
+    """
+
+    keyframes_added: int = 0
+    points_created: int = 0
+    keyframes_culled: int = 0
+    points_unconfirmed: int = 0
+    points_orphaned: int = 0
 
 
 def _rounded_pixels(uv: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -161,6 +180,14 @@ class DatabaseBuilder:
         self.generator = torch.Generator().manual_seed(config.seed)
         self.timings_ms: dict[str, float] = {"features": 0.0, "database": 0.0}
         """Accumulated wall time of :meth:`add_image`: feature extraction and the rest."""
+        self.counts = BuildCounts()
+        """Keyframes and points added and culled so far."""
+        start = 0 if database is None else database.num_keyframes
+        self.keyframe_ids = torch.arange(start, dtype=torch.int64)
+        """(K,) int64 insertion number of every keyframe of :attr:`database`: the keyframes of
+        the database passed in are ``0 .. K0 - 1`` and the added images count on from ``K0``,
+        so a caller can tell which inputs survived culling."""
+        self._next_id = start
 
     def build(
         self,
@@ -242,6 +269,9 @@ class DatabaseBuilder:
             keypoint_surfels=surfels,
             neighbour_surfels=neighbours,
         )
+        self.keyframe_ids = torch.cat([self.keyframe_ids, torch.tensor([self._next_id])])
+        self._next_id += 1
+        self.counts.keyframes_added += 1
         matched = self._match(db, covisible, features, seen, T_wc, camera, render)
         self._create_points(db, keyframe, surfels, matched)
         self._cull(db)
@@ -351,6 +381,7 @@ class DatabaseBuilder:
             surfels[new],
         )
         db.add_observations(keyframe, new, ids)
+        self.counts.points_created += len(ids)
 
     def _cull(self, db: VisualDatabase) -> None:
         """Apply the culling rules to the keyframes whose new-point window just completed."""
@@ -358,5 +389,11 @@ class DatabaseBuilder:
         judged = db.num_keyframes - 1 - window
         if judged < 0:
             return
-        cull_unconfirmed_points(db, self.config.culling, torch.tensor([judged]))
-        cull_redundant_keyframes(db, self.config.culling, torch.arange(judged + 1))
+        unconfirmed = cull_unconfirmed_points(db, self.config.culling, torch.tensor([judged]))
+        points = db.num_points
+        culled = cull_redundant_keyframes(db, self.config.culling, torch.arange(judged + 1))
+        kept = ~torch.isin(torch.arange(len(self.keyframe_ids)), culled)
+        self.keyframe_ids = self.keyframe_ids[kept]
+        self.counts.points_unconfirmed += len(unconfirmed)
+        self.counts.keyframes_culled += len(culled)
+        self.counts.points_orphaned += points - db.num_points

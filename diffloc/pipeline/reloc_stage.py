@@ -50,7 +50,13 @@ from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.io.trajectory import write_tum
 from diffloc.maps.surfel import SurfelMap
-from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
+from diffloc.pipeline.database_select import (
+    SelectedDatabase,
+    check_database_name,
+    keyframe_images,
+    select_database,
+)
+from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.progress import progress
 from diffloc.reloc.hierarchical import (
     Candidate,
@@ -82,7 +88,8 @@ class RelocStageConfig:
 
     Attributes:
         sequences: query sequences to relocalise.
-        database: ``"optimized"`` (after ``task=optimize_db``) or ``"database"`` (as built).
+        database: ``"optimized"`` (after ``task=optimize_db``), ``"database"`` (as built) or
+            ``"updated_<sequence>"`` (after ``task=update_db task.sequence=<sequence>``).
         retriever: ``"netvlad"`` or ``"bow"``.
         query_stride: use every n-th query frame.
         max_trans_m: position threshold of a correct pose (seed 1: 0.3 m).
@@ -105,8 +112,7 @@ class RelocStageConfig:
     bow: BowConfig = field(default_factory=BowConfig)
 
     def __post_init__(self) -> None:
-        if self.database not in ("optimized", "database"):
-            raise ValueError(f"database must be 'optimized' or 'database', got {self.database!r}")
+        check_database_name(self.database)
         if self.retriever not in ("netvlad", "bow"):
             raise ValueError(f"retriever must be 'netvlad' or 'bow', got {self.retriever!r}")
         if self.query_stride < 1:
@@ -115,28 +121,23 @@ class RelocStageConfig:
 
 def _load_database(
     dataset: Path, db_cfg: DatabaseConfig, which: str
-) -> tuple[VisualDatabase, dict]:
-    folder = database_dir(dataset, db_cfg)
-    built_path, db_path = folder / "build_db.json", folder / which
-    if not built_path.is_file():
-        raise FileNotFoundError(f"{built_path} is missing: run `diffloc task=build_db` first")
-    if not db_path.is_dir():
-        task = "optimize_db" if which == "optimized" else "build_db"
-        raise FileNotFoundError(f"{db_path} is missing: run `diffloc task={task}` first")
-    return VisualDatabase.load(db_path), json.loads(built_path.read_text())
+) -> tuple[VisualDatabase, SelectedDatabase]:
+    selected = select_database(dataset, db_cfg, which)
+    return VisualDatabase.load(selected.path), selected
 
 
 def _retriever(
-    dataset: Path, db_cfg: DatabaseConfig, cfg: RelocStageConfig, db: VisualDatabase, built: dict
+    dataset: Path,
+    cfg: RelocStageConfig,
+    db: VisualDatabase,
+    selected: SelectedDatabase,
 ) -> NetVLADRetriever | BowRetriever:
     """Load the cached retriever of this database (same settings, newer than the database),
     or fit and cache it."""
-    db_folder = database_dir(dataset, db_cfg)
-    folder = db_folder / f"retriever_{cfg.retriever}"
+    folder = selected.retriever_root / f"retriever_{cfg.retriever}"
     settings = asdict(cfg.netvlad if cfg.retriever == "netvlad" else cfg.bow)
-    built_path = db_folder / "build_db.json"
     saved = folder / "retriever.json"
-    if saved.is_file() and saved.stat().st_mtime >= built_path.stat().st_mtime:
+    if saved.is_file() and saved.stat().st_mtime >= selected.record.stat().st_mtime:
         retriever = load_retriever(folder)
         if asdict(retriever.config) == settings:
             return retriever
@@ -144,8 +145,7 @@ def _retriever(
         slices = [db.keyframe_slice(k) for k in range(db.num_keyframes)]
         retriever = BowRetriever.fit([db.descriptors[s] for s in slices], cfg.bow)
     else:
-        sequence = read_sequence(dataset, db_cfg.sequence)
-        images = (sequence.load_rgb(i) for i in built["keyframe_frames"])
+        images = keyframe_images(dataset, selected.keyframe_sources)
         retriever = NetVLADRetriever.fit(images, cfg.netvlad)
     retriever.save(folder)
     return retriever
@@ -377,8 +377,8 @@ def relocalize_dataset(
         FileNotFoundError: a missing database, surfel map or sequence.
     """
     dataset, out = Path(dataset), Path(out)
-    db, built = _load_database(dataset, db_cfg, cfg.database)
-    retriever = _retriever(dataset, db_cfg, cfg, db, built)
+    db, selected = _load_database(dataset, db_cfg, cfg.database)
+    retriever = _retriever(dataset, cfg, db, selected)
     centers = None
     if cfg.method.points == "naive":
         path = Path(surfel_map) if surfel_map else dataset / "map" / "surfel_map.ply"
@@ -396,7 +396,7 @@ def relocalize_dataset(
     headline = results["sequences"].get("query_same") or next(iter(results["sequences"].values()))
     for key in ("recall", "mATE_m", "queries", "median_reloc_ms"):
         results[key] = headline[key]
-    results["database"] = str(database_dir(dataset, db_cfg) / cfg.database)
+    results["database"] = str(selected.path)
     results["config"] = asdict(cfg)
     table = markdown_table(rows, RESULT_COLUMNS)
     results["table"] = table

@@ -1,0 +1,191 @@
+"""Which saved visual database a stage reads: as built, optimised, or updated with a sequence.
+
+The database stages write into :func:`~diffloc.pipeline.database_stage.database_dir`:
+
+- ``database/`` (``task=build_db``) and ``optimized/`` (``task=optimize_db``), whose keyframes
+  are frames of the database sequence listed in ``build_db.json``;
+- ``updated_<sequence>/`` (``task=update_db``): a stage folder with the updated database in
+  ``database/`` and ``update_db.json``, whose ``keyframe_sources`` name the sequence and frame
+  of every keyframe (the database's own and the added sequence's).
+
+:func:`select_database` resolves a name (the ``reloc.database`` setting) to the database
+folder, the record that identifies it (a cached retriever is valid only if newer), where
+retrievers of it are cached and the images of its keyframes.
+
+Example:
+    >>> selected = select_database("data/indoor_seed0", DatabaseConfig(), "updated_query_lane")
+    ... # doctest: +SKIP
+    >>> VisualDatabase.load(selected.path).num_keyframes == len(selected.keyframe_sources)
+    ... # doctest: +SKIP
+    True
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from diffloc.io.dataset import read_sequence
+from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
+
+__all__ = [
+    "BUILT",
+    "OPTIMIZED",
+    "UPDATED_PREFIX",
+    "UPDATE_RECORD",
+    "SelectedDatabase",
+    "check_database_name",
+    "db_overrides",
+    "keyframe_images",
+    "select_database",
+    "updated_dir",
+]
+
+BUILT = "database"
+"""The database as built by ``task=build_db``."""
+OPTIMIZED = "optimized"
+"""The database after ``task=optimize_db``."""
+UPDATED_PREFIX = "updated_"
+"""``updated_<sequence>``: the built database updated with ``<sequence>`` (``task=update_db``)."""
+UPDATE_RECORD = "update_db.json"
+"""The record of ``task=update_db`` inside its stage folder."""
+
+
+def check_database_name(which: str) -> str:
+    """Validate a database name: ``"database"``, ``"optimized"`` or ``"updated_<sequence>"``.
+
+    Args:
+        which: the name.
+
+    Returns:
+        ``which``.
+
+    Raises:
+        ValueError: any other name (an empty sequence, a path separator).
+    """
+    sequence = which.removeprefix(UPDATED_PREFIX) if isinstance(which, str) else ""
+    named = isinstance(which, str) and which.startswith(UPDATED_PREFIX)
+    if which in (BUILT, OPTIMIZED) or (named and sequence and "/" not in sequence):
+        return which
+    raise ValueError(
+        f"database must be {BUILT!r}, {OPTIMIZED!r} or '{UPDATED_PREFIX}<sequence>' "
+        f"(after `diffloc task=update_db task.sequence=<sequence>`), got {which!r}"
+    )
+
+
+def updated_dir(dataset: str | Path, db_cfg: DatabaseConfig, sequence: str) -> Path:
+    """``<database_dir>/updated_<sequence>``: the stage folder of ``task=update_db``."""
+    return database_dir(dataset, db_cfg) / f"{UPDATED_PREFIX}{sequence}"
+
+
+def db_overrides(dataset: str | Path, db_cfg: DatabaseConfig) -> str:
+    """The command-line overrides that select this dataset's database folder, for messages.
+
+    Example:
+        >>> db_overrides("data/x", DatabaseConfig(noise_sigma=0.2))
+        'dataset=data/x db.noise_sigma=0.2'
+    """
+    default = DatabaseConfig()
+    words = [f"dataset={dataset}"]
+    if db_cfg.noise_sigma != default.noise_sigma:
+        words.append(f"db.noise_sigma={db_cfg.noise_sigma:g}")
+    if db_cfg.local_features != default.local_features:
+        words.append(f"db.local_features={db_cfg.local_features}")
+    if db_cfg.builder.association != default.builder.association:
+        words.append(f"db.builder.association={db_cfg.builder.association}")
+    return " ".join(words)
+
+
+@dataclass
+class SelectedDatabase:
+    """A saved database and what identifies it.
+
+    Attributes:
+        name: the name it was selected by (:func:`check_database_name`).
+        path: the database folder (:meth:`VisualDatabase.load` reads it).
+        record: the stage record written with it; caches derived from the database are
+            valid only if they are newer.
+        retriever_root: the folder its retriever caches live in.
+        keyframe_sources: ``(sequence, frame)`` of every keyframe, in keyframe order.
+    """
+
+    name: str
+    path: Path
+    record: Path
+    retriever_root: Path
+    keyframe_sources: list[tuple[str, int]]
+
+
+def _missing(path: Path, command: str) -> FileNotFoundError:
+    return FileNotFoundError(f"{path} is missing: run `diffloc {command}` first")
+
+
+def select_database(dataset: str | Path, db_cfg: DatabaseConfig, which: str) -> SelectedDatabase:
+    """Resolve a database name of a dataset to its saved folder (module docstring).
+
+    Args:
+        dataset: the dataset folder.
+        db_cfg: the database settings (noise level, local features, association).
+        which: ``"database"``, ``"optimized"`` or ``"updated_<sequence>"``.
+
+    Returns:
+        The selected database.
+
+    Raises:
+        ValueError: an unknown name, or an update record without valid keyframe sources.
+        FileNotFoundError: the database was not made; the message names the command to run.
+    """
+    check_database_name(which)
+    folder = database_dir(dataset, db_cfg)
+    where = db_overrides(dataset, db_cfg)
+    if which.startswith(UPDATED_PREFIX):
+        sequence = which.removeprefix(UPDATED_PREFIX)
+        stage = updated_dir(dataset, db_cfg, sequence)
+        record, path = stage / UPDATE_RECORD, stage / BUILT
+        if not (record.is_file() and path.is_dir()):
+            raise _missing(stage, f"task=update_db {where} task.sequence={sequence}")
+        sources = _read_sources(record)
+        return SelectedDatabase(which, path, record, stage, sources)
+    record, path = folder / "build_db.json", folder / which
+    if not record.is_file():
+        raise _missing(record, f"task=build_db {where}")
+    if not path.is_dir():
+        raise _missing(path, f"task={'optimize_db' if which == OPTIMIZED else 'build_db'} {where}")
+    built = json.loads(record.read_text())
+    sources = [(db_cfg.sequence, int(frame)) for frame in built["keyframe_frames"]]
+    return SelectedDatabase(which, path, record, folder, sources)
+
+
+def _read_sources(record: Path) -> list[tuple[str, int]]:
+    """The ``keyframe_sources`` of an update record, validated."""
+    try:
+        sources = json.loads(record.read_text())["keyframe_sources"]
+        parsed = [(str(name), int(frame)) for name, frame in sources]
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{record}: no valid keyframe_sources ({exc})") from exc
+    if any(frame < 0 for _, frame in parsed):
+        raise ValueError(f"{record}: negative frame index in keyframe_sources")
+    return parsed
+
+
+def keyframe_images(
+    dataset: str | Path, sources: Sequence[tuple[str, int]]
+) -> Iterator[torch.Tensor]:
+    """The images of keyframes given by ``(sequence, frame)``, in order, read lazily.
+
+    Args:
+        dataset: the dataset folder.
+        sources: ``(sequence, frame)`` per keyframe.
+
+    Yields:
+        (3, H, W) float32 images in [0, 1].
+    """
+    sequences: dict = {}
+    for name, frame in sources:
+        if name not in sequences:
+            sequences[name] = read_sequence(dataset, name)
+        yield sequences[name].load_rgb(frame)

@@ -1,0 +1,195 @@
+"""The database update stage: add a new sequence to a built database (seed 1 Sec. III-A).
+
+``update_database`` loads the database ``task=build_db`` made (``<database_dir>/database``), adds
+the frames of another sequence of the dataset at that sequence's poses with the same builder
+(covisible matching, descriptor fusion, new map points, both culling rules), and writes the
+stage folder ``<database_dir>/updated_<sequence>/`` as a whole (atomically):
+
+- ``database/``: the updated :class:`~diffloc.database.database.VisualDatabase`;
+- ``update_db.json``: the counts before the update, after adding (every added image and every
+  created point, before any removal) and after culling, what each culling rule removed, the
+  ``(sequence, frame)`` of every surviving keyframe (``keyframe_sources``), the keyframe
+  position RMSE against the dataset's ground truth and per-step timings.
+
+A user's update run has its own poses: with ``db.noise_sigma > 0`` they are perturbed like the
+database's (:func:`~diffloc.pipeline.database_stage.perturb_positions`) but from the seed
+``task.noise_seed``, and the guided-search radius and the epipolar 3D gate grow with the noise
+as in ``build_database``. Culling may remove keyframes of the original database too (a revisit
+makes them redundant); the builder's insertion numbers tell which inputs survived.
+
+Relocalise against the result with ``reloc.database=updated_<sequence>``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+
+from diffloc.database.builder import BuilderConfig, DatabaseBuilder
+from diffloc.database.culling import redundancy
+from diffloc.database.database import VisualDatabase
+from diffloc.features.local import make_extractor
+from diffloc.io.atomic import atomic_directory
+from diffloc.io.dataset import read_sequence
+from diffloc.maps.surfel import SurfelMap
+from diffloc.pipeline.database_select import (
+    BUILT,
+    UPDATE_RECORD,
+    select_database,
+    updated_dir,
+)
+from diffloc.pipeline.database_stage import (
+    DatabaseConfig,
+    keyframe_position_rmse,
+    perturb_positions,
+)
+
+__all__ = ["UpdateTaskConfig", "noisy_builder_config", "update_database"]
+
+
+@dataclass
+class UpdateTaskConfig:
+    """``task=update_db``: the database comes from the root ``db`` node.
+
+    Attributes:
+        sequence: the sequence whose frames are added (a user's new recording).
+        noise_seed: seed of the position noise of the added poses when ``db.noise_sigma > 0``
+            (its own, so the update's noise is not a replay of the database's draws).
+    """
+
+    name: str = "update_db"
+    sequence: str = "query_lane"
+    noise_seed: int = 1
+
+    def __post_init__(self) -> None:
+        if not self.sequence or "/" in self.sequence:
+            raise ValueError(f"task.sequence must be a sequence name, got {self.sequence!r}")
+
+
+def noisy_builder_config(cfg: DatabaseConfig) -> BuilderConfig:
+    """The builder settings for poses with ``cfg.noise_sigma`` of noise, as ``build_database``
+    uses them: the guided radius grows by ``radius_px_per_noise_m`` per metre of noise and the
+    epipolar 3D gate by ``point_gate_m_per_noise_m``."""
+    radius = cfg.builder.guided_radius_px + cfg.noise_sigma * cfg.radius_px_per_noise_m
+    epipolar = cfg.builder.epipolar
+    if epipolar.max_point_distance_m is not None:
+        gate = epipolar.max_point_distance_m + cfg.noise_sigma * cfg.point_gate_m_per_noise_m
+        epipolar = replace(epipolar, max_point_distance_m=gate)
+    return replace(cfg.builder, guided_radius_px=radius, epipolar=epipolar)
+
+
+def _counts(keyframes: int, points: int) -> dict[str, int]:
+    return {"keyframes": int(keyframes), "map_points": int(points)}
+
+
+def _redundancy_summary(db: VisualDatabase, builder: DatabaseBuilder) -> dict[str, float]:
+    """Quantiles of the keyframes' redundancy (fraction of their points seen by
+    ``min_other_observers`` other keyframes) in the final database: how far from culling."""
+    score = redundancy(db, builder.config.culling).float()
+    if len(score) == 0:
+        return {}
+    quantiles = torch.quantile(score, torch.tensor([0.5, 0.9, 1.0]))
+    return {
+        "median": float(quantiles[0]),
+        "p90": float(quantiles[1]),
+        "max": float(quantiles[2]),
+        "threshold": builder.config.culling.redundant_fraction,
+    }
+
+
+def update_database(
+    dataset: str | Path,
+    db_cfg: DatabaseConfig,
+    cfg: UpdateTaskConfig,
+    show_progress: bool = True,
+) -> dict:
+    """Update the built database of ``dataset`` with the frames of ``cfg.sequence``.
+
+    Args:
+        dataset: the dataset folder (with ``map/surfel_map.ply`` and the ``build_db`` output).
+        db_cfg: the database settings; the same as for ``task=build_db``.
+        cfg: the stage settings.
+        show_progress: show a progress bar.
+
+    Returns:
+        The summary written to ``<database_dir>/updated_<sequence>/update_db.json`` (module
+        docstring).
+
+    Raises:
+        FileNotFoundError: no built database (the message names the command to run), no
+            surfel map or no such sequence.
+        ValueError: the build record does not describe the saved database.
+    """
+    start = time.perf_counter()
+    root = Path(dataset)
+    base = select_database(root, db_cfg, BUILT)
+    surfel_path = root / "map" / "surfel_map.ply"
+    if not surfel_path.is_file():
+        raise FileNotFoundError(f"{surfel_path} is missing: run `diffloc task=build_map` first")
+    db = VisualDatabase.load(base.path)
+    if db.num_keyframes != len(base.keyframe_sources):
+        raise ValueError(
+            f"{base.record} lists {len(base.keyframe_sources)} keyframes but {base.path} has "
+            f"{db.num_keyframes}: rebuild with `diffloc task=build_db`"
+        )
+    sequence = read_sequence(root, cfg.sequence)
+    truth = sequence.T_wc.clone()
+    generator = torch.Generator().manual_seed(cfg.noise_seed)
+    sequence.T_wc = perturb_positions(sequence.T_wc, db_cfg.noise_sigma, generator)
+    builder = DatabaseBuilder(
+        noisy_builder_config(db_cfg),
+        SurfelMap.load(surfel_path),
+        make_extractor(db_cfg.extractor_config()),
+        database=db,
+    )
+    before = _counts(db.num_keyframes, db.num_points)
+    loaded = time.perf_counter()
+    builder.build(sequence, show_progress=show_progress)
+    built = time.perf_counter()
+    counts = builder.counts
+    sources = list(base.keyframe_sources) + [(cfg.sequence, i) for i in range(len(sequence))]
+    kept = [sources[i] for i in builder.keyframe_ids.tolist()]
+    true_poses = {db_cfg.sequence: read_sequence(root, db_cfg.sequence).T_wc, cfg.sequence: truth}
+    T_wc_true = torch.stack([true_poses[name][frame] for name, frame in kept])
+    base_kept = int((builder.keyframe_ids < before["keyframes"]).sum())
+    images = len(sequence)
+    stage = updated_dir(root, db_cfg, cfg.sequence)
+    summary = {
+        "config": {"db": asdict(db_cfg), "task": asdict(cfg)},
+        "base_database": str(base.path),
+        "database": str(stage / BUILT),
+        "sequence": cfg.sequence,
+        "images": images,
+        "before": before,
+        "after_adding": _counts(
+            before["keyframes"] + counts.keyframes_added,
+            before["map_points"] + counts.points_created,
+        ),
+        "after_culling": _counts(db.num_keyframes, db.num_points),
+        "culled": {
+            "keyframes": counts.keyframes_culled,
+            "keyframes_of_base": before["keyframes"] - base_kept,
+            "points_unconfirmed": counts.points_unconfirmed,
+            "points_of_culled_keyframes": counts.points_orphaned,
+        },
+        "stats": db.stats(),
+        "redundancy": _redundancy_summary(db, builder),
+        "keyframe_sources": [[name, frame] for name, frame in kept],
+        "kf_pos_rmse_m": keyframe_position_rmse(db.T_wc, T_wc_true),
+        "timings_ms": {
+            "load": (loaded - start) * 1e3,
+            "features": builder.timings_ms["features"],
+            "update": builder.timings_ms["database"],
+        },
+        "features_ms_per_image": builder.timings_ms["features"] / images,
+        "update_ms_per_image": builder.timings_ms["database"] / images,
+    }
+    with atomic_directory(stage, overwrite=True) as tmp:
+        db.save(tmp / BUILT)
+        summary["timings_ms"]["save"] = (time.perf_counter() - built) * 1e3
+        (tmp / UPDATE_RECORD).write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
