@@ -41,6 +41,7 @@ __all__ = [
     "check_database_name",
     "db_overrides",
     "keyframe_images",
+    "keyframe_true_poses",
     "select_database",
     "updated_dir",
 ]
@@ -189,3 +190,15 @@ def keyframe_images(
         if name not in sequences:
             sequences[name] = read_sequence(dataset, name)
         yield sequences[name].load_rgb(frame)
+
+
+def keyframe_true_poses(dataset: str | Path, sources: Sequence[tuple[str, int]]) -> torch.Tensor:
+    """(K, 4, 4) float64 poses on disk of the keyframes given by ``(sequence, frame)``.
+
+    For a simulated dataset these are the true poses: read for scoring only (how far the
+    queries lie from the database), never by the relocaliser.
+    """
+    sequences = {
+        name: read_sequence(dataset, name) for name in dict.fromkeys(n for n, _ in sources)
+    }
+    return torch.stack([sequences[name].T_wc[frame].double() for name, frame in sources])

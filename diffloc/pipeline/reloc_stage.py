@@ -54,6 +54,7 @@ from diffloc.pipeline.database_select import (
     SelectedDatabase,
     check_database_name,
     keyframe_images,
+    keyframe_true_poses,
     select_database,
 )
 from diffloc.pipeline.database_stage import DatabaseConfig
@@ -387,7 +388,7 @@ def relocalize_dataset(
     extractor = make_extractor(db_cfg.extractor_config())
     results: dict = {"sequences": {}}
     rows = []
-    T_wc_db_true = read_sequence(dataset, db_cfg.sequence).T_wc[built["keyframe_frames"]]
+    T_wc_db_true = keyframe_true_poses(dataset, selected.keyframe_sources)
     for name in cfg.sequences:
         run = _relocalize_sequence(dataset, name, cfg, extractor, relocalizer, show_progress)
         entry = _report_sequence(run, cfg, out / name, name, T_wc_db_true)
