@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import doctest
 import json
 import shutil
 from pathlib import Path
@@ -19,10 +20,12 @@ from diffloc.io.calib import read_calib, write_calib
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
 from diffloc.optim.rig_calibration import calibrate_rig
+from diffloc.pipeline import database_stage
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.pipeline.database_stage import (
     DatabaseConfig,
     database_dir,
+    database_poses,
     keyframe_position_rmse,
     perturb_positions,
 )
@@ -133,6 +136,46 @@ def test_calibrate_rig_stage_runs_the_calibration_and_writes_the_rig(mapped: Pat
     corrected = torch.tensor(summary["T_body_camera_corrected"], dtype=torch.float64)
     assert_close(corrected, T_bc @ direct.T_correction, rtol=0.0, atol=1e-12)
     assert_close(rig.T_body_sensor("camera").detach(), corrected, rtol=0.0, atol=1e-9)
+
+
+def test_calibrate_rig_stage_takes_the_body_trajectory_from_the_noisy_poses(mapped: Path):
+    """With ``db.noise_sigma > 0`` the body trajectory (the source of the twists that carry the
+    time offset) is made of the poses the database was built from, noise included, never of
+    the sequence's clean poses: the stage's result is the calibration against the noisy
+    trajectory, bit for bit, and differs from the one against the clean trajectory."""
+    noise = "db.noise_sigma=0.05"  # projection association: a database no other test reads
+    _run("build_db", mapped, noise)
+    summary = _run("calibrate_rig", mapped, noise)
+    cfg = DatabaseConfig(noise_sigma=0.05)
+    folder = database_dir(mapped, cfg)
+    db = VisualDatabase.load(folder / "database")
+    seq = read_sequence(mapped, "mapping")
+    T_bc = seq.T_body_camera.double()
+    frames = torch.tensor(json.loads((folder / "build_db.json").read_text())["keyframe_frames"])
+    noisy = database_poses(seq.T_wc, cfg)
+    assert torch.equal(db.T_wc, noisy[frames].to(db.T_wc.dtype))  # what the database has
+    surfels = SurfelMap.load(mapped / "map" / "surfel_map.ply")
+    times = torch.as_tensor(seq.timestamps, dtype=torch.float64)
+
+    def fit(T_wc: torch.Tensor):
+        T_wb = T_wc.double() @ invert(T_bc)
+        return calibrate_rig(
+            db, surfels.centers.double(), surfels.normals.double(), T_wb, times, frames
+        )
+
+    from_noisy, from_clean = fit(noisy), fit(seq.T_wc)
+    assert summary["T_correction"] == from_noisy.T_correction.tolist()
+    assert summary["dt_s"] == from_noisy.dt
+    assert from_clean.dt != from_noisy.dt
+
+
+def test_database_poses_are_the_sequence_poses_with_the_configured_noise():
+    T = se3_exp(torch.randn(6, 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64))
+    cfg = DatabaseConfig(noise_sigma=0.2, noise_seed=4)
+    expected = perturb_positions(T, 0.2, torch.Generator().manual_seed(4))
+    assert torch.equal(database_poses(T, cfg), expected)
+    assert torch.equal(database_poses(T, DatabaseConfig()), T)
+    assert doctest.testmod(database_stage).failed == 0
 
 
 def test_calibrate_rig_needs_a_camera_extrinsic(mapped: Path, tmp_path: Path):

@@ -41,7 +41,10 @@ LOCAL_FEATURES = ("xfeat", "orb")
 __all__ = [
     "DatabaseConfig",
     "build_database",
+    "database_builder",
     "database_dir",
+    "database_poses",
+    "keyframe_frames",
     "keyframe_position_rmse",
     "optimize_database",
     "perturb_positions",
@@ -132,13 +135,74 @@ def perturb_positions(T_wc: torch.Tensor, sigma: float, generator: torch.Generat
     return noisy
 
 
+def database_poses(T_wc: torch.Tensor, cfg: DatabaseConfig) -> torch.Tensor:
+    """The camera poses the database of ``cfg`` is built from: the sequence's, with its noise.
+
+    These are the poses the pipeline has (a badly registered database's, seed 1 Table III):
+    :func:`build_database` builds from them, and a later stage that needs poses besides the
+    database's keyframes (the rig calibration's body trajectory) reads them here, never the
+    sequence's clean poses.
+
+    Args:
+        T_wc: (N, 4, 4) camera-to-world poses of the sequence ``cfg.sequence``.
+        cfg: the database settings (``noise_sigma``, ``noise_seed``).
+
+    Returns:
+        (N, 4, 4) the poses with ``N(0, noise_sigma^2)`` added to each position axis, drawn
+        from ``noise_seed`` (a copy; equal to ``T_wc`` when ``noise_sigma`` is 0).
+
+    Raises:
+        ValueError: negative ``noise_sigma``.
+
+    Example:
+        >>> T = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+        >>> torch.equal(database_poses(T, DatabaseConfig()), T)
+        True
+    """
+    return perturb_positions(T_wc, cfg.noise_sigma, torch.Generator().manual_seed(cfg.noise_seed))
+
+
+def database_builder(cfg: DatabaseConfig, surfel_map: SurfelMap) -> DatabaseBuilder:
+    """The builder of the database of ``cfg``: its extractor and thresholds, the guided radius
+    and the epipolar 3D gate widened for ``noise_sigma`` (:class:`DatabaseConfig`).
+
+    Args:
+        cfg: the database settings.
+        surfel_map: the surfel map the keypoints are tied to.
+
+    Returns:
+        A :class:`~diffloc.database.builder.DatabaseBuilder` with an empty database.
+    """
+    radius = cfg.builder.guided_radius_px + cfg.noise_sigma * cfg.radius_px_per_noise_m
+    epipolar = cfg.builder.epipolar
+    if epipolar.max_point_distance_m is not None:
+        gate = epipolar.max_point_distance_m + cfg.noise_sigma * cfg.point_gate_m_per_noise_m
+        epipolar = replace(epipolar, max_point_distance_m=gate)
+    return DatabaseBuilder(
+        replace(cfg.builder, guided_radius_px=radius, epipolar=epipolar),
+        surfel_map,
+        make_extractor(cfg.extractor_config()),
+    )
+
+
 def keyframe_position_rmse(T_wc: torch.Tensor, T_wc_true: torch.Tensor) -> float:
     """Root mean square distance (metres) between the positions of (K, 4, 4) pose sets."""
     return float((T_wc[:, :3, 3] - T_wc_true[:, :3, 3]).square().sum(-1).mean().sqrt())
 
 
-def _keyframe_frames(db: VisualDatabase, T_wc_built: torch.Tensor) -> torch.Tensor:
-    """(K,) frame index of every surviving keyframe (its pose is one of the built poses)."""
+def keyframe_frames(db: VisualDatabase, T_wc_built: torch.Tensor) -> torch.Tensor:
+    """Frame index of every keyframe that survived culling (its pose is one of the built poses).
+
+    Args:
+        db: the built database; ``db.T_wc`` (K, 4, 4).
+        T_wc_built: (N, 4, 4) the poses of the frames the database was built from.
+
+    Returns:
+        (K,) int64 frame index of each keyframe.
+
+    Raises:
+        RuntimeError: a keyframe pose matches none of ``T_wc_built``.
+    """
     same = (db.T_wc[:, None] == T_wc_built[None].to(db.T_wc.dtype)).flatten(2).all(-1)
     if not bool(same.any(-1).all()):
         raise RuntimeError("a keyframe pose matches no input pose")
@@ -166,22 +230,12 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
     if not surfel_path.is_file():
         raise FileNotFoundError(f"{surfel_path} is missing: run `diffloc task=build_map` first")
     seq = read_sequence(root, cfg.sequence)
-    generator = torch.Generator().manual_seed(cfg.noise_seed)
-    seq.T_wc = perturb_positions(seq.T_wc, cfg.noise_sigma, generator)
-    radius = cfg.builder.guided_radius_px + cfg.noise_sigma * cfg.radius_px_per_noise_m
-    epipolar = cfg.builder.epipolar
-    if epipolar.max_point_distance_m is not None:
-        gate = epipolar.max_point_distance_m + cfg.noise_sigma * cfg.point_gate_m_per_noise_m
-        epipolar = replace(epipolar, max_point_distance_m=gate)
-    builder = DatabaseBuilder(
-        replace(cfg.builder, guided_radius_px=radius, epipolar=epipolar),
-        SurfelMap.load(surfel_path),
-        make_extractor(cfg.extractor_config()),
-    )
+    seq.T_wc = database_poses(seq.T_wc, cfg)
+    builder = database_builder(cfg, SurfelMap.load(surfel_path))
     db = builder.build(seq, show_progress=show_progress)
     images = len(seq.rgb_paths)
-    frames = _keyframe_frames(db, seq.T_wc)
-    truth = read_sequence(root, cfg.sequence).T_wc[frames]
+    frames = keyframe_frames(db, seq.T_wc)
+    truth = read_sequence(root, cfg.sequence).T_wc[frames]  # scoring only
     out = database_dir(root, cfg)
     db.save(out / "database")
     summary = {
@@ -190,8 +244,8 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
         **db.stats(),
         "keyframe_frames": frames.tolist(),
         "kf_pos_rmse_m": keyframe_position_rmse(db.T_wc, truth),
-        "guided_radius_px": radius,
-        "point_gate_m": epipolar.max_point_distance_m,
+        "guided_radius_px": builder.config.guided_radius_px,
+        "point_gate_m": builder.config.epipolar.max_point_distance_m,
         "images": images,
         "features_ms_per_image": builder.timings_ms["features"] / images,
         "build_ms_per_image": builder.timings_ms["database"] / images,
