@@ -34,6 +34,13 @@ cmd="diffloc -m task=relocalize db.local_features=orb reloc.method.points=naive,
 $cmd
 table "$runs/ablation_orb" ablation table2_ablation_orb "$cmd"
 
+# Seed 1's own protocol beside diffloc's defaults (same database): the paper's distance test
+# without the speed allowance, every canonical keyframe processed (no early stop), seed 1's
+# validation alone, the guided (projection) association of the default database.
+cmd="diffloc -m task=relocalize reloc.validation.max_speed_mps=0 reloc.method.stop_inliers=null reloc.validation.min_inlier_ratio=0 reloc.validation.min_coverage=0 reloc.validation.ambiguity_ratio=null hydra.sweep.dir=$runs/seed1_protocol"
+$cmd
+table "$runs/seed1_protocol" ablation seed1_protocol "$cmd"
+
 # Table III: database position noise, with and without the surfel optimisation.
 cmd="diffloc -m task=main db.noise_sigma=0,0.2,0.4 task.optimize=true,false db.builder.association=epipolar hydra.sweep.dir=$runs/noise_epipolar"
 $cmd

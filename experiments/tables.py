@@ -82,6 +82,7 @@ def rows_and_columns(jobs: list[tuple[str, dict]], kind: str) -> tuple[list[dict
     columns += [
         Column("queries"),
         Column("recall", "recall@0.3m [%]", ".1f", scale=100),
+        Column("precision", "precision [%]", ".1f", scale=100),
         Column("mATE_m", "mATE [cm]", ".1f", scale=100),
     ]
     if kind == "noise":
