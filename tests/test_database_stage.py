@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import pytest
 import torch
 from torch.testing import assert_close
 
-from diffloc.cli import run
+from diffloc.cli import _stage_done, run
 from diffloc.database.builder import BuilderConfig
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.rig import SensorRig
@@ -62,10 +63,59 @@ def test_build_db_without_noise_keeps_the_true_poses(mapped: Path):
     assert torch.equal(db.T_wc, truth)
 
 
+def test_gates_follow_the_pose_prior_and_not_the_injected_noise():
+    floor = BuilderConfig()
+    assert floor.epipolar.max_point_distance_m is not None
+    same_prior = [DatabaseConfig(noise_sigma=s, pose_prior_sigma_m=0.2) for s in (0.0, 0.4)]
+    gates = [cfg.builder_config() for cfg in same_prior]
+    assert gates[0] == gates[1]
+    assert gates[0].guided_radius_px == pytest.approx(floor.guided_radius_px + 0.2 * 110.0)
+    assert gates[0].epipolar.max_point_distance_m == pytest.approx(
+        floor.epipolar.max_point_distance_m + 0.2 * 4.0
+    )
+    noisy_exact = DatabaseConfig(noise_sigma=0.4).builder_config()
+    assert noisy_exact == floor  # prior 0: the builder's own floors, whatever the noise
+    wider = DatabaseConfig(noise_sigma=0.4, pose_prior_sigma_m=0.4).builder_config()
+    assert wider.guided_radius_px > gates[0].guided_radius_px
+    assert wider.epipolar.max_point_distance_m > gates[0].epipolar.max_point_distance_m
+    folders = {
+        database_dir("d", DatabaseConfig(noise_sigma=0.2, pose_prior_sigma_m=p)).name
+        for p in (0.0, 0.2, 0.4)
+    }
+    assert folders == {f"xfeat_sigma_0.2_prior_{p}" for p in ("0", "0.2", "0.4")}
+
+
+@pytest.mark.parametrize("prior", [-0.1, float("nan"), float("inf"), True])
+def test_bad_pose_prior_is_refused(prior: float):
+    with pytest.raises(ValueError, match=r"db\.pose_prior_sigma_m"):
+        DatabaseConfig(pose_prior_sigma_m=prior)
+
+
+def test_bad_pose_prior_override_is_refused(mapped: Path):
+    with pytest.raises(ValueError, match=r"db\.pose_prior_sigma_m"):
+        _run("build_db", mapped, "db.pose_prior_sigma_m=-0.2")
+
+
+def test_stage_reuse_needs_the_same_pose_prior(mapped: Path):
+    overrides = ("db.noise_sigma=0.05", "db.pose_prior_sigma_m=0.1")
+    built = _run("build_db", mapped, *overrides)
+    cfg = DatabaseConfig(noise_sigma=0.05, pose_prior_sigma_m=0.1)
+    summary = database_dir(mapped, cfg) / "build_db.json"
+    assert built["pose_prior_sigma_m"] == 0.1
+    assert _stage_done(summary, json.loads(json.dumps(asdict(cfg))), [])
+    other = replace(cfg, pose_prior_sigma_m=0.2)
+    assert not _stage_done(summary, json.loads(json.dumps(asdict(other))), [])
+
+
 def test_build_then_optimize_with_noisy_poses(mapped: Path):
     overrides = ("db.noise_sigma=0.05", "db.builder.association=epipolar")
     built = _run("build_db", mapped, *overrides)
     assert built["kf_pos_rmse_m"] > 0.01
+    # The user believes their poses exact (prior 0): the gates stay at the builder's floors.
+    floor = BuilderConfig()
+    assert built["pose_prior_sigma_m"] == 0.0
+    assert built["guided_radius_px"] == floor.guided_radius_px
+    assert built["point_gate_m"] == floor.epipolar.max_point_distance_m
     with pytest.raises(ValueError, match="min_pairs"):  # a tiny database: few pairs each
         _run("optimize_db", mapped, *overrides, "db.optim.min_pairs=100000")
     overrides += ("db.optim.min_pairs=5",)
@@ -74,7 +124,7 @@ def test_build_then_optimize_with_noisy_poses(mapped: Path):
     assert torch.isfinite(torch.tensor(optimized["kf_pos_rmse_after_m"]))
     cfg = DatabaseConfig(noise_sigma=0.05, builder=BuilderConfig(association="epipolar"))
     out = database_dir(mapped, cfg)
-    assert out.name == "xfeat_sigma_0.05_epipolar"
+    assert out.name == "xfeat_sigma_0.05_prior_0_epipolar"
     assert json.loads((out / "optimize_db.json").read_text()) == optimized
     assert VisualDatabase.load(out / "optimized").num_keyframes == built["keyframes"]
 

@@ -17,6 +17,7 @@ optimisation back towards the noise (default scene, sigma 0.2 m: keyframe positi
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -55,24 +56,33 @@ class DatabaseConfig:
     Attributes:
         sequence: the sequence whose images and poses make the database.
         noise_sigma: standard deviation (metres, per axis) of the Gaussian noise added to the
-            keyframe positions before building (seed 1 Table III: 0, 0.2, 0.4).
+            keyframe positions before building (seed 1 Table III: 0, 0.2, 0.4): the
+            simulation of a badly registered database, read by nothing else (the builder's
+            gates follow ``pose_prior_sigma_m``).
         noise_seed: seed of that noise.
         local_features: ``"xfeat"`` or ``"orb"``: which extractor makes the keypoints.
         xfeat: XFeat settings.
         orb: ORB settings (ORB-SLAM-style grid and pyramid).
         builder: matching, fusion and culling thresholds of the builder.
-        radius_px_per_noise_m: the guided-matching radius (``builder.association=projection``)
-            grows by this many pixels per metre of ``noise_sigma``: projected map points move
-            by about ``f * error / depth`` (500 px * 0.2 m / 3 m ~ 33 px at sigma 0.2 on the
-            default scene); 110 gives 30 px at sigma 0.2 and 52 px at 0.4 on top of
+        pose_prior_sigma_m: the user's belief of the per-axis position error (metres, one
+            standard deviation) of the database poses, e.g. the registration accuracy of their
+            mapping system. Every pose-dependent gate of the builder is sized from it, never
+            from ``noise_sigma`` (the truth a real user does not know): the guided-matching
+            radius and the epipolar 3D gate below. 0 (default): the poses are taken as exact,
+            the builder's own floors apply. Must be finite and >= 0. Part of the database
+            folder name (:func:`database_dir`).
+        radius_px_per_prior_m: the guided-matching radius (``builder.association=projection``)
+            grows by this many pixels per metre of ``pose_prior_sigma_m``: projected map
+            points move by about ``f * error / depth`` (500 px * 0.2 m / 3 m ~ 33 px at 0.2 m
+            on the default scene); 110 gives 30 px at 0.2 m and 52 px at 0.4 m on top of
             ``builder.guided_radius_px``. The guided search still centres on the wrong
             projections; with noisy poses ``builder.association=epipolar`` (pose-independent
             tracks) is the better choice.
-        point_gate_m_per_noise_m: the epipolar association's 3D gate
+        point_gate_m_per_prior_m: the epipolar association's 3D gate
             (``builder.epipolar.max_point_distance_m``, the floor) grows by this many metres
-            per metre of ``noise_sigma``: a true match's map point and the surfel under its
-            keypoint differ by the difference of two position errors, whose norm stays below
-            4 sigma in ~97 % of cases (1.3 m at sigma 0.2 on top of the 0.5 m floor).
+            per metre of ``pose_prior_sigma_m``: a true match's map point and the surfel under
+            its keypoint differ by the difference of two position errors, whose norm stays
+            below 4 sigma in ~97 % of cases (1.3 m at 0.2 m on top of the 0.5 m floor).
         optim: the surfel reprojection optimisation. Defaults: every keyframe free (the
             surfel planes fix the frame; the first keyframe is as noisy as the others) and a
             Cauchy kernel of 2 px: with noisy poses many associations are wrong and Huber's
@@ -87,8 +97,9 @@ class DatabaseConfig:
     xfeat: XFeatConfig = field(default_factory=lambda: XFeatConfig(max_keypoints=1000))
     orb: OrbConfig = field(default_factory=lambda: OrbConfig(max_keypoints=1000))
     builder: BuilderConfig = field(default_factory=BuilderConfig)
-    radius_px_per_noise_m: float = 110.0
-    point_gate_m_per_noise_m: float = 4.0
+    pose_prior_sigma_m: float = 0.0
+    radius_px_per_prior_m: float = 110.0
+    point_gate_m_per_prior_m: float = 4.0
     optim: SurfelOptimConfig = field(
         default_factory=lambda: SurfelOptimConfig(
             fix_first_keyframe=False, kernel=RobustKernel("cauchy", 2.0)
@@ -100,17 +111,37 @@ class DatabaseConfig:
             raise ValueError(
                 f"local_features must be one of {LOCAL_FEATURES}, got {self.local_features!r}"
             )
+        prior = self.pose_prior_sigma_m
+        number = isinstance(prior, int | float) and not isinstance(prior, bool)
+        if not (number and math.isfinite(prior) and prior >= 0):
+            raise ValueError(
+                "db.pose_prior_sigma_m (the believed per-axis position error of the database "
+                f"poses, metres) must be a finite number >= 0, got {prior!r}"
+            )
 
     def extractor_config(self) -> XFeatConfig | OrbConfig:
         """The settings of the chosen local feature extractor."""
         return self.xfeat if self.local_features == "xfeat" else self.orb
 
+    def builder_config(self) -> BuilderConfig:
+        """``builder`` with its pose-dependent gates widened by ``pose_prior_sigma_m``:
+        the guided-matching radius (pixels) and the epipolar 3D gate (metres, when set)."""
+        prior = self.pose_prior_sigma_m
+        radius = self.builder.guided_radius_px + prior * self.radius_px_per_prior_m
+        epipolar = self.builder.epipolar
+        if epipolar.max_point_distance_m is not None:
+            gate = epipolar.max_point_distance_m + prior * self.point_gate_m_per_prior_m
+            epipolar = replace(epipolar, max_point_distance_m=gate)
+        return replace(self.builder, guided_radius_px=radius, epipolar=epipolar)
+
 
 def database_dir(dataset: str | Path, cfg: DatabaseConfig) -> Path:
-    """``<dataset>/db/<local_features>_sigma_<noise_sigma>[_epipolar]``: where the database
-    stages of one feature type, noise level and association write."""
+    """``<dataset>/db/<local_features>_sigma_<noise_sigma>_prior_<pose_prior_sigma_m>[_epipolar]``
+    (e.g. ``xfeat_sigma_0.2_prior_0.4_epipolar``): where the database stages of one feature
+    type, noise level, pose prior and association write."""
     suffix = "_epipolar" if cfg.builder.association == "epipolar" else ""
-    return Path(dataset) / "db" / f"{cfg.local_features}_sigma_{cfg.noise_sigma:g}{suffix}"
+    name = f"{cfg.local_features}_sigma_{cfg.noise_sigma:g}_prior_{cfg.pose_prior_sigma_m:g}"
+    return Path(dataset) / "db" / f"{name}{suffix}"
 
 
 def perturb_positions(T_wc: torch.Tensor, sigma: float, generator: torch.Generator) -> torch.Tensor:
@@ -168,13 +199,9 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
     seq = read_sequence(root, cfg.sequence)
     generator = torch.Generator().manual_seed(cfg.noise_seed)
     seq.T_wc = perturb_positions(seq.T_wc, cfg.noise_sigma, generator)
-    radius = cfg.builder.guided_radius_px + cfg.noise_sigma * cfg.radius_px_per_noise_m
-    epipolar = cfg.builder.epipolar
-    if epipolar.max_point_distance_m is not None:
-        gate = epipolar.max_point_distance_m + cfg.noise_sigma * cfg.point_gate_m_per_noise_m
-        epipolar = replace(epipolar, max_point_distance_m=gate)
+    builder_cfg = cfg.builder_config()
     builder = DatabaseBuilder(
-        replace(cfg.builder, guided_radius_px=radius, epipolar=epipolar),
+        builder_cfg,
         SurfelMap.load(surfel_path),
         make_extractor(cfg.extractor_config()),
     )
@@ -190,8 +217,9 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
         **db.stats(),
         "keyframe_frames": frames.tolist(),
         "kf_pos_rmse_m": keyframe_position_rmse(db.T_wc, truth),
-        "guided_radius_px": radius,
-        "point_gate_m": epipolar.max_point_distance_m,
+        "pose_prior_sigma_m": cfg.pose_prior_sigma_m,
+        "guided_radius_px": builder_cfg.guided_radius_px,
+        "point_gate_m": builder_cfg.epipolar.max_point_distance_m,
         "images": images,
         "features_ms_per_image": builder.timings_ms["features"] / images,
         "build_ms_per_image": builder.timings_ms["database"] / images,
