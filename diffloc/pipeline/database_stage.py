@@ -3,10 +3,14 @@
 ``build_database`` runs the surfel-aided builder over the mapping sequence. Seed 1's Table III
 studies database poses with position noise: ``noise_sigma`` adds Gaussian noise (metres, per axis)
 to every keyframe position before building, exactly as a badly registered database would be.
-``optimize_database`` then refines the keyframe poses with surfel reprojection constraints (Eq. 1-4)
-and re-places the map points (Eq. 1). Both write into :func:`database_dir` and report the keyframe
-position RMSE against the dataset's ground truth, so the effect of the optimisation is measured
-where it happens.
+That is the simulation; what the pipeline reads is the user's belief of their pose error,
+``pose_prior_sigma_m``, which sizes the builder's gates and bounds how far the optimisation may
+move the poses. ``optimize_database`` then refines the keyframe poses with surfel reprojection
+constraints (Eq. 1-4) and re-places the map points (Eq. 1), keeping the result only where a
+check that reads neither ground truth nor the minimised cost accepts it
+(:mod:`diffloc.optim.holdout`). Both write into :func:`database_dir` and report the keyframe
+position RMSE against the dataset's ground truth (for scoring only), so the effect of the
+optimisation is measured where it happens.
 
 With noisy poses build with ``db.builder.association=epipolar``: the guided search of seed 1
 looks for each map point around its projection at the noisy pose and makes tracks that pull the
@@ -19,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -30,17 +35,19 @@ from diffloc.features.local import OrbConfig, XFeatConfig, make_extractor
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap
-from diffloc.optim.robust import RobustKernel
-from diffloc.optim.surfel_cost import (
-    SurfelOptimConfig,
-    optimize_keyframe_poses,
-    replace_map_points,
+from diffloc.optim.holdout import (
+    CheckedOptimisation,
+    HoldoutCheckConfig,
+    checked_optimize_keyframe_poses,
 )
+from diffloc.optim.robust import RobustKernel
+from diffloc.optim.surfel_cost import SurfelOptimConfig, replace_map_points
 
 LOCAL_FEATURES = ("xfeat", "orb")
 
 __all__ = [
     "DatabaseConfig",
+    "OptimisationRejectedWarning",
     "build_database",
     "database_dir",
     "keyframe_position_rmse",
@@ -88,6 +95,13 @@ class DatabaseConfig:
             Cauchy kernel of 2 px: with noisy poses many associations are wrong and Huber's
             linear tail lets them outweigh the truth (on the default scene at sigma 0.2 the
             Huber cost of the true poses is higher than that of a wrong optimum).
+        optim_check: the check that decides whether the optimised poses are kept
+            (:mod:`diffloc.optim.holdout`): ``optim_check.accept=checked`` (default) keeps
+            them only where more held-out tracks reproject within ``inlier_px`` than before
+            and the keyframes moved no further than ``pose_prior_sigma_m`` makes plausible
+            (``rms_move_sigmas``, ``max_move_sigmas``; so at the default prior 0 the built
+            poses are kept); ``always`` keeps them regardless (the check is still run and
+            reported).
     """
 
     sequence: str = "mapping"
@@ -105,6 +119,7 @@ class DatabaseConfig:
             fix_first_keyframe=False, kernel=RobustKernel("cauchy", 2.0)
         )
     )
+    optim_check: HoldoutCheckConfig = field(default_factory=HoldoutCheckConfig)
 
     def __post_init__(self) -> None:
         if self.local_features not in LOCAL_FEATURES:
@@ -228,11 +243,59 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
     return summary
 
 
-def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True) -> dict:
-    """Optimise the database built with ``cfg.noise_sigma`` by surfel reprojection.
+class OptimisationRejectedWarning(UserWarning):
+    """The held-out check found no improvement from the surfel optimisation."""
 
-    Writes ``<database_dir>/optimized`` and ``optimize_db.json`` with the keyframe position
-    RMSE before and after, the LM iterations and final cost.
+
+def _check_summary(checked: CheckedOptimisation) -> dict:
+    """The held-out check's figures for ``optimize_db.json`` (flat keys, JSON types)."""
+    return {
+        "accepted": checked.accepted,
+        "check_improved": checked.improved,
+        "check_reason": checked.reason,
+        "check_held_out_points": checked.held_out_points,
+        "check_held_out_pairs": checked.before.pairs,
+        "check_inlier_fraction_before": checked.before.inlier_fraction,
+        "check_inlier_fraction_after": checked.after.inlier_fraction,
+        "check_median_px_before": checked.before.median_px,
+        "check_median_px_after": checked.after.median_px,
+        "check_rms_move_m": checked.moves.rms_m,
+        "check_rms_move_limit_m": checked.moves.rms_limit_m,
+        "check_max_move_m": checked.moves.max_m,
+        "check_max_move_limit_m": checked.moves.max_limit_m,
+    }
+
+
+def _warn_if_unchecked(checked: CheckedOptimisation, folder: Path) -> None:
+    """Warn when the held-out check did not vouch for the optimisation (kept or not)."""
+    if checked.improved:
+        return
+    if checked.accepted:
+        message = (
+            f"the surfel optimisation of {folder} did not pass the held-out check "
+            f"({checked.reason}); its poses were kept anyway because "
+            "db.optim_check.accept=always"
+        )
+    else:
+        message = (
+            f"the surfel optimisation of {folder} was not accepted ({checked.reason}); "
+            f"{folder / 'optimized'} keeps the un-optimised poses. Force the optimised ones "
+            "with db.optim_check.accept=always"
+        )
+    warnings.warn(message, OptimisationRejectedWarning, stacklevel=3)
+
+
+def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True) -> dict:
+    """Optimise the database built with ``cfg`` by surfel reprojection, checked on held-out
+    tracks (:mod:`diffloc.optim.holdout`).
+
+    Writes ``<database_dir>/optimized``: the optimised poses and re-placed map points if the
+    check accepts them (or ``cfg.optim_check.accept="always"``), else the database as built,
+    with an :class:`OptimisationRejectedWarning`. ``optimize_db.json`` records the check
+    (``accepted``, held-out inlier fractions and medians before and after, its reason), the LM
+    iterations and final cost, and for scoring only the keyframe position RMSE against ground
+    truth before, after (of the kept poses) and of the optimised poses whether kept or not
+    (``kf_pos_rmse_optimized_m``). Ground truth is read after the decision and never by it.
 
     Raises:
         FileNotFoundError: the database or surfel map is missing.
@@ -246,19 +309,26 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
     db = VisualDatabase.load(out / "database")
     surfels = SurfelMap.load(root / "map" / "surfel_map.ply")
     centers, normals = surfels.centers.double(), surfels.normals.double()
-    truth = read_sequence(root, cfg.sequence).T_wc[torch.tensor(built["keyframe_frames"])]
-    before = keyframe_position_rmse(db.T_wc, truth)
+    T_wc_built = db.T_wc.clone()
     start = time.perf_counter()
-    T_wc, result = optimize_keyframe_poses(db, centers, normals, cfg.optim)
-    db.T_wc = T_wc
-    db.point_positions = replace_map_points(db, centers, normals)
+    checked = checked_optimize_keyframe_poses(
+        db, centers, normals, cfg.optim, cfg.optim_check, cfg.pose_prior_sigma_m
+    )
+    if checked.accepted:
+        db.T_wc = checked.T_wc
+        db.point_positions = replace_map_points(db, centers, normals)
     optimize_ms = (time.perf_counter() - start) * 1e3
     db.save(out / "optimized")
+    _warn_if_unchecked(checked, out)
+    truth = read_sequence(root, cfg.sequence).T_wc[torch.tensor(built["keyframe_frames"])]
+    result = checked.result
     summary = {
         "config": asdict(cfg),
         "database": str(out / "optimized"),
-        "kf_pos_rmse_before_m": before,
+        **_check_summary(checked),
+        "kf_pos_rmse_before_m": keyframe_position_rmse(T_wc_built, truth),
         "kf_pos_rmse_after_m": keyframe_position_rmse(db.T_wc, truth),
+        "kf_pos_rmse_optimized_m": keyframe_position_rmse(checked.T_wc_optimized, truth),
         "iterations": int(result.iterations.max()),
         "final_cost": float(result.cost.sum()),
         "converged": bool(torch.as_tensor(result.converged).all()),
