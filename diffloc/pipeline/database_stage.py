@@ -244,11 +244,11 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
 
 
 class OptimisationRejectedWarning(UserWarning):
-    """The held-out check found no improvement from the surfel optimisation."""
+    """The check of the surfel optimisation (held-out tracks, plausible moves) failed."""
 
 
 def _check_summary(checked: CheckedOptimisation) -> dict:
-    """The held-out check's figures for ``optimize_db.json`` (flat keys, JSON types)."""
+    """The check's figures for ``optimize_db.json`` (flat keys, JSON types)."""
     return {
         "accepted": checked.accepted,
         "check_improved": checked.improved,
@@ -267,12 +267,12 @@ def _check_summary(checked: CheckedOptimisation) -> dict:
 
 
 def _warn_if_unchecked(checked: CheckedOptimisation, folder: Path) -> None:
-    """Warn when the held-out check did not vouch for the optimisation (kept or not)."""
+    """Warn when the check did not vouch for the optimisation (whether it was kept or not)."""
     if checked.improved:
         return
     if checked.accepted:
         message = (
-            f"the surfel optimisation of {folder} did not pass the held-out check "
+            f"the surfel optimisation of {folder} did not pass its check "
             f"({checked.reason}); its poses were kept anyway because "
             "db.optim_check.accept=always"
         )
@@ -319,7 +319,6 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
         db.point_positions = replace_map_points(db, centers, normals)
     optimize_ms = (time.perf_counter() - start) * 1e3
     db.save(out / "optimized")
-    _warn_if_unchecked(checked, out)
     truth = read_sequence(root, cfg.sequence).T_wc[torch.tensor(built["keyframe_frames"])]
     result = checked.result
     summary = {
@@ -336,4 +335,5 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
         "optimize_ms_per_image": optimize_ms / db.num_keyframes,
     }
     _write_summary(out / "optimize_db.json", summary)
+    _warn_if_unchecked(checked, out)
     return summary
