@@ -5,8 +5,8 @@ Usage:
         [--translation-cm 5] [--rotation-deg 1] [--dt-ms 30] [--dense-rate-hz 100]
         [--seed 0] [--threads 1] [--out experiments/results/bench_rig_calibration.json]
 
-The database (default ``<data>/db/xfeat_sigma_0_epipolar`` when built, else
-``<data>/db/xfeat_sigma_0``) holds the ground-truth keyframe poses of the mapping sequence,
+The database (default ``<data>/db/xfeat_sigma_0_prior_0_epipolar`` when built, else
+``<data>/db/xfeat_sigma_0_prior_0``) holds the ground-truth keyframe poses of the mapping sequence,
 ``T_wc_k = T_wb(t_k) T_bc`` (``read_sequence``: image times ``t_k``, ``T_wc``, ``T_bc``). Its
 keyframe poses are replaced by those of a miscalibrated rig, ``T_wb(t_k + dt_err) T_bc E``
 (``E``: ``--translation-cm`` and ``--rotation-deg`` in seeded random directions, camera
@@ -44,6 +44,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+from diffloc.database.builder import BuilderConfig
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.se3 import invert, se3_exp, se3_log
 from diffloc.io.atomic import atomic_write_text
@@ -51,7 +52,7 @@ from diffloc.io.dataset import read_dataset_info, read_sequence
 from diffloc.maps.surfel import SurfelMap
 from diffloc.optim.rig_calibration import RigCalibrationConfig, calibrate_rig
 from diffloc.optim.surfel_cost import optimize_keyframe_poses
-from diffloc.pipeline.database_stage import DatabaseConfig, keyframe_position_rmse
+from diffloc.pipeline.database_stage import DatabaseConfig, database_dir, keyframe_position_rmse
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
 from diffloc.sim.scene import generate_world
 from diffloc.sim.trajectory import interpolate_pose, make_trajectory
@@ -121,10 +122,9 @@ def main() -> None:
     root = args.data
     folder = args.database
     if folder is None:
-        epipolar = root / "db" / "xfeat_sigma_0_epipolar"
-        folder = (
-            epipolar if (epipolar / "build_db.json").is_file() else root / "db" / "xfeat_sigma_0"
-        )
+        epipolar = database_dir(root, DatabaseConfig(builder=BuilderConfig(association="epipolar")))
+        projection = database_dir(root, DatabaseConfig())
+        folder = epipolar if (epipolar / "build_db.json").is_file() else projection
     built = json.loads((folder / "build_db.json").read_text())
     if built["config"]["noise_sigma"] != 0:
         raise ValueError(f"{folder} was built with noisy poses; the benchmark needs sigma 0")
