@@ -79,9 +79,11 @@ def run_build_db(cfg: DictConfig) -> dict:
 def run_optimize_db(cfg: DictConfig) -> dict:
     """``task=optimize_db``: surfel reprojection optimisation of the ``build_db`` database."""
     summary = optimize_database(Path(cfg.dataset), OmegaConf.to_object(cfg.db), cfg.progress)
+    verdict = "accepted" if summary["accepted"] else "NOT accepted, built poses kept"
     print(
-        f"optimized: {summary['database']} (keyframe position RMSE "
-        f"{summary['kf_pos_rmse_before_m']:.3f} m -> {summary['kf_pos_rmse_after_m']:.3f} m)"
+        f"optimized: {summary['database']} ({verdict}: {summary['check_reason']}; keyframe "
+        f"position RMSE {summary['kf_pos_rmse_before_m']:.3f} m -> "
+        f"{summary['kf_pos_rmse_after_m']:.3f} m)"
     )
     return summary
 

@@ -32,7 +32,8 @@ Keys:
     solver factors (5994^2 float32; its factor takes as much again).
     ``surfel_<association>_sigma_<s>_ms`` (and ``_ms_per_keyframe``):
     :func:`optimize_keyframe_poses` (seed 1 Eq. 4) with the settings of the database stage on
-    the database of ``--surfel-data`` built with position noise ``s`` (0.2 and 0.4 m) and
+    the database of ``--surfel-data`` built with position noise ``s`` (0.2 and 0.4 m; pose
+    prior = noise, an oracle, as ``bench_database.py``) and
     ``projection`` or ``epipolar`` association (each skipped when missing), ``_iterations``,
     ``_reason``, ``_pairs``, ``_keyframes``, and the keyframe position RMSE against ground
     truth before and after (``_kf_pos_rmse_before_m``, ``_kf_pos_rmse_after_m``). Goal
@@ -207,7 +208,11 @@ def bench_surfel(data: Path, sigmas: tuple[float, ...], repeats: int) -> dict:
     centers, normals = surfels.centers.double(), surfels.normals.double()
     result: dict[str, float | int | str] = {}
     for association, sigma in itertools.product(ASSOCIATIONS, sigmas):
-        cfg = DatabaseConfig(noise_sigma=sigma, builder=BuilderConfig(association=association))
+        cfg = DatabaseConfig(
+            noise_sigma=sigma,
+            pose_prior_sigma_m=sigma,
+            builder=BuilderConfig(association=association),
+        )
         folder = database_dir(data, cfg)
         if not (folder / "build_db.json").is_file():
             continue

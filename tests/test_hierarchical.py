@@ -16,6 +16,7 @@ from diffloc.database.database import VisualDatabase
 from diffloc.features.local import XFeatConfig, make_extractor
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap
+from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
 from diffloc.reloc.hierarchical import (
     HierarchicalRelocalizer,
     RelocConfig,
@@ -125,7 +126,7 @@ def test_relocalisation_never_reads_the_query_ground_truth(main_run, tmp_path):
 @pytest.fixture(scope="module")
 def relocalizer_parts(main_run):
     root, _, _ = main_run
-    db_dir = root / "db" / "xfeat_sigma_0"
+    db_dir = database_dir(root, DatabaseConfig())
     database = VisualDatabase.load(db_dir / "database")
     retriever = load_retriever(db_dir / "retriever_netvlad")
     centers = SurfelMap.load(root / "map" / "surfel_map.ply").centers

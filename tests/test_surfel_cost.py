@@ -347,6 +347,31 @@ def test_optimize_without_pairs_raises(scene: Scene) -> None:
         optimize_keyframe_poses(db, scene.centers, scene.normals)
 
 
+def test_optimize_uses_only_the_pairs_of_the_given_points(scene: Scene) -> None:
+    """Keyframe 3's keypoints of the first half of the points are wrong: the optimisation on
+    the second half recovers the truth, on all points it does not."""
+    keypoints = scene.keypoints.clone()
+    half = scene.centers.shape[0] // 2
+    keypoints[3, :half] += 25.0
+    wrong = Scene(
+        scene.T_true, scene.centers, scene.normals, scene.points, scene.observers, keypoints
+    )
+    T_init = _perturb(scene.T_true, torch.Generator().manual_seed(3))
+    db = _database(wrong, T_init)
+    points = torch.arange(db.num_points) >= half
+    config = SurfelOptimConfig(fix_first_keyframe=False, min_pairs=0)
+    T_wc, _ = optimize_keyframe_poses(db, scene.centers, scene.normals, config, points=points)
+    assert _pose_errors(T_wc, scene.T_true)[0] < 1e-6
+    T_all, _ = optimize_keyframe_poses(db, scene.centers, scene.normals, config)
+    assert _pose_errors(T_all, scene.T_true)[0] > 1e-3
+    with pytest.raises(ValueError, match="no valid surfel pairs"):
+        optimize_keyframe_poses(
+            db, scene.centers, scene.normals, config, points=torch.zeros_like(points)
+        )
+    with pytest.raises(ShapeError, match="points"):
+        optimize_keyframe_poses(db, scene.centers, scene.normals, config, points=points[:-1])
+
+
 def test_bad_config_raises() -> None:
     with pytest.raises(ValueError):
         SurfelOptimConfig(sigma_px=0.0)

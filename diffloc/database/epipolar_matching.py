@@ -64,10 +64,10 @@ class EpipolarMatchingConfig:
         max_point_distance_m: largest distance (metres) between a matched map point and the
             nearest surfel centre the keypoint sees at the new keyframe's pose (its own and
             neighbouring surfels), or ``None`` for no 3D gate. A true match is off by about
-            the difference of two keyframes' position errors: with Gaussian noise of ``s``
+            the difference of two keyframes' position errors: with Gaussian errors of ``s``
             metres per axis, allow ``~4 s`` on top of a floor of a few surfel radii
-            (``task=build_db`` adds ``db.point_gate_m_per_noise_m`` times ``db.noise_sigma``
-            to this floor).
+            (``task=build_db`` adds ``db.point_gate_m_per_prior_m`` times the user's
+            ``db.pose_prior_sigma_m`` to this floor).
         verify_keyframes: how many covisible keyframes (most matched points first) check the
             matches with an essential matrix.
         essential: RANSAC settings of the check (its ``min_inliers`` is the fewest matches

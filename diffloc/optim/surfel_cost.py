@@ -40,6 +40,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from dataclasses import fields as dataclass_fields
 from typing import NamedTuple
 
 import torch
@@ -213,6 +214,11 @@ class SurfelPairs:
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
+
+    def select(self, keep: torch.Tensor) -> SurfelPairs:
+        """The pairs where ``keep`` (an (M,) bool mask or an index tensor) holds."""
+        kept = {f.name: getattr(self, f.name)[keep] for f in dataclass_fields(self)}
+        return SurfelPairs(**kept)
 
 
 class SurfelReprojectionCost(nn.Module):
@@ -697,6 +703,7 @@ def optimize_keyframe_poses(
     surfel_centers: torch.Tensor,
     surfel_normals: torch.Tensor,
     config: SurfelOptimConfig | None = None,
+    points: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, LMResult]:
     """Optimise the keyframe poses of a database by surfel reprojection (seed 1 Eq. 4).
 
@@ -709,12 +716,14 @@ def optimize_keyframe_poses(
         surfel_centers: (S, 3) surfel centres, world frame.
         surfel_normals: (S, 3) surfel normals.
         config: settings (default :class:`SurfelOptimConfig`).
+        points: (P,) bool, the map points whose pairs enter the cost (default: all), e.g.
+            the training tracks of :mod:`diffloc.optim.holdout`.
 
     Returns:
         ``(T_wc, result)``: (K, 4, 4) float64 optimised poses and the :class:`LMResult`.
 
     Raises:
-        ShapeError: wrong surfel shapes.
+        ShapeError: wrong surfel shapes or ``points`` not of shape (P,).
         ValueError: no valid pair (nothing to optimise), no keyframe in ``min_pairs`` valid
             pairs, or bad surfels.
 
@@ -727,6 +736,9 @@ def optimize_keyframe_poses(
     """
     config = config or SurfelOptimConfig()
     pairs = pairs_from_database(db, surfel_centers, surfel_normals)
+    if points is not None:
+        check_shape(points, f"{db.num_points}", "points")
+        pairs = pairs.select(points.to(torch.bool)[pairs.points])
     sigma = torch.full((len(pairs),), config.sigma_px, dtype=torch.float64)
     cost = SurfelReprojectionCost.from_pairs(pairs, sigma)
     T0 = db.T_wc.to(torch.float64)

@@ -3,10 +3,14 @@
 ``build_database`` runs the surfel-aided builder over the mapping sequence. Seed 1's Table III
 studies database poses with position noise: ``noise_sigma`` adds Gaussian noise (metres, per axis)
 to every keyframe position before building, exactly as a badly registered database would be.
-``optimize_database`` then refines the keyframe poses with surfel reprojection constraints (Eq. 1-4)
-and re-places the map points (Eq. 1). Both write into :func:`database_dir` and report the keyframe
-position RMSE against the dataset's ground truth, so the effect of the optimisation is measured
-where it happens.
+That is the simulation; what the pipeline reads is the user's belief of their pose error,
+``pose_prior_sigma_m``, which sizes the builder's gates and bounds how far the optimisation may
+move the poses. ``optimize_database`` then refines the keyframe poses with surfel reprojection
+constraints (Eq. 1-4) and re-places the map points (Eq. 1), keeping the result only where a
+check that reads neither ground truth nor the minimised cost accepts it
+(:mod:`diffloc.optim.holdout`). Both write into :func:`database_dir` and report the keyframe
+position RMSE against the dataset's ground truth (for scoring only), so the effect of the
+optimisation is measured where it happens.
 
 With noisy poses build with ``db.builder.association=epipolar``: the guided search of seed 1
 looks for each map point around its projection at the noisy pose and makes tracks that pull the
@@ -17,7 +21,9 @@ optimisation back towards the noise (default scene, sigma 0.2 m: keyframe positi
 from __future__ import annotations
 
 import json
+import math
 import time
+import warnings
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -29,17 +35,19 @@ from diffloc.features.local import OrbConfig, XFeatConfig, make_extractor
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap
-from diffloc.optim.robust import RobustKernel
-from diffloc.optim.surfel_cost import (
-    SurfelOptimConfig,
-    optimize_keyframe_poses,
-    replace_map_points,
+from diffloc.optim.holdout import (
+    CheckedOptimisation,
+    HoldoutCheckConfig,
+    checked_optimize_keyframe_poses,
 )
+from diffloc.optim.robust import RobustKernel
+from diffloc.optim.surfel_cost import SurfelOptimConfig, replace_map_points
 
 LOCAL_FEATURES = ("xfeat", "orb")
 
 __all__ = [
     "DatabaseConfig",
+    "OptimisationRejectedWarning",
     "build_database",
     "database_builder",
     "database_dir",
@@ -58,29 +66,45 @@ class DatabaseConfig:
     Attributes:
         sequence: the sequence whose images and poses make the database.
         noise_sigma: standard deviation (metres, per axis) of the Gaussian noise added to the
-            keyframe positions before building (seed 1 Table III: 0, 0.2, 0.4).
+            keyframe positions before building (seed 1 Table III: 0, 0.2, 0.4): the
+            simulation of a badly registered database, read by nothing else (the builder's
+            gates follow ``pose_prior_sigma_m``).
         noise_seed: seed of that noise.
         local_features: ``"xfeat"`` or ``"orb"``: which extractor makes the keypoints.
         xfeat: XFeat settings.
         orb: ORB settings (ORB-SLAM-style grid and pyramid).
         builder: matching, fusion and culling thresholds of the builder.
-        radius_px_per_noise_m: the guided-matching radius (``builder.association=projection``)
-            grows by this many pixels per metre of ``noise_sigma``: projected map points move
-            by about ``f * error / depth`` (500 px * 0.2 m / 3 m ~ 33 px at sigma 0.2 on the
-            default scene); 110 gives 30 px at sigma 0.2 and 52 px at 0.4 on top of
+        pose_prior_sigma_m: the user's belief of the per-axis position error (metres, one
+            standard deviation) of the database poses, e.g. the registration accuracy of their
+            mapping system. Every pose-dependent gate of the builder is sized from it, never
+            from ``noise_sigma`` (the truth a real user does not know): the guided-matching
+            radius and the epipolar 3D gate below. 0 (default): the poses are taken as exact,
+            the builder's own floors apply. Must be finite and >= 0. Part of the database
+            folder name (:func:`database_dir`).
+        radius_px_per_prior_m: the guided-matching radius (``builder.association=projection``)
+            grows by this many pixels per metre of ``pose_prior_sigma_m``: projected map
+            points move by about ``f * error / depth`` (500 px * 0.2 m / 3 m ~ 33 px at 0.2 m
+            on the default scene); 110 gives 30 px at 0.2 m and 52 px at 0.4 m on top of
             ``builder.guided_radius_px``. The guided search still centres on the wrong
             projections; with noisy poses ``builder.association=epipolar`` (pose-independent
             tracks) is the better choice.
-        point_gate_m_per_noise_m: the epipolar association's 3D gate
+        point_gate_m_per_prior_m: the epipolar association's 3D gate
             (``builder.epipolar.max_point_distance_m``, the floor) grows by this many metres
-            per metre of ``noise_sigma``: a true match's map point and the surfel under its
-            keypoint differ by the difference of two position errors, whose norm stays below
-            4 sigma in ~97 % of cases (1.3 m at sigma 0.2 on top of the 0.5 m floor).
+            per metre of ``pose_prior_sigma_m``: a true match's map point and the surfel under
+            its keypoint differ by the difference of two position errors, whose norm stays
+            below 4 sigma in ~97 % of cases (1.3 m at 0.2 m on top of the 0.5 m floor).
         optim: the surfel reprojection optimisation. Defaults: every keyframe free (the
             surfel planes fix the frame; the first keyframe is as noisy as the others) and a
             Cauchy kernel of 2 px: with noisy poses many associations are wrong and Huber's
             linear tail lets them outweigh the truth (on the default scene at sigma 0.2 the
             Huber cost of the true poses is higher than that of a wrong optimum).
+        optim_check: the check that decides whether the optimised poses are kept
+            (:mod:`diffloc.optim.holdout`): ``optim_check.accept=checked`` (default) keeps
+            them only where more held-out tracks reproject within ``inlier_px`` than before
+            and the keyframes moved no further than ``pose_prior_sigma_m`` makes plausible
+            (``rms_move_sigmas``, ``max_move_sigmas``; so at the default prior 0 the built
+            poses are kept); ``always`` keeps them regardless (the check is still run and
+            reported).
     """
 
     sequence: str = "mapping"
@@ -90,30 +114,52 @@ class DatabaseConfig:
     xfeat: XFeatConfig = field(default_factory=lambda: XFeatConfig(max_keypoints=1000))
     orb: OrbConfig = field(default_factory=lambda: OrbConfig(max_keypoints=1000))
     builder: BuilderConfig = field(default_factory=BuilderConfig)
-    radius_px_per_noise_m: float = 110.0
-    point_gate_m_per_noise_m: float = 4.0
+    pose_prior_sigma_m: float = 0.0
+    radius_px_per_prior_m: float = 110.0
+    point_gate_m_per_prior_m: float = 4.0
     optim: SurfelOptimConfig = field(
         default_factory=lambda: SurfelOptimConfig(
             fix_first_keyframe=False, kernel=RobustKernel("cauchy", 2.0)
         )
     )
+    optim_check: HoldoutCheckConfig = field(default_factory=HoldoutCheckConfig)
 
     def __post_init__(self) -> None:
         if self.local_features not in LOCAL_FEATURES:
             raise ValueError(
                 f"local_features must be one of {LOCAL_FEATURES}, got {self.local_features!r}"
             )
+        prior = self.pose_prior_sigma_m
+        number = isinstance(prior, int | float) and not isinstance(prior, bool)
+        if not (number and math.isfinite(prior) and prior >= 0):
+            raise ValueError(
+                "db.pose_prior_sigma_m (the believed per-axis position error of the database "
+                f"poses, metres) must be a finite number >= 0, got {prior!r}"
+            )
 
     def extractor_config(self) -> XFeatConfig | OrbConfig:
         """The settings of the chosen local feature extractor."""
         return self.xfeat if self.local_features == "xfeat" else self.orb
 
+    def builder_config(self) -> BuilderConfig:
+        """``builder`` with its pose-dependent gates widened by ``pose_prior_sigma_m``:
+        the guided-matching radius (pixels) and the epipolar 3D gate (metres, when set)."""
+        prior = self.pose_prior_sigma_m
+        radius = self.builder.guided_radius_px + prior * self.radius_px_per_prior_m
+        epipolar = self.builder.epipolar
+        if epipolar.max_point_distance_m is not None:
+            gate = epipolar.max_point_distance_m + prior * self.point_gate_m_per_prior_m
+            epipolar = replace(epipolar, max_point_distance_m=gate)
+        return replace(self.builder, guided_radius_px=radius, epipolar=epipolar)
+
 
 def database_dir(dataset: str | Path, cfg: DatabaseConfig) -> Path:
-    """``<dataset>/db/<local_features>_sigma_<noise_sigma>[_epipolar]``: where the database
-    stages of one feature type, noise level and association write."""
+    """``<dataset>/db/<local_features>_sigma_<noise_sigma>_prior_<pose_prior_sigma_m>[_epipolar]``
+    (e.g. ``xfeat_sigma_0.2_prior_0.4_epipolar``): where the database stages of one feature
+    type, noise level, pose prior and association write."""
     suffix = "_epipolar" if cfg.builder.association == "epipolar" else ""
-    return Path(dataset) / "db" / f"{cfg.local_features}_sigma_{cfg.noise_sigma:g}{suffix}"
+    name = f"{cfg.local_features}_sigma_{cfg.noise_sigma:g}_prior_{cfg.pose_prior_sigma_m:g}"
+    return Path(dataset) / "db" / f"{name}{suffix}"
 
 
 def perturb_positions(T_wc: torch.Tensor, sigma: float, generator: torch.Generator) -> torch.Tensor:
@@ -164,7 +210,7 @@ def database_poses(T_wc: torch.Tensor, cfg: DatabaseConfig) -> torch.Tensor:
 
 def database_builder(cfg: DatabaseConfig, surfel_map: SurfelMap) -> DatabaseBuilder:
     """The builder of the database of ``cfg``: its extractor and thresholds, the guided radius
-    and the epipolar 3D gate widened for ``noise_sigma`` (:class:`DatabaseConfig`).
+    and the epipolar 3D gate widened by the pose prior (:meth:`DatabaseConfig.builder_config`).
 
     Args:
         cfg: the database settings.
@@ -173,16 +219,7 @@ def database_builder(cfg: DatabaseConfig, surfel_map: SurfelMap) -> DatabaseBuil
     Returns:
         A :class:`~diffloc.database.builder.DatabaseBuilder` with an empty database.
     """
-    radius = cfg.builder.guided_radius_px + cfg.noise_sigma * cfg.radius_px_per_noise_m
-    epipolar = cfg.builder.epipolar
-    if epipolar.max_point_distance_m is not None:
-        gate = epipolar.max_point_distance_m + cfg.noise_sigma * cfg.point_gate_m_per_noise_m
-        epipolar = replace(epipolar, max_point_distance_m=gate)
-    return DatabaseBuilder(
-        replace(cfg.builder, guided_radius_px=radius, epipolar=epipolar),
-        surfel_map,
-        make_extractor(cfg.extractor_config()),
-    )
+    return DatabaseBuilder(cfg.builder_config(), surfel_map, make_extractor(cfg.extractor_config()))
 
 
 def keyframe_position_rmse(T_wc: torch.Tensor, T_wc_true: torch.Tensor) -> float:
@@ -244,6 +281,7 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
         **db.stats(),
         "keyframe_frames": frames.tolist(),
         "kf_pos_rmse_m": keyframe_position_rmse(db.T_wc, truth),
+        "pose_prior_sigma_m": cfg.pose_prior_sigma_m,
         "guided_radius_px": builder.config.guided_radius_px,
         "point_gate_m": builder.config.epipolar.max_point_distance_m,
         "images": images,
@@ -254,11 +292,59 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
     return summary
 
 
-def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True) -> dict:
-    """Optimise the database built with ``cfg.noise_sigma`` by surfel reprojection.
+class OptimisationRejectedWarning(UserWarning):
+    """The check of the surfel optimisation (held-out tracks, plausible moves) failed."""
 
-    Writes ``<database_dir>/optimized`` and ``optimize_db.json`` with the keyframe position
-    RMSE before and after, the LM iterations and final cost.
+
+def _check_summary(checked: CheckedOptimisation) -> dict:
+    """The check's figures for ``optimize_db.json`` (flat keys, JSON types)."""
+    return {
+        "accepted": checked.accepted,
+        "check_improved": checked.improved,
+        "check_reason": checked.reason,
+        "check_held_out_points": checked.held_out_points,
+        "check_held_out_pairs": checked.before.pairs,
+        "check_inlier_fraction_before": checked.before.inlier_fraction,
+        "check_inlier_fraction_after": checked.after.inlier_fraction,
+        "check_median_px_before": checked.before.median_px,
+        "check_median_px_after": checked.after.median_px,
+        "check_rms_move_m": checked.moves.rms_m,
+        "check_rms_move_limit_m": checked.moves.rms_limit_m,
+        "check_max_move_m": checked.moves.max_m,
+        "check_max_move_limit_m": checked.moves.max_limit_m,
+    }
+
+
+def _warn_if_unchecked(checked: CheckedOptimisation, folder: Path) -> None:
+    """Warn when the check did not vouch for the optimisation (whether it was kept or not)."""
+    if checked.improved:
+        return
+    if checked.accepted:
+        message = (
+            f"the surfel optimisation of {folder} did not pass its check "
+            f"({checked.reason}); its poses were kept anyway because "
+            "db.optim_check.accept=always"
+        )
+    else:
+        message = (
+            f"the surfel optimisation of {folder} was not accepted ({checked.reason}); "
+            f"{folder / 'optimized'} keeps the un-optimised poses. Force the optimised ones "
+            "with db.optim_check.accept=always"
+        )
+    warnings.warn(message, OptimisationRejectedWarning, stacklevel=3)
+
+
+def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True) -> dict:
+    """Optimise the database built with ``cfg`` by surfel reprojection, checked on held-out
+    tracks (:mod:`diffloc.optim.holdout`).
+
+    Writes ``<database_dir>/optimized``: the optimised poses and re-placed map points if the
+    check accepts them (or ``cfg.optim_check.accept="always"``), else the database as built,
+    with an :class:`OptimisationRejectedWarning`. ``optimize_db.json`` records the check
+    (``accepted``, held-out inlier fractions and medians before and after, its reason), the LM
+    iterations and final cost, and for scoring only the keyframe position RMSE against ground
+    truth before, after (of the kept poses) and of the optimised poses whether kept or not
+    (``kf_pos_rmse_optimized_m``). Ground truth is read after the decision and never by it.
 
     Raises:
         FileNotFoundError: the database or surfel map is missing.
@@ -272,19 +358,25 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
     db = VisualDatabase.load(out / "database")
     surfels = SurfelMap.load(root / "map" / "surfel_map.ply")
     centers, normals = surfels.centers.double(), surfels.normals.double()
-    truth = read_sequence(root, cfg.sequence).T_wc[torch.tensor(built["keyframe_frames"])]
-    before = keyframe_position_rmse(db.T_wc, truth)
+    T_wc_built = db.T_wc.clone()
     start = time.perf_counter()
-    T_wc, result = optimize_keyframe_poses(db, centers, normals, cfg.optim)
-    db.T_wc = T_wc
-    db.point_positions = replace_map_points(db, centers, normals)
+    checked = checked_optimize_keyframe_poses(
+        db, centers, normals, cfg.optim, cfg.optim_check, cfg.pose_prior_sigma_m
+    )
+    if checked.accepted:
+        db.T_wc = checked.T_wc
+        db.point_positions = replace_map_points(db, centers, normals)
     optimize_ms = (time.perf_counter() - start) * 1e3
     db.save(out / "optimized")
+    truth = read_sequence(root, cfg.sequence).T_wc[torch.tensor(built["keyframe_frames"])]
+    result = checked.result
     summary = {
         "config": asdict(cfg),
         "database": str(out / "optimized"),
-        "kf_pos_rmse_before_m": before,
+        **_check_summary(checked),
+        "kf_pos_rmse_before_m": keyframe_position_rmse(T_wc_built, truth),
         "kf_pos_rmse_after_m": keyframe_position_rmse(db.T_wc, truth),
+        "kf_pos_rmse_optimized_m": keyframe_position_rmse(checked.T_wc_optimized, truth),
         "iterations": int(result.iterations.max()),
         "final_cost": float(result.cost.sum()),
         "converged": bool(torch.as_tensor(result.converged).all()),
@@ -292,4 +384,5 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
         "optimize_ms_per_image": optimize_ms / db.num_keyframes,
     }
     _write_summary(out / "optimize_db.json", summary)
+    _warn_if_unchecked(checked, out)
     return summary

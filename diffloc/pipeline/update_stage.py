@@ -13,9 +13,9 @@ stage folder ``<database_dir>/updated_<sequence>/`` as a whole (atomically):
 
 A user's update run has its own poses: with ``db.noise_sigma > 0`` they are perturbed like the
 database's (:func:`~diffloc.pipeline.database_stage.perturb_positions`) but from the seed
-``task.noise_seed``, and the guided-search radius and the epipolar 3D gate grow with the noise
-as in ``build_database``. Culling may remove keyframes of the original database too (a revisit
-makes them redundant); the builder's insertion numbers tell which inputs survived.
+``task.noise_seed``, and the guided-search radius and the epipolar 3D gate grow with the user's
+pose prior ``db.pose_prior_sigma_m`` as in ``build_database``. Culling may remove keyframes of
+the original database too (a revisit makes them redundant); the builder's insertion numbers tell which inputs survived.
 
 Relocalise against the result with ``reloc.database=updated_<sequence>``.
 """
@@ -24,12 +24,12 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 
-from diffloc.database.builder import BuilderConfig, DatabaseBuilder
+from diffloc.database.builder import DatabaseBuilder
 from diffloc.database.culling import redundancy
 from diffloc.database.database import VisualDatabase
 from diffloc.features.local import make_extractor
@@ -48,7 +48,7 @@ from diffloc.pipeline.database_stage import (
     perturb_positions,
 )
 
-__all__ = ["UpdateTaskConfig", "noisy_builder_config", "update_database"]
+__all__ = ["UpdateTaskConfig", "update_database"]
 
 
 @dataclass
@@ -68,18 +68,6 @@ class UpdateTaskConfig:
     def __post_init__(self) -> None:
         if not self.sequence or "/" in self.sequence:
             raise ValueError(f"task.sequence must be a sequence name, got {self.sequence!r}")
-
-
-def noisy_builder_config(cfg: DatabaseConfig) -> BuilderConfig:
-    """The builder settings for poses with ``cfg.noise_sigma`` of noise, as ``build_database``
-    uses them: the guided radius grows by ``radius_px_per_noise_m`` per metre of noise and the
-    epipolar 3D gate by ``point_gate_m_per_noise_m``."""
-    radius = cfg.builder.guided_radius_px + cfg.noise_sigma * cfg.radius_px_per_noise_m
-    epipolar = cfg.builder.epipolar
-    if epipolar.max_point_distance_m is not None:
-        gate = epipolar.max_point_distance_m + cfg.noise_sigma * cfg.point_gate_m_per_noise_m
-        epipolar = replace(epipolar, max_point_distance_m=gate)
-    return replace(cfg.builder, guided_radius_px=radius, epipolar=epipolar)
 
 
 def _counts(keyframes: int, points: int) -> dict[str, int]:
@@ -141,7 +129,7 @@ def update_database(
     generator = torch.Generator().manual_seed(cfg.noise_seed)
     sequence.T_wc = perturb_positions(sequence.T_wc, db_cfg.noise_sigma, generator)
     builder = DatabaseBuilder(
-        noisy_builder_config(db_cfg),
+        db_cfg.builder_config(),
         SurfelMap.load(surfel_path),
         make_extractor(db_cfg.extractor_config()),
         database=db,
