@@ -15,7 +15,8 @@ A user's update run has its own poses: with ``db.noise_sigma > 0`` they are pert
 database's (:func:`~diffloc.pipeline.database_stage.perturb_positions`) but from the seed
 ``task.noise_seed``, and the guided-search radius and the epipolar 3D gate grow with the user's
 pose prior ``db.pose_prior_sigma_m`` as in ``build_database``. Culling may remove keyframes of
-the original database too (a revisit makes them redundant); the builder's insertion numbers tell which inputs survived.
+the original database too (a revisit makes them redundant); the builder's insertion numbers
+tell which inputs survived.
 
 Relocalise against the result with ``reloc.database=updated_<sequence>``.
 """
