@@ -37,9 +37,11 @@ table "$runs/ablation_orb" ablation table2_ablation_orb "$cmd"
 # Seed 1's own protocol beside diffloc's defaults (same database): the paper's distance test
 # without the speed allowance, every canonical keyframe processed (no early stop), seed 1's
 # validation alone, the guided (projection) association of the default database.
-cmd="diffloc -m task=relocalize reloc.validation.max_speed_mps=0 reloc.method.stop_inliers=null reloc.validation.min_inlier_ratio=0 reloc.validation.min_coverage=0 reloc.validation.ambiguity_ratio=null hydra.sweep.dir=$runs/seed1_protocol"
-$cmd
-table "$runs/seed1_protocol" ablation seed1_protocol "$cmd"
+cmd="diffloc task=relocalize reloc.validation.max_speed_mps=0 reloc.method.stop_inliers=null reloc.validation.min_inlier_ratio=0 reloc.validation.min_coverage=0 reloc.validation.ambiguity_ratio=null"
+$cmd task.out_dir=$runs/seed1_protocol
+{ printf 'Made by:\n\n```bash\n%s\n```\n\n' "$cmd"; cat "$runs/seed1_protocol/results.md"; } \
+  > experiments/results/seed1_protocol.md
+cp "$runs/seed1_protocol/results.json" experiments/results/seed1_protocol.json
 
 # Table III: database position noise, with and without the surfel optimisation. The builder's
 # gates follow the user's pose prior; here it equals the injected noise (an oracle: the
