@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
-from diffloc.cli import CONF_DIR
+from diffloc.cli import CONF_DIR, run
+from diffloc.maps.surfel import SurfelMapConfig
+from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.sim.dataset import simulate_dataset
 
 # Small enough that a whole dataset simulates in seconds on 2 cores.
@@ -21,6 +24,10 @@ TINY = [
     "scene.tls.azimuth_steps=96",
     "progress=false",
 ]
+
+
+FINE_SURFELS = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
+"""Surfel map settings fine enough for the 160x120 tiny scene."""
 
 
 def compose_config(overrides: list[str]) -> DictConfig:
@@ -39,3 +46,28 @@ def tiny_indoor_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A tiny simulated indoor dataset (seed 0), made once per test session."""
     out = tmp_path_factory.mktemp("sim") / "indoor_seed0"
     return simulate_dataset(scene_config(TINY + ["scene=indoor"]), out, show_progress=False)
+
+
+@pytest.fixture(scope="session")
+def tiny_indoor_mapped(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny indoor dataset with its surfel map (no point maps), made once per test session.
+
+    Tests that write into a dataset folder take a copy (:func:`copy_dataset`)."""
+    root = tmp_path_factory.mktemp("mapped") / "indoor_seed0"
+    shutil.copytree(tiny_indoor_dataset, root)
+    build_maps(
+        root, BuildMapConfig(point_maps=[], preview_frames=1), FINE_SURFELS, show_progress=False
+    )
+    return root
+
+
+def copy_dataset(source: Path, tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
+    """A private copy of the dataset folder ``source`` in a new temporary folder ``name``."""
+    root = tmp_path_factory.mktemp(name) / source.name
+    shutil.copytree(source, root)
+    return root
+
+
+def run_task(task: str, dataset: Path, *overrides: str) -> dict:
+    """``diffloc task=<task> dataset=<dataset> <overrides>`` on the tiny scene settings."""
+    return run(compose_config(TINY + [f"task={task}", f"dataset={dataset}", *overrides]))

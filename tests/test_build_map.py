@@ -12,18 +12,16 @@ from omegaconf import OmegaConf
 from diffloc.cli import run
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.pointcloud import PointMap
-from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
+from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps, render_views
-from tests.conftest import TINY, compose_config
-
-FINE = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
+from tests.conftest import FINE_SURFELS, TINY, compose_config
 
 
 @pytest.fixture(scope="module")
 def built(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("build") / "indoor"
     shutil.copytree(tiny_indoor_dataset, root)
-    build_maps(root, BuildMapConfig(), FINE, show_progress=False)
+    build_maps(root, BuildMapConfig(), FINE_SURFELS, show_progress=False)
     return root
 
 
@@ -53,7 +51,7 @@ def test_rendered_surfel_depth_matches_the_true_depth(built: Path):
 def test_second_run_reuses_the_maps(built: Path):
     summary_file = built / "map" / "build_map.json"
     before = summary_file.stat().st_mtime_ns
-    build_maps(built, BuildMapConfig(), FINE, show_progress=False)
+    build_maps(built, BuildMapConfig(), FINE_SURFELS, show_progress=False)
     assert summary_file.stat().st_mtime_ns == before
 
 
@@ -76,7 +74,9 @@ def test_a_dataset_without_lidar_is_a_clear_error(built: Path, tmp_path: Path):
     shutil.rmtree(root / "mapping" / "lidar")
     (root / "mapping" / "lidar").mkdir()
     with pytest.raises((ValueError, FileNotFoundError)):
-        build_maps(root, BuildMapConfig(use_sweeps=True, clouds=[], overwrite=True), FINE, False)
+        build_maps(
+            root, BuildMapConfig(use_sweeps=True, clouds=[], overwrite=True), FINE_SURFELS, False
+        )
 
 
 def test_surfel_ids_are_stable_under_sub_pixel_pose_changes(built: Path):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import pytest
@@ -15,20 +14,15 @@ from diffloc.database.epipolar_matching import EpipolarMatchingConfig, match_epi
 from diffloc.features.local import XFeatConfig, make_extractor
 from diffloc.geometry.se3 import invert, transform_points
 from diffloc.io.dataset import read_sequence
-from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
-from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.database_stage import perturb_positions
 
-FINE = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
 EXTRACTOR = XFeatConfig(max_keypoints=512)
 
 
 @pytest.fixture(scope="module")
-def scene(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("database") / "indoor"
-    shutil.copytree(tiny_indoor_dataset, root)
-    build_maps(root, BuildMapConfig(point_maps=[]), FINE, show_progress=False)
-    return root
+def scene(tiny_indoor_mapped: Path) -> Path:
+    return tiny_indoor_mapped
 
 
 @pytest.fixture(scope="module")

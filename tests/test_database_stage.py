@@ -13,14 +13,14 @@ import torch
 from omegaconf import OmegaConf
 from torch.testing import assert_close
 
-from diffloc.cli import _stage_done, run
+from diffloc.cli import _stage_done
 from diffloc.database.builder import BuilderConfig
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.rig import SensorRig
 from diffloc.geometry.se3 import invert, se3_exp
 from diffloc.io.calib import read_calib, write_calib
 from diffloc.io.dataset import read_sequence
-from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
+from diffloc.maps.surfel import SurfelMap
 from diffloc.optim.rig_calibration import calibrate_rig
 from diffloc.optim.surfel_cost import replace_map_points
 from diffloc.pipeline import database_stage
@@ -34,21 +34,13 @@ from diffloc.pipeline.database_stage import (
     perturb_positions,
 )
 from diffloc.sim.dataset import simulate_dataset
-from tests.conftest import TINY, compose_config, scene_config
-
-FINE = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
+from tests.conftest import FINE_SURFELS, TINY, compose_config, copy_dataset, scene_config
+from tests.conftest import run_task as _run
 
 
 @pytest.fixture(scope="module")
-def mapped(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("db") / "indoor"
-    shutil.copytree(tiny_indoor_dataset, root)
-    build_maps(root, BuildMapConfig(point_maps=[], preview_frames=1), FINE, show_progress=False)
-    return root
-
-
-def _run(task: str, root: Path, *overrides: str) -> dict:
-    return run(compose_config(TINY + [f"task={task}", f"dataset={root}", *overrides]))
+def mapped(tiny_indoor_mapped: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return copy_dataset(tiny_indoor_mapped, tmp_path_factory, "db")
 
 
 def test_perturb_positions_moves_positions_only_by_the_requested_sigma():
@@ -191,7 +183,9 @@ def corridor_and_corner(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )
     cfg.sequences = [s for s in cfg.sequences if s.name == "mapping"]
     root = simulate_dataset(cfg, tmp_path_factory.mktemp("db") / "small", show_progress=False)
-    build_maps(root, BuildMapConfig(point_maps=[], preview_frames=1), FINE, show_progress=False)
+    build_maps(
+        root, BuildMapConfig(point_maps=[], preview_frames=1), FINE_SURFELS, show_progress=False
+    )
     return root
 
 

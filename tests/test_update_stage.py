@@ -3,17 +3,13 @@
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import pytest
 import torch
 
-from diffloc.cli import run
 from diffloc.database.database import VisualDatabase
 from diffloc.io.dataset import read_sequence
-from diffloc.maps.surfel import SurfelMapConfig
-from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.pipeline.database_select import (
     check_database_name,
     db_overrides,
@@ -24,23 +20,16 @@ from diffloc.pipeline.database_stage import DatabaseConfig, perturb_positions
 from diffloc.pipeline.reloc_stage import RelocStageConfig
 from diffloc.pipeline.update_stage import UpdateTaskConfig
 from diffloc.reloc.retrieval import load_retriever
-from tests.conftest import TINY, compose_config
-
-FINE = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
+from tests.conftest import copy_dataset
+from tests.conftest import run_task as _run
 
 
 @pytest.fixture(scope="module")
-def built(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+def built(tiny_indoor_mapped: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The tiny dataset with its surfel map and built database (no noise)."""
-    root = tmp_path_factory.mktemp("update") / "indoor"
-    shutil.copytree(tiny_indoor_dataset, root)
-    build_maps(root, BuildMapConfig(point_maps=[], preview_frames=1), FINE, show_progress=False)
+    root = copy_dataset(tiny_indoor_mapped, tmp_path_factory, "update")
     _run("build_db", root)
     return root
-
-
-def _run(task: str, root: Path, *overrides: str) -> dict:
-    return run(compose_config(TINY + [f"task={task}", f"dataset={root}", *overrides]))
 
 
 @pytest.fixture(scope="module")

@@ -126,24 +126,17 @@ class RelocConfig:
 
 @dataclass
 class RelocResult:
-    """Outcome of one query.
+    """Outcome of one query: every refined candidate; the answer is the one with the most
+    inliers (the first of equals).
 
     Attributes:
-        T_wc: (4, 4) float64 camera-to-world pose of the best candidate (identity if none).
-        found: a candidate pose was refined (it still has to pass validation).
-        num_inliers: inliers ``n_in`` of the refined pose (0 if none).
-        canonical: the canonical keyframe of the best candidate (-1 if none).
         retrieved: (k,) int64 retrieved keyframes, best first.
         timings_ms: milliseconds per stage (global_descriptor, retrieval, clustering, matching,
             essential, pnp, projection, refine).
-        candidates: every refined candidate in processing order (the best one among them),
-            for pose validation.
+        candidates: every refined candidate in processing order, for pose validation; empty
+            when nothing reached a refined pose ("could not localise").
     """
 
-    T_wc: torch.Tensor
-    found: bool
-    num_inliers: int
-    canonical: int
     retrieved: torch.Tensor
     timings_ms: dict[str, float]
     candidates: list[Candidate] = field(default_factory=list)
@@ -152,6 +145,29 @@ class RelocResult:
     def best(self) -> Candidate | None:
         """The candidate the pose comes from (``None`` when nothing was found)."""
         return max(self.candidates, key=lambda c: c.num_inliers) if self.candidates else None
+
+    @property
+    def found(self) -> bool:
+        """A candidate pose was refined (it still has to pass validation)."""
+        return bool(self.candidates)
+
+    @property
+    def T_wc(self) -> torch.Tensor:
+        """(4, 4) float64 camera-to-world pose of the best candidate (identity if none)."""
+        best = self.best
+        return torch.eye(4, dtype=torch.float64) if best is None else best.T_wc
+
+    @property
+    def num_inliers(self) -> int:
+        """Inliers ``n_in`` of the best candidate's refined pose (0 if none)."""
+        best = self.best
+        return 0 if best is None else best.num_inliers
+
+    @property
+    def canonical(self) -> int:
+        """The canonical keyframe of the best candidate (-1 if none)."""
+        best = self.best
+        return -1 if best is None else best.canonical
 
 
 @dataclass
@@ -335,10 +351,10 @@ class HierarchicalRelocalizer:
         generator = torch.Generator().manual_seed(self.config.seed)
         camera = camera.to(torch.float64)
         if len(features) < self.config.min_matches:
-            return self._result([], retrieved, timer)
+            return RelocResult(retrieved, dict(timer.ms))
         if self.config.points == "naive":
             best = self._naive(int(retrieved[0]), features, camera, generator, timer)
-            return self._result([] if best is None else [best], retrieved, timer)
+            return RelocResult(retrieved, dict(timer.ms), [] if best is None else [best])
         clusters = covisibility_clusters(
             retrieved, self.covisibility, self.config.min_shared_points
         )
@@ -351,27 +367,9 @@ class HierarchicalRelocalizer:
             stop = self.config.stop_inliers
             if stop is not None and max((c.num_inliers for c in candidates), default=0) >= stop:
                 break
-        return self._result(candidates, retrieved, timer)
+        return RelocResult(retrieved, dict(timer.ms), candidates)
 
     # ------------------------------------------------------------------ stages
-
-    def _result(
-        self, candidates: list[Candidate], retrieved: torch.Tensor, timer: _Timer
-    ) -> RelocResult:
-        """The result of the candidate with the most inliers (the first of equals)."""
-        if not candidates:
-            eye = torch.eye(4, dtype=torch.float64)
-            return RelocResult(eye, False, 0, -1, retrieved, dict(timer.ms))
-        best = max(candidates, key=lambda c: c.num_inliers)
-        return RelocResult(
-            best.T_wc,
-            True,
-            best.num_inliers,
-            best.canonical,
-            retrieved,
-            dict(timer.ms),
-            candidates,
-        )
 
     def _local_points(self, canonical: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(F, N): point ids seen by ``F_c`` and its covisible keyframes, and the points of
