@@ -4,6 +4,7 @@
 # that made it. Scene seed 0 (the tuning seed) first, then the held-out seeds (heldout_*.md).
 #   bash experiments/run_tables.sh            (hours on 2 cores; every stage is cached)
 set -euo pipefail
+set -o noglob  # Hydra list overrides such as reloc.sequences=[a,b] pass through unexpanded
 runs=experiments/runs
 nl=$'\n'
 table() {  # table SWEEP_DIR KIND OUT "COMMAND"
@@ -20,6 +21,72 @@ heldout() {
   shift
   python3 experiments/heldout.py "$report" "$@" --name "$name" "${args[@]}"
 }
+
+# ------------------------------------------------------------------------------------------------
+# Held-out scene seeds (ARCHITECTURE, "Honest evaluation"): everything above is tuned on seed 0;
+# the same jobs on other seeds give per-seed values, mean, std and the worst seed
+# (heldout_<name>.md), and every claimed ordering (FN >= F >= naive, optimised > raw) a paired
+# bootstrap 95 % interval over all held-out queries (heldout_<name>_differences.md): it holds
+# only where the interval is above zero.
+
+# heldout_main SEEDS NAME [EXTRA OVERRIDES...]: the main job on SEEDS and its held-out statistics;
+# sets main_cmd (the command, for the reports of sweeps that reuse its databases).
+heldout_main() {
+  local seeds=$1 name=$2
+  shift 2
+  main_cmd="diffloc -m task=main ${*:+$* }scene.seed=$seeds hydra.sweep.dir=$runs/heldout_$name"
+  $main_cmd
+  heldout stats "$name" "$main_cmd" -- "$runs/heldout_$name"
+}
+
+# heldout_ablation SEEDS NAME POINTS RETRIEVERS [EXTRA OVERRIDES...]: Tables I/II on SEEDS (the
+# databases of heldout_main), statistics and the differences FN - F and F - naive.
+heldout_ablation() {
+  local seeds=$1 name=$2 points=$3 retrievers=$4 cmd cmds
+  shift 4
+  cmd="diffloc -m task=relocalize ${*:+$* }scene.seed=$seeds reloc.method.points=$points reloc.retriever=$retrievers hydra.sweep.dir=$runs/heldout_$name"
+  $cmd
+  cmds="$main_cmd$nl$cmd"
+  heldout stats "$name" "$cmds" -- "$runs/heldout_$name"
+  heldout differences "$name" "$cmds" --compare reloc.method.points=FN,F \
+    --compare reloc.method.points=F,naive -- "$runs/heldout_$name"
+}
+
+# heldout_noise SEEDS NAME LEVELS [EXTRA OVERRIDES...]: Table III on SEEDS, one sweep per noise
+# level of LEVELS ("sigma:priors ..."), e.g. "0.2:0.1,0.2,0.4" puts the pose prior (the user's
+# belief of the database pose error) at sigma / 2, sigma and 2 sigma (Hydra cannot derive one
+# override from another); optimised and raw databases; statistics and the differences
+# optimised - raw per noise level and prior.
+prior_note="db.pose_prior_sigma_m is the user's belief of the database position error; where it \
+equals db.noise_sigma the belief is exact, an oracle setting (a user does not know the true \
+noise). Half and twice the true noise show the sensitivity to a wrong belief."
+heldout_noise() {
+  local seeds=$1 name=$2 levels=$3 level sigma priors dir cmd cmds="" dirs=()
+  shift 3
+  for level in $levels; do
+    IFS=: read -r sigma priors <<< "$level"
+    dir="$runs/heldout_${name}_sigma$sigma"
+    cmd="diffloc -m task=main ${*:+$* }scene.seed=$seeds db.noise_sigma=$sigma db.pose_prior_sigma_m=$priors task.optimize=true,false hydra.sweep.dir=$dir"
+    $cmd
+    cmds+="${cmds:+$nl}$cmd"
+    dirs+=("$dir")
+  done
+  heldout stats "$name" "$cmds" --note "$prior_note" -- "${dirs[@]}"
+  heldout differences "$name" "$cmds" --compare task.optimize=true,false --note "$prior_note" \
+    -- "${dirs[@]}"
+}
+# The prior at twice the noise first (the goal: the optimisation raises recall on every held-out
+# seed), then the full sweep (it reuses those databases). Table III relocalises query_same and
+# query_lane (query_reverse barely relocalises with or without the optimisation).
+t3_seqs="reloc.sequences=[query_same,query_lane]"
+all_levels="0:0 0.2:0.1,0.2,0.4 0.4:0.2,0.4,0.8"
+
+# `bash experiments/run_tables.sh FUNCTION ARGS...` runs one of the functions above alone, e.g.
+#   bash experiments/run_tables.sh heldout_main 1,2,3 main_outdoor scene=outdoor
+if (($#)); then
+  "$@"
+  exit
+fi
 
 # Tables I/II: ablation over local points (naive / F / FN) and global descriptors, XFeat.
 diffloc task=main
@@ -70,67 +137,16 @@ cmd="diffloc -m task=main scene=outdoor db.noise_sigma=0,0.2,0.4 db.pose_prior_s
 $cmd
 table "$runs/noise_outdoor_epipolar" noise table3_noise_outdoor_epipolar "$cmd"
 
-# ------------------------------------------------------------------------------------------------
-# Held-out scene seeds (ARCHITECTURE, "Honest evaluation"): everything above is tuned on seed 0;
-# the same jobs on other seeds give per-seed values, mean, std and the worst seed
-# (heldout_<name>.md), and every claimed ordering (FN >= F >= naive, optimised > raw) a paired
-# bootstrap 95 % interval over all held-out queries (heldout_<name>_differences.md): it holds
-# only where the interval is above zero.
-
-# heldout_main SEEDS NAME [EXTRA OVERRIDES...]: the main job on SEEDS and its held-out statistics;
-# sets main_cmd (the command, for the reports of sweeps that reuse its databases).
-heldout_main() {
-  local seeds=$1 name=$2
-  shift 2
-  main_cmd="diffloc -m task=main ${*:+$* }scene.seed=$seeds hydra.sweep.dir=$runs/heldout_$name"
-  $main_cmd
-  heldout stats "$name" "$main_cmd" -- "$runs/heldout_$name"
-}
-
-# heldout_ablation SEEDS NAME POINTS RETRIEVERS [EXTRA OVERRIDES...]: Tables I/II on SEEDS (the
-# databases of heldout_main), statistics and the differences FN - F and F - naive.
-heldout_ablation() {
-  local seeds=$1 name=$2 points=$3 retrievers=$4 cmd cmds
-  shift 4
-  cmd="diffloc -m task=relocalize ${*:+$* }scene.seed=$seeds reloc.method.points=$points reloc.retriever=$retrievers hydra.sweep.dir=$runs/heldout_$name"
-  $cmd
-  cmds="$main_cmd$nl$cmd"
-  heldout stats "$name" "$cmds" -- "$runs/heldout_$name"
-  heldout differences "$name" "$cmds" --compare reloc.method.points=FN,F \
-    --compare reloc.method.points=F,naive -- "$runs/heldout_$name"
-}
-
-# heldout_noise SEEDS NAME [EXTRA OVERRIDES...]: Table III on SEEDS, one sweep per noise level
-# sigma with the pose prior (the user's belief of the database pose error) at sigma / 2, sigma
-# and 2 sigma (Hydra cannot derive one override from another), optimised and raw databases;
-# statistics and the differences optimised - raw per noise level and prior.
-prior_note="db.pose_prior_sigma_m is the user's belief of the database position error; where it \
-equals db.noise_sigma the belief is exact, an oracle setting (a user does not know the true \
-noise). Half and twice the true noise show the sensitivity to a wrong belief."
-heldout_noise() {
-  local seeds=$1 name=$2 level sigma priors dir cmd cmds="" dirs=()
-  shift 2
-  for level in "0 0" "0.2 0.1,0.2,0.4" "0.4 0.2,0.4,0.8"; do
-    read -r sigma priors <<< "$level"
-    dir="$runs/heldout_${name}_sigma$sigma"
-    cmd="diffloc -m task=main ${*:+$* }scene.seed=$seeds db.noise_sigma=$sigma db.pose_prior_sigma_m=$priors task.optimize=true,false hydra.sweep.dir=$dir"
-    $cmd
-    cmds+="${cmds:+$nl}$cmd"
-    dirs+=("$dir")
-  done
-  heldout stats "$name" "$cmds" --note "$prior_note" -- "${dirs[@]}"
-  heldout differences "$name" "$cmds" --compare task.optimize=true,false --note "$prior_note" \
-    -- "${dirs[@]}"
-}
-
 # Indoors: main job and Tables I/II (XFeat, ORB) on seeds 1-5, Table III on seeds 1-3.
 heldout_main 1,2,3,4,5 main
 heldout_ablation 1,2,3,4,5 ablation_xfeat naive,F,FN netvlad,bow
 heldout_main 1,2,3,4,5 main_orb db.local_features=orb
 heldout_ablation 1,2,3,4,5 ablation_orb naive,F,FN netvlad db.local_features=orb
-heldout_noise 1,2,3 table3_noise_epipolar db.builder.association=epipolar
+heldout_noise 1,2,3 table3_noise_epipolar_prior2x "0.2:0.4 0.4:0.8" db.builder.association=epipolar "$t3_seqs"
+heldout_noise 1,2,3 table3_noise_epipolar "$all_levels" db.builder.association=epipolar "$t3_seqs"
 
 # Outdoors: main job and Tables I/II on seeds 1-3, Table III on seeds 1-2.
 heldout_main 1,2,3 main_outdoor scene=outdoor
 heldout_ablation 1,2,3 ablation_xfeat_outdoor naive,F,FN netvlad,bow scene=outdoor
-heldout_noise 1,2 table3_noise_outdoor scene=outdoor
+heldout_noise 1,2 table3_noise_outdoor_prior2x "0.2:0.4 0.4:0.8" scene=outdoor "$t3_seqs"
+heldout_noise 1,2 table3_noise_outdoor "$all_levels" scene=outdoor "$t3_seqs"
