@@ -13,9 +13,9 @@ import torch
 from omegaconf import OmegaConf
 
 from diffloc.cli import run
+from diffloc.database.colmap import reprojection_errors
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.se3 import invert
-from diffloc.io.colmap import reprojection_errors
 from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig

@@ -9,10 +9,10 @@ import pycolmap
 import pytest
 import torch
 
+from diffloc.database.colmap import COLMAP_PIXEL_OFFSET, reprojection_errors, write_colmap_text
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp
-from diffloc.io.colmap import COLMAP_PIXEL_OFFSET, reprojection_errors, write_colmap_text
 
 POINTS = 20
 

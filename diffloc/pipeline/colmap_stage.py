@@ -2,7 +2,7 @@
 
 ``export_colmap`` picks a database of the dataset like relocalisation does (``task.database``:
 ``database``, ``optimized`` or ``updated_<sequence>``, in the folder the root ``db`` settings
-select) and writes it with :func:`~diffloc.io.colmap.write_colmap_text`:
+select) and writes it with :func:`~diffloc.database.colmap.write_colmap_text`:
 
 - image names are the keyframes' image files relative to the dataset folder (e.g.
   ``mapping/rgb/000012.png``), so ``image_dir=<dataset>`` works for hloc and COLMAP;
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from diffloc.database.colmap import write_colmap_text
 from diffloc.database.database import VisualDatabase
-from diffloc.io.colmap import write_colmap_text
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.database_select import (

@@ -31,17 +31,14 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from diffloc.checks import check_shape
+from diffloc.database.database import VisualDatabase
 from diffloc.geometry.se3 import invert, translation_quaternion_from_pose
 from diffloc.io.atomic import atomic_directory
-
-if TYPE_CHECKING:  # io/ sits below database/: the type is only named, never imported at run time
-    from diffloc.database.database import VisualDatabase
 
 __all__ = ["COLMAP_PIXEL_OFFSET", "GREY", "reprojection_errors", "write_colmap_text"]
 
