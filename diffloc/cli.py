@@ -10,6 +10,7 @@ Examples:
     diffloc task=update_db task.sequence=query_lane  # add a sequence to the built database
     diffloc task=calibrate_rig                      # camera extrinsic + time offset of a database
     diffloc task=relocalize reloc.method.points=F    # relocalise the query sequences
+    diffloc task=export_colmap task.database=optimized  # the database as a COLMAP model
     diffloc task=main                               # all of the above, each stage cached
 """
 
@@ -30,6 +31,7 @@ from diffloc.benchmark import peak_rss_mb
 from diffloc.config import register_configs
 from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.build_map import build_maps
+from diffloc.pipeline.colmap_stage import export_colmap
 from diffloc.pipeline.database_stage import build_database, database_dir, optimize_database
 from diffloc.pipeline.reloc_stage import relocalize_dataset
 from diffloc.pipeline.rig_stage import calibrate_database_rig
@@ -124,6 +126,18 @@ def run_calibrate_rig(cfg: DictConfig) -> dict:
     return summary
 
 
+def run_export_colmap(cfg: DictConfig) -> dict:
+    """``task=export_colmap``: a saved database as a COLMAP TEXT model."""
+    summary = export_colmap(
+        Path(cfg.dataset), OmegaConf.to_object(cfg.db), OmegaConf.to_object(cfg.task)
+    )
+    print(
+        f"COLMAP model: {summary['model']} ({summary['images']} images, {summary['points']} "
+        f"points, {summary['observations']} observations; colours: {summary['colors']})"
+    )
+    return summary
+
+
 def _results_dir(cfg: DictConfig) -> Path:
     """``task.out_dir``, else the Hydra run folder, else ``<dataset>/reloc``."""
     if cfg.task.out_dir:
@@ -207,6 +221,7 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
     "update_db": run_update_db,
     "calibrate_rig": run_calibrate_rig,
     "relocalize": run_relocalize,
+    "export_colmap": run_export_colmap,
     "main": run_main,
 }
 

@@ -15,6 +15,7 @@ from omegaconf import MISSING
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.rig_calibration import RigCalibrationConfig
 from diffloc.pipeline.build_map import BuildMapConfig
+from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
 from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.reloc_stage import RelocStageConfig
 from diffloc.pipeline.update_stage import UpdateTaskConfig
@@ -107,6 +108,7 @@ def register_configs() -> None:
     store.store(group="task", name="schema_update_db", node=UpdateTaskConfig)
     store.store(group="task", name="schema_relocalize", node=RelocalizeTaskConfig)
     store.store(group="task", name="schema_calibrate_rig", node=RigCalibrationTaskConfig)
+    store.store(group="task", name="schema_export_colmap", node=ExportColmapTaskConfig)
     store.store(group="task", name="schema_main", node=MainTaskConfig)
     store.store(group="surfel", name="schema_surfel", node=SurfelMapConfig)
     store.store(group="reloc", name="schema_reloc", node=RelocStageConfig)

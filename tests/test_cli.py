@@ -65,7 +65,17 @@ def test_console_script_simulates_a_dataset(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "task", ["simulate", "build_map", "build_db", "optimize_db", "update_db", "relocalize", "main"]
+    "task",
+    [
+        "simulate",
+        "build_map",
+        "build_db",
+        "optimize_db",
+        "update_db",
+        "relocalize",
+        "export_colmap",
+        "main",
+    ],
 )
 @pytest.mark.parametrize("scene", ["indoor", "outdoor"])
 def test_every_task_config_composes_into_typed_objects(task, scene):

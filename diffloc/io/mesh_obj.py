@@ -10,7 +10,7 @@ Conventions:
 
 - Faces are written in the mesh's order. A ``g object_<id>`` line starts every run of faces
   with a new object id (followed by ``usemtl``), a ``usemtl`` line every run with a new
-  material, so object ids, material ids and face order round trip.
+  material, so object ids and material ids round trip.
 - OBJ ``vt`` has ``v = 0`` at the bottom of the image; :class:`TexturedMesh` has ``v = 0`` at
   the top row. The file stores ``v_obj = 1 - v`` (computed in float64). UVs may lie outside
   [0, 1] (textures wrap).
@@ -21,11 +21,11 @@ Conventions:
 - Textures are stored as ``round(255 * albedo)``; they round trip exactly when the albedo
   values are ``k / 255`` (as read from 8-bit images).
 
-The reader also accepts OBJ files from other tools: ``v``, ``vt``, ``f`` (``v``, ``v/vt``,
-``v/vt/vn``, ``v//vn``, negative indices, polygons fan-triangulated), ``g``/``o`` groups
-(``object_<id>`` gives the id, other names give 0), ``usemtl``, ``mtllib``; other statements
-are ignored. Faces without ``vt`` get UV (0, 0); faces before any ``usemtl`` and materials
-without ``map_Kd`` get a 1x1 texture of their ``Kd`` colour (white by default).
+Reading goes through trimesh (OBJ, MTL and texture images; see
+:func:`read_textured_mesh_obj` for what comes back and what diffloc checks on top). A mesh
+written here reads back with the same triangles (corner positions), corner UVs, material and
+object ids and textures; the faces come back grouped by object and material, and the vertex
+list is rebuilt from the distinct positions.
 """
 
 from __future__ import annotations
@@ -35,15 +35,16 @@ import re
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from diffloc.io.atomic import atomic_write_text
-from diffloc.io.images import read_rgb, write_rgb
+from diffloc.io.images import write_rgb
 from diffloc.io.textured_mesh import TexturedMesh
 
 __all__ = ["read_textured_mesh_obj", "write_textured_mesh_obj"]
 
 _MATERIAL_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
-_OBJECT_GROUP = re.compile(r"^object_(\d+)$")
+_OBJECT_GROUP = re.compile(r"^object_(\d+)(?:_|$)")
 _DEFAULT_MATERIAL = "default"
 
 
@@ -146,154 +147,79 @@ def write_textured_mesh_obj(path: str | os.PathLike, mesh: TexturedMesh) -> Path
     return path
 
 
-def _floats(path: Path, rows: list[str], width: int, what: str) -> np.ndarray:
-    """(len(rows), width) float64 from the arguments of ``v``/``vt`` statements.
-
-    Extra columns (``w``, vertex colours) are dropped.
-    """
-    if not rows:
-        return np.zeros((0, width))
-    try:
-        tokens = " ".join(rows).split()
-        if len(tokens) == width * len(rows):
-            return np.array(tokens, dtype=np.float64).reshape(-1, width)
-        values = []
-        for row in rows:
-            numbers = row.split()[:width]
-            if len(numbers) < width:
-                raise ValueError(f"{path}: '{what} {row}' has fewer than {width} numbers")
-            values.append([float(x) for x in numbers])
-        return np.array(values, dtype=np.float64)
-    except ValueError as exc:
-        if str(path) in str(exc):
-            raise
-        raise ValueError(f"{path}: a {what} line holds something that is not a number") from exc
+def _statements(text: str, keyword: str) -> list[str]:
+    """Arguments of every ``keyword`` statement (one per line, leading blanks allowed)."""
+    return [m.strip() for m in re.findall(rf"(?m)^[ \t]*{keyword}[ \t]+([^\n]*)", text)]
 
 
-# Patterns start with a literal "\n" so the regex engine can skip ahead quickly; the text is
-# prefixed with "\n" so the first line is found too.
-_V = re.compile(r"\nv[ \t]+([^\n]*)")
-_VT = re.compile(r"\nvt[ \t]+([^\n]*)")
-_MTLLIB = re.compile(r"\nmtllib[ \t]+([^\n]*)")
-_ORDERED = re.compile(r"\n(f|g|o|usemtl)(?=[ \t\n]|$)(?:[ \t]+([^\n]*))?")
-
-# (v args, vt args, f args, (#v, #vt) before each face or None, runs, mtllibs)
-_Scan = tuple[list[str], list[str], list[str], list[tuple[int, int]] | None, list[tuple], list[str]]
-
-
-def _group_object_id(args: str) -> int:
-    match = next((m for w in args.split() if (m := _OBJECT_GROUP.match(w))), None)
-    return int(match.group(1)) if match else 0
-
-
-def _scan_fast(text: str) -> _Scan | None:
-    """Statements by C-level regex scans.
-
-    Returns ``None`` (use :func:`_scan_slow`) if a line starts with whitespace or faces use
-    relative (negative) indices.
-    """
-    if text.startswith((" ", "\t")) or "\n " in text or "\n\t" in text:
-        return None
-    text = "\n" + text
-    v_rows = _V.findall(text)
-    vt_rows = _VT.findall(text)
-    mtllibs = [m.strip() for m in _MTLLIB.findall(text)]
-    face_rows: list[str] = []
-    runs: list[tuple[int, int, str | None]] = [(0, 0, None)]
-    for key, args in _ORDERED.findall(text):
-        if key == "f":
-            face_rows.append(args)
-        elif key == "usemtl":
-            runs.append((len(face_rows), runs[-1][1], args))
-        else:
-            runs.append((len(face_rows), _group_object_id(args), runs[-1][2]))
-    if any("-" in row for row in face_rows):
-        return None
-    return v_rows, vt_rows, face_rows, None, runs, mtllibs
+def _material_library(path: Path, text: str) -> tuple[Path | None, dict]:
+    """The one ``mtllib`` of an OBJ parsed by trimesh: ``(mtl path or None, name -> kwargs)``."""
+    libraries = _statements(text, "mtllib")
+    if not libraries:
+        return None, {}
+    if len(libraries) > 1:
+        raise ValueError(f"{path}: several mtllib statements {libraries}; trimesh reads only one")
+    mtl_path = path.parent / libraries[0]
+    if not mtl_path.is_file():
+        raise FileNotFoundError(f"material library not found: {mtl_path}")
+    mtl_text = mtl_path.read_text(encoding="utf-8")
+    for texture in re.findall(r"(?im)^[ \t]*map_Kd[ \t]+([^\n]*)", mtl_text):
+        if not (mtl_path.parent / texture.strip()).is_file():
+            raise FileNotFoundError(f"texture not found: {mtl_path.parent / texture.strip()}")
+    resolver = trimesh.resolvers.FilePathResolver(mtl_path)
+    materials = trimesh.exchange.obj.parse_mtl(mtl_text, resolver=resolver)
+    for block in re.split(r"(?m)^[ \t]*newmtl[ \t]+", mtl_text)[1:]:
+        name = block.split("\n", 1)[0].strip()
+        if re.search(r"(?im)^[ \t]*map_Kd[ \t]", block) and "image" not in materials[name]:
+            raise ValueError(f"{mtl_path}: the texture of material {name!r} cannot be decoded")
+    return mtl_path, materials
 
 
-def _scan_slow(text: str) -> _Scan:
-    """Line-by-line scan that records how many v/vt precede each face (negative indices)."""
-    v_rows: list[str] = []
-    vt_rows: list[str] = []
-    face_rows: list[str] = []
-    counts: list[tuple[int, int]] = []
-    runs: list[tuple[int, int, str | None]] = [(0, 0, None)]
-    mtllibs: list[str] = []
-    for raw in text.split("\n"):
-        key, _, args = raw.strip().partition(" ")
-        args = args.strip()
-        if key == "v":
-            v_rows.append(args)
-        elif key == "vt":
-            vt_rows.append(args)
-        elif key == "f":
-            face_rows.append(args)
-            counts.append((len(v_rows), len(vt_rows)))
-        elif key in ("g", "o"):
-            runs.append((len(face_rows), _group_object_id(args), runs[-1][2]))
-        elif key == "usemtl":
-            runs.append((len(face_rows), runs[-1][1], args))
-        elif key == "mtllib":
-            mtllibs.append(args)
-    return v_rows, vt_rows, face_rows, counts, runs, mtllibs
-
-
-def _read_mtl(path: Path) -> tuple[list[str], list[np.ndarray]]:
-    if not path.is_file():
-        raise FileNotFoundError(f"material library not found: {path}")
-    names: list[str] = []
-    textures: list[np.ndarray | None] = []
-    colors: list[list[float]] = []
-    for number, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-        words = raw.split()
-        if not words or words[0].startswith("#"):
-            continue
-        if words[0] == "newmtl":
-            if len(words) < 2:
-                raise ValueError(f"{path}, line {number}: 'newmtl' without a name")
-            names.append(" ".join(words[1:]))
-            textures.append(None)
-            colors.append([1.0, 1.0, 1.0])
-        elif not names:
-            continue
-        elif words[0] == "map_Kd" and len(words) >= 2:
-            texture = read_rgb(path.parent / words[-1])
-            textures[-1] = texture.permute(1, 2, 0).contiguous().numpy()
-        elif words[0] == "Kd" and len(words) >= 4:
-            try:
-                colors[-1] = [float(x) for x in words[1:4]]
-            except ValueError as exc:
-                raise ValueError(f"{path}, line {number}: bad Kd colour") from exc
-    out = [
-        t if t is not None else np.array(c, dtype=np.float32).reshape(1, 1, 3)
-        for t, c in zip(textures, colors, strict=True)
-    ]
-    return names, out
-
-
-def _corner(token: str) -> tuple[int, int | None]:
-    parts = token.split("/")
-    vt = int(parts[1]) if len(parts) > 1 and parts[1] else None
-    return int(parts[0]), vt
+def _texture(material: dict) -> np.ndarray:
+    """(S, T, 3) float32 albedo in [0, 1]: the ``map_Kd`` image, else a 1x1 of ``Kd``."""
+    if "image" in material:
+        rgb = np.asarray(material["image"].convert("RGB"), dtype=np.float32)
+        return rgb / np.float32(255)
+    color = material.get("kd", [1.0, 1.0, 1.0])
+    return np.array(color, dtype=np.float32).reshape(1, 1, 3)
 
 
 def read_textured_mesh_obj(path: str | os.PathLike) -> TexturedMesh:
-    """Read an OBJ (+ MTL + textures) into a :class:`TexturedMesh`.
+    """Read an OBJ (+ MTL + textures) into a :class:`TexturedMesh`, decoded by trimesh.
+
+    trimesh (``trimesh.load`` with ``group_material`` and ``split_groups``) parses the file
+    and its material library; it splits the faces into one geometry per (group, material),
+    duplicates each vertex per texture coordinate it is used with and drops unused vertices.
+    The mesh diffloc builds from that:
+
+    - faces come grouped by object id, then by material index, each group in file order;
+    - vertices are the distinct positions in sorted order (shared again by the groups);
+    - ``corner_uvs`` are trimesh's texture coordinates with ``v = 1 - v_obj``; faces without
+      ``vt`` get (0, 0) (trimesh drops the ``vt`` of a group whose indices it cannot resolve;
+      diffloc notices only when no group keeps any);
+    - object ids come from the ``object_<id>`` group names (other groups give 0);
+    - materials are those of the MTL file in its order (unused ones too), each with its
+      ``map_Kd`` texture or a 1x1 texture of its ``Kd`` colour, plus ``default`` (white) for
+      faces before any ``usemtl``.
+
+    diffloc checks what trimesh lets pass: a missing MTL or texture file, ``usemtl`` names the
+    MTL does not define, face statements trimesh skipped (e.g. indented ones), texture
+    coordinates it resolved for no face at all, non-finite positions or UVs.
 
     Args:
         path: the ``.obj`` file.
 
     Returns:
-        The mesh (see the module docstring for conventions).
+        The mesh.
 
     Raises:
         FileNotFoundError: the OBJ, its MTL or a texture is missing.
-        ValueError: malformed numbers, indices out of range, unknown materials; the message
-            names the file.
+        ValueError: a file trimesh cannot decode (its reason is quoted: non-numbers, indices
+            out of range), several ``mtllib`` statements, undefined materials, lost faces or
+            texture coordinates, non-finite values; the message names the file.
 
     Example:
-        >>> mesh = read_textured_mesh_obj(root / "map" / "mesh" / "scene.obj")
+        >>> mesh = read_textured_mesh_obj(root / "map" / "mesh" / "scene.obj")  # doctest: +SKIP
     """
     path = Path(path)
     if not path.is_file():
@@ -302,102 +228,69 @@ def read_textured_mesh_obj(path: str | os.PathLike) -> TexturedMesh:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
         raise ValueError(f"{path}: not a text file") from exc
-    if "\r" in text:
-        text = text.replace("\r\n", "\n").replace("\r", "\n")
-    scan = _scan_fast(text)
-    if scan is None:
-        scan = _scan_slow(text)
-    v_lines, vt_lines, face_lines, face_counts, runs, mtllibs = scan
-
-    vertices = _floats(path, v_lines, 3, "v").astype(np.float32)
-    uv_file = _floats(path, vt_lines, 2, "vt")
-    uvs = np.empty_like(uv_file, dtype=np.float32)
-    uvs[:, 0] = uv_file[:, 0].astype(np.float32)
-    uvs[:, 1] = (1.0 - uv_file[:, 1]).astype(np.float32)
-
-    names: list[str] = []
-    textures: list[np.ndarray] = []
-    for lib in mtllibs:
-        lib_names, lib_textures = _read_mtl(path.parent / lib)
-        for name, texture in zip(lib_names, lib_textures, strict=True):
-            if name not in names:
-                names.append(name)
-                textures.append(texture)
-
-    n_faces_lines = len(face_lines)
-    simple = all(
-        line.count("/") == 3 and line.count(" ") == 2 and "//" not in line for line in face_lines
-    )
-    corner_v: np.ndarray
-    corner_t: np.ndarray
-    face_of_line: np.ndarray
+    mtl_path, materials = _material_library(path, text)
+    undefined = sorted(set(_statements(text, "usemtl")) - set(materials))
+    if undefined:
+        raise ValueError(f"{path}: faces use materials not defined in {mtl_path}: {undefined}")
     try:
-        if simple:
-            table = np.array(
-                " ".join(face_lines).replace("/", " ").split(), dtype=np.int64
-            ).reshape(-1, 6)
-            simple = bool((table > 0).all())
-        if simple:
-            corner_v = table[:, 0::2] - 1
-            corner_t = table[:, 1::2] - 1
-            face_of_line = np.arange(n_faces_lines)
-        else:
-            tris_v, tris_t, owners = [], [], []
-            counts = face_counts or [(0, 0)] * n_faces_lines  # no negative indices then
-            for line_index, (line, (nv, nvt)) in enumerate(zip(face_lines, counts, strict=True)):
-                corners = [_corner(tok) for tok in line.split()]
-                if len(corners) < 3:
-                    raise ValueError(f"{path}: face 'f {line}' has fewer than 3 corners")
-                if any(v == 0 or t == 0 for v, t in corners):
-                    raise ValueError(f"{path}: face 'f {line}' uses index 0 (OBJ counts from 1)")
-                vs = [v - 1 if v > 0 else nv + v for v, _ in corners]
-                ts = [(-1 if t is None else (t - 1 if t > 0 else nvt + t)) for _, t in corners]
-                for j in range(1, len(corners) - 1):
-                    tris_v.append((vs[0], vs[j], vs[j + 1]))
-                    tris_t.append((ts[0], ts[j], ts[j + 1]))
-                    owners.append(line_index)
-            corner_v = np.array(tris_v, dtype=np.int64).reshape(-1, 3)
-            corner_t = np.array(tris_t, dtype=np.int64).reshape(-1, 3)
-            face_of_line = np.array(owners, dtype=np.int64)
-    except ValueError as exc:
-        if str(path) in str(exc):
-            raise
-        raise ValueError(f"{path}: a face line holds an index that is not an integer") from exc
-    if corner_v.size and (corner_v.min() < 0 or corner_v.max() >= len(vertices)):
-        raise ValueError(f"{path}: faces index vertices that do not exist")
-    if corner_t.size and corner_t.max() >= len(uvs):
-        raise ValueError(f"{path}: faces index texture coordinates that do not exist")
-    if (corner_t < -1).any():
-        raise ValueError(f"{path}: faces index texture coordinates that do not exist")
-    padded_uvs = np.concatenate([uvs, np.zeros((1, 2), dtype=np.float32)])
-    corner_uvs = padded_uvs[corner_t]  # index -1 -> the (0, 0) pad row
+        scene = trimesh.load(
+            path, file_type="obj", process=False, group_material=True, split_groups=True,
+            force="scene",
+        )  # fmt: skip
+    except Exception as exc:  # trimesh reports bad files with many exception types
+        raise ValueError(
+            f"{path}: not an OBJ file trimesh can read ({type(exc).__name__}: {exc})"
+        ) from exc
 
-    run_starts = np.array([r[0] for r in runs], dtype=np.int64)
-    run_of_line = np.searchsorted(run_starts, np.arange(n_faces_lines), side="right") - 1
-    line_objects = np.array([r[1] for r in runs], dtype=np.int32)[run_of_line]
-    run_materials = [r[2] for r in runs]
-    if any(m is None for m in (run_materials[i] for i in np.unique(run_of_line).tolist())):
-        if _DEFAULT_MATERIAL not in names:
-            names.append(_DEFAULT_MATERIAL)
-            textures.append(np.ones((1, 1, 3), dtype=np.float32))
-    index_of = {name: i for i, name in enumerate(names)}
-    run_material_ids = []
-    for material in run_materials:
-        key = _DEFAULT_MATERIAL if material is None else material
-        if key not in index_of:
-            run_material_ids.append(-1)
+    names = list(materials)
+    textures = [_texture(materials[name]) for name in names]
+    parts = []
+    for geometry_name, geometry in scene.geometry.items():
+        if not isinstance(geometry, trimesh.Trimesh):
+            continue
+        material = getattr(getattr(geometry.visual, "material", None), "name", None)
+        if material not in materials:
+            material = _DEFAULT_MATERIAL
+            if material not in names:
+                names.append(material)
+                textures.append(np.ones((1, 1, 3), dtype=np.float32))
+        match = _OBJECT_GROUP.match(geometry_name)
+        parts.append((int(match.group(1)) if match else 0, names.index(material), geometry))
+    parts.sort(key=lambda part: part[:2])
+
+    corners = sum(max(len(face.split()) - 2, 0) for face in _statements(text, "f"))
+    decoded = sum(len(geometry.faces) for *_, geometry in parts)
+    if decoded != corners:
+        raise ValueError(
+            f"{path}: trimesh decoded {decoded} triangles but the face statements hold "
+            f"{corners} (a face syntax it skips, e.g. an indented 'f' line)"
+        )
+    uses_vt = re.search(r"(?m)^[ \t]*f[ \t]+[^\n]*\d/-?\d", text) is not None
+    if uses_vt and all(getattr(g.visual, "uv", None) is None for *_, g in parts):
+        raise ValueError(f"{path}: faces index texture coordinates that trimesh cannot resolve")
+
+    corner_positions, corner_uvs = [], []
+    for _, _, geometry in parts:
+        faces = np.asarray(geometry.faces, dtype=np.int64)
+        corner_positions.append(np.asarray(geometry.vertices, dtype=np.float32)[faces])
+        uv = getattr(geometry.visual, "uv", None)
+        if uv is None:
+            corner_uvs.append(np.zeros((len(faces), 3, 2), dtype=np.float32))
         else:
-            run_material_ids.append(index_of[key])
-    line_materials = np.array(run_material_ids, dtype=np.int32)[run_of_line]
-    if (line_materials < 0).any():
-        missing = sorted({run_materials[r] for r in run_of_line[line_materials < 0].tolist()})
-        raise ValueError(f"{path}: faces use materials not defined in {mtllibs}: {missing}")
-    return TexturedMesh(
-        vertices=vertices.reshape(-1, 3),
-        triangles=corner_v.astype(np.int32),
-        corner_uvs=corner_uvs.reshape(-1, 3, 2),
-        material_ids=line_materials[face_of_line],
-        object_ids=line_objects[face_of_line],
-        textures=textures,
-        material_names=names,
-    )
+            uv = np.asarray(uv, dtype=np.float64)[faces]
+            corner_uvs.append(np.stack([uv[..., 0], 1.0 - uv[..., 1]], -1).astype(np.float32))
+    positions = np.concatenate(corner_positions or [np.zeros((0, 3, 3), np.float32)])
+    vertices, triangles = np.unique(positions.reshape(-1, 3), axis=0, return_inverse=True)
+    counts = [len(g.faces) for *_, g in parts]
+    try:
+        return TexturedMesh(
+            vertices=vertices,
+            triangles=triangles.reshape(-1, 3),
+            corner_uvs=np.concatenate(corner_uvs or [np.zeros((0, 3, 2), np.float32)]),
+            material_ids=np.repeat([m for _, m, _ in parts], counts).astype(np.int32),
+            object_ids=np.repeat([o for o, _, _ in parts], counts).astype(np.int32),
+            textures=textures,
+            material_names=names,
+        )
+    except ValueError as exc:
+        raise ValueError(f"{path}: not a valid textured mesh ({exc})") from exc
