@@ -12,29 +12,23 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from diffloc.cli import run
 from diffloc.database.colmap import reprojection_errors
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.se3 import invert
-from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
-from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
-from tests.conftest import TINY, compose_config
-
-FINE = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
+from tests.conftest import compose_config, copy_dataset, run_task
 
 
 @pytest.fixture(scope="module")
-def built(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("colmap") / "indoor"
-    shutil.copytree(tiny_indoor_dataset, root)
-    build_maps(root, BuildMapConfig(point_maps=[], preview_frames=1), FINE, show_progress=False)
-    run(compose_config(TINY + ["task=build_db", f"dataset={root}"]))
+def built(tiny_indoor_mapped: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = copy_dataset(tiny_indoor_mapped, tmp_path_factory, "colmap")
+    run_task("build_db", root)
     return root
 
 
 def _export(root: Path, *overrides: str) -> dict:
-    return run(compose_config(TINY + ["task=export_colmap", f"dataset={root}", *overrides]))
+    return run_task("export_colmap", root, *overrides)
 
 
 def test_task_config_composes_with_documented_defaults():
