@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -30,6 +31,25 @@ def test_distance_to_the_previous_inlier_pose():
     v.validate(pose_at(0.0), 30, 0.0)
     assert not v.validate(pose_at(0.5), 30, 0.05)  # too far ...
     assert v.validate(pose_at(0.7), 30, 0.1)  # ... but it is the new reference
+
+
+def test_a_reference_older_than_the_age_limit_verifies_nothing():
+    cfg = ValidationConfig(theta_in=15, theta_dist_m=0.3, max_speed_mps=1.0)
+    unlimited, limited = PoseValidator(cfg), PoseValidator(replace(cfg, max_reference_age_s=2.0))
+    for v in (unlimited, limited):
+        v.validate(pose_at(0.0), 30, 0.0)
+    # 3 s later, 3.0 m away (a storey above): within 0.3 + 1.0 * 3 m, but the reference is old.
+    assert unlimited.validate(pose_at(3.0), 30, 3.0)
+    assert not limited.validate(pose_at(3.0), 30, 3.0)
+    assert limited.validate(pose_at(3.5), 30, 4.0)  # the old pose was the new reference
+    assert limited.validate(pose_at(5.0), 30, 6.0)  # 2 s: still young enough
+    assert replace(cfg, max_reference_age_s=2.0).seed1_rule().max_reference_age_s is None
+
+
+@pytest.mark.parametrize("age", [0.0, -1.0, math.nan, math.inf])
+def test_bad_reference_age_is_refused(age: float):
+    with pytest.raises(ValueError, match="max_reference_age_s"):
+        ValidationConfig(max_reference_age_s=age)
 
 
 def test_speed_allowance_grows_with_the_time_gap():

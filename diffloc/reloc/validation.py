@@ -9,7 +9,11 @@ test applies.
 Seed 1 evaluates on 20 Hz EuRoC images, where ``theta_dist`` (0.3 m indoors, 0.8 m outdoors)
 bounds the motion between consecutive queries. For sparser query streams the threshold grows
 with the time since the reference: ``theta_dist + max_speed_mps * dt`` (``max_speed_mps = 0``
-gives the paper's test exactly).
+gives the paper's test exactly). A reference older than ``max_reference_age_s`` says little
+about where the camera is now (after 10 s at 1 m/s the allowance is 10 m), so it verifies
+nothing: the pose becomes the new reference unverified, like the first one of a sequence.
+Two wrong poses of one repeated place (the same storey shift, the facade window one period
+along) far apart in time would otherwise verify each other.
 
 Seed 1's tests let confident wrong poses through where the scene repeats or is seen from the
 other side: a chain of consistently wrong poses passes the distance test. Three further tests,
@@ -54,6 +58,8 @@ class ValidationConfig:
             0.8 m outdoors).
         max_speed_mps: allowance per second since the previous inlier pose, for query streams
             sparser than seed 1's 20 Hz (0 disables it).
+        max_reference_age_s: a previous inlier pose older than this (seconds) verifies
+            nothing (``None``: no limit, as seed 1).
         temporal: apply the distance test (sequence mode); ``False`` is single-image mode.
         min_inlier_ratio: fewest inliers per refined match (0 disables the test).
         min_coverage: smallest fraction of the image grid holding inliers (0 disables it).
@@ -64,6 +70,7 @@ class ValidationConfig:
     theta_in: int = 15
     theta_dist_m: float = 0.3
     max_speed_mps: float = 0.0
+    max_reference_age_s: float | None = None
     temporal: bool = True
     min_inlier_ratio: float = 0.0
     min_coverage: float = 0.0
@@ -76,6 +83,9 @@ class ValidationConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {value}")
+        age = self.max_reference_age_s
+        if age is not None and not (math.isfinite(age) and age > 0):
+            raise ValueError(f"validation.max_reference_age_s must be > 0 or null, got {age}")
         for name in ("min_inlier_ratio", "min_coverage"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 <= value <= 1.0):
@@ -85,8 +95,15 @@ class ValidationConfig:
             raise ValueError(f"validation.ambiguity_ratio must be in (0, 1] or null, got {ratio}")
 
     def seed1_rule(self) -> ValidationConfig:
-        """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity) off."""
-        return replace(self, min_inlier_ratio=0.0, min_coverage=0.0, ambiguity_ratio=None)
+        """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity, the
+        reference age) off; the speed allowance of sparse query streams stays."""
+        return replace(
+            self,
+            min_inlier_ratio=0.0,
+            min_coverage=0.0,
+            ambiguity_ratio=None,
+            max_reference_age_s=None,
+        )
 
 
 class PoseValidator:
@@ -164,7 +181,8 @@ class PoseValidator:
         position = T_wc[:3, 3].to(torch.float64)
         previous, dt = self._last_position, abs(timestamp - self._last_time)
         self._last_position, self._last_time = position, float(timestamp)
-        if previous is None:
+        age = self.config.max_reference_age_s
+        if previous is None or (age is not None and dt > age):
             return False
         limit = self.config.theta_dist_m + self.config.max_speed_mps * dt
         return bool(torch.linalg.vector_norm(position - previous) <= limit)
