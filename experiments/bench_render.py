@@ -44,8 +44,10 @@ from diffloc.io.mesh_obj import read_textured_mesh_obj
 from diffloc.io.ply import read_point_cloud
 from diffloc.maps.lidar_source import lidar_points_with_origins
 from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
+from diffloc.render.point_render import render_points
+from diffloc.render.point_sizes import PointSizes
 from diffloc.render.raycast import MeshRaycaster, camera_rays
-from diffloc.render.splat import PointSizes, render_points, render_surfel_index
+from diffloc.render.surfel_render import render_surfel_index
 from diffloc.sim.dataset import simulate_dataset
 
 NEAR_SURFACE_M = 3.0

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import doctest
+import importlib
 import math
+import pkgutil
 from dataclasses import dataclass
 from types import SimpleNamespace
 
@@ -18,10 +20,17 @@ from diffloc.optim.lm import (
     BlockLinearization,
     LMConfig,
     autodiff_linearize,
+    block_system,
     levenberg_marquardt,
     levenberg_marquardt_single_pose,
+    minimize,
     solve_spd,
 )
+from diffloc.optim.lm.block_assembly import _assemble
+from diffloc.optim.lm.loop import _expand_step
+from diffloc.optim.lm.pose_front_end import _PoseProblem
+from diffloc.optim.lm.retraction import _retract
+from diffloc.optim.lm.structure import _Structure
 from diffloc.optim.robust import KernelFn, RobustKernel, make_robust_kernel
 from diffloc.testing import TransferBlocks, assert_close, random_points, random_rotation
 
@@ -271,7 +280,7 @@ def test_max_iterations_reports_not_converged() -> None:
     assert result.cost_history.shape == (2,)
 
 
-def _translation_problem(goal: torch.Tensor, calls: list[str]) -> lm._PoseProblem:
+def _translation_problem(goal: torch.Tensor, calls: list[str]) -> _PoseProblem:
     """One-pose problems ``t(T) - goal`` (goal (B, 1, 3)) that log their linearizations."""
 
     def jacobian_fn(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -280,13 +289,13 @@ def _translation_problem(goal: torch.Tensor, calls: list[str]) -> lm._PoseProble
         return T[:, None, :3, 3] - goal, J
 
     kernel = make_robust_kernel(RobustKernel())
-    return lm._PoseProblem(lambda T: T[:, None, :3, 3] - goal, jacobian_fn, None, kernel)
+    return _PoseProblem(lambda T: T[:, None, :3, 3] - goal, jacobian_fn, None, kernel)
 
 
 def test_minimize_leaves_inactive_problems_untouched() -> None:
     goal = torch.tensor([[[1.0, 2.0, 3.0]], [[-1.0, 0.5, 2.0]]], dtype=F64)
     T0 = torch.eye(4, dtype=F64).repeat(2, 1, 1)
-    run = lm.minimize(_translation_problem(goal, []), T0, LMConfig(), active=[True, False])
+    run = minimize(_translation_problem(goal, []), T0, LMConfig(), active=[True, False])
     assert run.reason[1] == "inactive" and run.iterations[1] == 0
     assert torch.equal(run.params[1], T0[1])
     assert_close(run.params[0, :3, 3], goal[0, 0])
@@ -300,12 +309,12 @@ def test_steps_too_small_to_matter_are_not_evaluated() -> None:
     T0 = torch.eye(4, dtype=F64)[None].clone()
     T0[0, :3, 3] = goal[0, 0] + 1e-4
     calls: list[str] = []
-    run = lm.minimize(_translation_problem(goal, calls), T0, LMConfig(cost_tolerance=1.5))
+    run = minimize(_translation_problem(goal, calls), T0, LMConfig(cost_tolerance=1.5))
     assert run.reason == ("cost",) and run.iterations == [1]
     assert calls == ["linearize"]  # the initial linearization only
     assert torch.equal(run.params, T0)
     calls.clear()
-    run = lm.minimize(_translation_problem(goal, calls), T0, LMConfig())  # a step that matters
+    run = minimize(_translation_problem(goal, calls), T0, LMConfig())  # a step that matters
     assert len(calls) > 1 and run.converged == [True]
     assert_close(run.params[0, :3, 3], goal[0, 0], rtol=0.0, atol=1e-12)
 
@@ -383,8 +392,8 @@ def test_assembly_matches_dense_reference() -> None:
     g = torch.Generator().manual_seed(11)
     lin, index_a, index_b, mask, is_fixed = _random_blocks(g)
     kernel = make_robust_kernel(RobustKernel("cauchy", 2.0))
-    structure = lm._Structure.from_blocks(5, index_a, index_b, is_fixed, num_extra=2)
-    system = lm._assemble(lin, mask, kernel, structure)
+    structure = _Structure.from_blocks(5, index_a, index_b, is_fixed, num_extra=2)
+    system = _assemble(lin, mask, kernel, structure)
     cost, H, grad, support = _dense_reference(lin, index_a, index_b, mask, is_fixed, kernel)
     assert_close(system.cost, cost, rtol=1e-12, atol=0.0)
     assert_close(system.grad, grad, rtol=1e-12, atol=1e-12)
@@ -411,15 +420,15 @@ def test_mixed_precision_solve_matches_float64(
         for J in (lin.jac_a, lin.jac_b):
             J[..., 5] = J[..., 4] + 3e-5 * torch.randn(J.shape[:-1], generator=g, dtype=F64)
     kernel = make_robust_kernel(RobustKernel())
-    structure = lm._Structure.from_blocks(5, index_a, index_b, is_fixed, num_extra=2)
-    system = lm._assemble(lin, mask, kernel, structure)
+    structure = _Structure.from_blocks(5, index_a, index_b, is_fixed, num_extra=2)
+    system = _assemble(lin, mask, kernel, structure)
     damping = torch.tensor([1e-9, 1e-3], dtype=F64)
     scaled = damping[:, None] * system.diagonal().clamp(min=1e-30)
     H = system.dense(torch.ones_like(system.grad), F64) + torch.diag_embed(scaled)
     expected = torch.linalg.solve(H, -system.grad)
     float64_solves = []
     monkeypatch.setattr(
-        lm, "solve_spd", lambda A, b: float64_solves.append(len(b)) or solve_spd(A, b)
+        block_system, "solve_spd", lambda A, b: float64_solves.append(len(b)) or solve_spd(A, b)
     )
     config = LMConfig(min_diagonal=1e-30)
     delta, _, float64 = system.solve(damping, config)
@@ -437,8 +446,8 @@ def test_step_expansions_skip_weakly_supported_poses() -> None:
     falls; a pose held mostly by down-weighted blocks keeps its plain step."""
     g = torch.Generator().manual_seed(13)
     lin, index_a, index_b, mask, is_fixed = _random_blocks(g, batch=2)
-    structure = lm._Structure.from_blocks(5, index_a, index_b, is_fixed, num_extra=2)
-    system = lm._assemble(lin, mask, make_robust_kernel(RobustKernel()), structure)
+    structure = _Structure.from_blocks(5, index_a, index_b, is_fixed, num_extra=2)
+    system = _assemble(lin, mask, make_robust_kernel(RobustKernel()), structure)
     system.support = torch.tensor([[10.0, 10.0, 5.9, 10.0], [10.0, 10.0, 10.0, 10.0]], dtype=F64)
     T = torch.eye(4, dtype=F64).repeat(2, 5, 1, 1)
     extra = torch.zeros(2, 2, dtype=F64)
@@ -449,16 +458,16 @@ def test_step_expansions_skip_weakly_supported_poses() -> None:
 
     problem = SimpleNamespace(
         evaluate=lambda params: farther_is_cheaper(*params),
-        retract=lambda params, d: lm._retract(*params, d, structure),
+        retract=lambda params, d: _retract(*params, d, structure),
     )
-    cost = farther_is_cheaper(*lm._retract(T, extra, delta, structure)).tolist()
+    cost = farther_is_cheaper(*_retract(T, extra, delta, structure)).tolist()
     config = LMConfig(step_expansions=3)
-    step, best = lm._expand_step(problem, (T, extra), delta, system, cost, [True, False], config)
+    step, best = _expand_step(problem, (T, extra), delta, system, cost, [True, False], config)
     expected = 8.0 * delta[0]
     expected[12:18] = delta[0, 12:18]  # slot 2 (pose 3) is below the support of 6
     assert_close(step[0], expected, rtol=0.0, atol=0.0)
     assert_close(step[1], delta[1], rtol=0.0, atol=0.0)  # not expanded at all
-    assert best == farther_is_cheaper(*lm._retract(T, extra, step, structure)).tolist()
+    assert best == farther_is_cheaper(*_retract(T, extra, step, structure)).tolist()
 
 
 def test_step_expansions_converge_to_the_same_optimum_in_fewer_iterations() -> None:
@@ -547,5 +556,13 @@ def test_bad_config_raises(kwargs: dict) -> None:
         LMConfig(**kwargs)
 
 
-def test_doctests() -> None:
-    assert doctest.testmod(lm, extraglobs={"torch": torch}).failed == 0
+@pytest.mark.parametrize(
+    "name",
+    [
+        "diffloc.optim.lm",
+        *(f"diffloc.optim.lm.{m.name}" for m in pkgutil.iter_modules(lm.__path__)),
+    ],
+)
+def test_doctests(name: str) -> None:
+    module = importlib.import_module(name)
+    assert doctest.testmod(module, extraglobs={"torch": torch}).failed == 0

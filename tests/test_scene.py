@@ -11,15 +11,13 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from diffloc.render.raycast import MeshRaycaster
+from diffloc.sim.indoor import INDOOR_MATERIALS
+from diffloc.sim.indoor_layout import IndoorLayoutConfig
+from diffloc.sim.outdoor import OUTDOOR_MATERIALS
+from diffloc.sim.outdoor_layout import OutdoorLayoutConfig
 from diffloc.sim.primitives import PROPS, Frame, MeshBuilder
-from diffloc.sim.scene import (
-    INDOOR_MATERIALS,
-    OUTDOOR_MATERIALS,
-    IndoorLayoutConfig,
-    OutdoorLayoutConfig,
-    World,
-    generate_world,
-)
+from diffloc.sim.scene import generate_world
+from diffloc.sim.world import World
 
 KINDS = ("indoor", "outdoor")
 

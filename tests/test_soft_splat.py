@@ -1,5 +1,6 @@
-"""Soft splatting: forward values and gradients against a dense all-points x all-pixels
-reference, float64 gradcheck w.r.t. the pose perturbation, the points and the colours."""
+"""Soft splatting: forward values and gradients against the dense all-points x all-pixels
+reference (:mod:`diffloc.render._reference`), float64 gradcheck w.r.t. the pose perturbation,
+the points and the colours."""
 
 from __future__ import annotations
 
@@ -10,53 +11,14 @@ import torch
 
 from diffloc.checks import ShapeError
 from diffloc.geometry.camera import PinholeCamera
-from diffloc.geometry.se3 import invert, se3_exp, transform_points
+from diffloc.geometry.se3 import se3_exp
+from diffloc.render._reference import reference_soft_points
 from diffloc.render.soft_splat import ALPHA_MAX, soft_render_points
 from diffloc.testing import assert_close, gradcheck
 
 WINDOW = 5
 MIN_SIGMA = 0.5
 OPACITY = 0.9
-
-
-def dense_reference(points, colors, radii, T_wc, camera, xi, window, min_sigma, opacity):
-    """Every point against every pixel, composited in depth order with a cumulative product."""
-    T = se3_exp(xi) @ T_wc
-    points_cam = transform_points(invert(T), points)  # (B, N, 3)
-    uv, valid = camera.project(points_cam)
-    z = points_cam[..., 2]
-    batch = T_wc.shape[0]
-    fx = camera.fx.expand(batch)[:, None]
-    fy = camera.fy.expand(batch)[:, None]
-    sigma_u = (fx * radii / z).clamp(min_sigma, window / 6)
-    sigma_v = (fy * radii / z).clamp(min_sigma, window / 6)
-    grid = camera.pixel_grid(points.dtype).reshape(-1, 2)  # (P, 2)
-    du = grid[None, :, None, 0] - uv[:, None, :, 0]  # (B, P, N)
-    dv = grid[None, :, None, 1] - uv[:, None, :, 1]
-    centre = torch.floor(uv.detach() + 0.5)
-    half = window // 2
-    in_window = ((grid[None, :, None, 0] - centre[:, None, :, 0]).abs() <= half) & (
-        (grid[None, :, None, 1] - centre[:, None, :, 1]).abs() <= half
-    )
-    gauss = torch.exp(-0.5 * ((du / sigma_u[:, None]) ** 2 + (dv / sigma_v[:, None]) ** 2))
-    alpha = torch.where(in_window & valid[:, None], (opacity * gauss).clamp_max(ALPHA_MAX), 0.0)
-    order = torch.argsort(z.detach(), dim=-1, stable=True)  # (B, N) front to back
-    alpha = alpha.gather(2, order[:, None].expand_as(alpha))
-    z_sorted = z.gather(1, order)
-    color_sorted = colors[order]  # (B, N, 3)
-    keep = torch.cumprod(1 - alpha, dim=-1)
-    transmittance = torch.cat((torch.ones_like(keep[..., :1]), keep[..., :-1]), dim=-1)
-    weight = transmittance * alpha  # (B, P, N)
-    rgb = weight @ color_sorted  # (B, P, 3)
-    alpha_sum = weight.sum(-1)
-    depth_sum = (weight * z_sorted[:, None]).sum(-1)
-    depth = torch.where(alpha_sum > 0, depth_sum / alpha_sum.clamp_min(1e-300), 0.0)
-    h, w = camera.height, camera.width
-    return (
-        rgb.transpose(1, 2).reshape(batch, 3, h, w),
-        depth.view(batch, 1, h, w),
-        alpha_sum.view(batch, 1, h, w),
-    )
 
 
 def scene(batch, dtype=torch.float64, n=20, seed=0):
@@ -93,7 +55,9 @@ def render(points, colors, radii, T_wc, camera, xi):
 def test_forward_matches_dense_reference(batch):
     points, colors, radii, T_wc, xi, camera = scene(batch)
     fast = render(points, colors, radii, T_wc, camera, xi)
-    slow = dense_reference(points, colors, radii, T_wc, camera, xi, WINDOW, MIN_SIGMA, OPACITY)
+    slow = reference_soft_points(
+        points, colors, radii, T_wc, camera, xi, WINDOW, MIN_SIGMA, OPACITY
+    )
     for a, b in zip(fast, slow, strict=True):
         assert_close(a, b)
     assert float(fast[2].max()) > 0.5  # the scene covers the image substantially
@@ -117,7 +81,9 @@ def test_gradients_match_dense_reference(batch):
 
     fast = grads(render)
     slow = grads(
-        lambda p, c, r, T, cam, x: dense_reference(p, c, r, T, cam, x, WINDOW, MIN_SIGMA, OPACITY)
+        lambda p, c, r, T, cam, x: reference_soft_points(
+            p, c, r, T, cam, x, WINDOW, MIN_SIGMA, OPACITY
+        )
     )
     for a, b in zip(fast, slow, strict=True):
         assert_close(a, b)

@@ -1,97 +1,33 @@
-"""Hard splatting: surfel index maps, point splats (Eq. 2, multi-pass), neighbour surfel sets.
+"""Hard splatting: surfel index maps and point splats (Eq. 2, multi-pass).
 
-Fast paths are compared against slow, obviously-correct references written here: a dense
-float64 ray-disk intersection of every pixel with every surfel, and a per-point loop that
-paints squares into a z-buffer.
+Fast paths are compared against the slow, obviously-correct references of
+:mod:`diffloc.render._reference`: a dense float64 ray-disk intersection of every pixel with
+every surfel, and a per-point loop that paints squares into a z-buffer.
 """
 
 from __future__ import annotations
 
+import doctest
 import math
 
 import pytest
 import torch
 
 from diffloc.checks import ShapeError
+from diffloc.database.neighbours import keypoint_disk_mask
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, transform_points
-from diffloc.render.splat import (
-    PointSizes,
-    SurfelIndexRenderer,
-    keypoint_disk_mask,
-    neighbour_surfels,
-    render_points,
-    render_surfel_index,
-    see_through_fraction,
-)
+from diffloc.render import point_render, point_sizes, surfel_render
+from diffloc.render._reference import reference_points, reference_surfels
+from diffloc.render.pixel_mask import _summed_area
+from diffloc.render.point_render import render_points, see_through_fraction
+from diffloc.render.point_sizes import PointSizes
+from diffloc.render.surfel_cull import _frustum_candidates, _SurfelCells
+from diffloc.render.surfel_raster import _make_window_basis
+from diffloc.render.surfel_render import SurfelIndexRenderer, render_surfel_index
+from diffloc.render.view import _rigid_columns, _views
+from diffloc.render.zbuffer import _MAX_SURFELS, _tie_breakers
 from diffloc.testing import assert_close
-
-# ---------------------------------------------------------------------------- references
-
-
-def reference_surfels(centers, normals, radii, T_wc, camera):
-    """Dense float64 ray-disk z-buffer: (ids, depth, margin) each (B, H, W).
-
-    ``margin`` is how far (relative to the radius) the winning hit is from the disk rim and
-    from the runner-up depth: pixels with a tiny margin may legitimately differ in float32.
-    """
-    c_w, n_w, r = centers.double(), normals.double(), radii.double()
-    n_w = n_w / n_w.norm(dim=-1, keepdim=True)
-    cam = camera.to(torch.float64)
-    uv = cam.pixel_grid().reshape(-1, 2)
-    batch = T_wc.shape[0]
-    fx, fy = cam.fx.expand(batch), cam.fy.expand(batch)
-    cx, cy = cam.cx.expand(batch), cam.cy.expand(batch)
-    ids, depths, margins = [], [], []
-    for b in range(batch):
-        T_cw = invert(T_wc[b].double())
-        c = transform_points(T_cw, c_w)  # (N, 3)
-        n = n_w @ T_cw[:3, :3].T
-        d = torch.stack(
-            ((uv[:, 0] - cx[b]) / fx[b], (uv[:, 1] - cy[b]) / fy[b], torch.ones(len(uv))), -1
-        )  # (P, 3)
-        t = (n * c).sum(-1)[None] / (d @ n.T)  # (P, N)
-        hit = t[..., None] * d[:, None] - c[None]
-        rim = hit.norm(dim=-1) / r - 1.0
-        ok = (rim <= 0) & (t > MIN_DEPTH) & (c[:, 2] > MIN_DEPTH)[None]
-        t = torch.where(ok, t, math.inf)
-        best, winner = t.min(-1)
-        second = t.topk(min(2, t.shape[1]), dim=-1, largest=False).values[:, -1]
-        gap = torch.where(second > best, (second - best) / best, math.inf).nan_to_num(math.inf)
-        rim_margin = torch.where(ok, math.inf, rim.abs()).min(-1).values
-        rim_margin = torch.minimum(rim_margin, rim.abs().gather(1, winner[:, None])[:, 0])
-        margin = torch.minimum(rim_margin, gap)
-        found = torch.isfinite(best)
-        ids.append(torch.where(found, winner, -1).view(cam.height, cam.width))
-        depths.append(torch.where(found, best, 0.0).view(cam.height, cam.width))
-        margins.append(margin.view(cam.height, cam.width))
-    return torch.stack(ids), torch.stack(depths), torch.stack(margins)
-
-
-def reference_points(points, colors, T_wc, camera, sizes):
-    """Per-point loop painting squares into a z-buffer: (ids, depth), each (B, H, W)."""
-    batch, h, w = T_wc.shape[0], camera.height, camera.width
-    levels = sizes.pass_sizes()
-    ids = torch.full((batch, h, w), -1)
-    depth = torch.full((batch, h, w), math.inf)
-    for b in range(batch):
-        cam = camera if len(camera.batch_shape) == 0 else camera[b]
-        p_c = transform_points(invert(T_wc[b].double()), points.double())
-        uv, valid = cam.to(torch.float64).project(p_c)
-        for i in range(points.shape[0]):
-            z = float(p_c[i, 2])
-            if not (valid[i] and torch.isfinite(points[i]).all()):
-                continue
-            rho = min(max(sizes.rho_max / z, sizes.rho_min), sizes.rho_max)
-            side = min(levels, key=lambda k, rho=rho: (abs(k - rho), -k))
-            u0 = math.ceil(float(uv[i, 0]) - side / 2)
-            v0 = math.ceil(float(uv[i, 1]) - side / 2)
-            for v in range(max(v0, 0), min(v0 + side, h)):
-                for u in range(max(u0, 0), min(u0 + side, w)):
-                    z32 = float(torch.tensor(z, dtype=torch.float32))
-                    if (z32, i) < (float(depth[b, v, u]), int(ids[b, v, u])):
-                        depth[b, v, u], ids[b, v, u] = z32, i
-    return ids, torch.where(ids >= 0, depth, 0.0)
 
 
 def look_at(eye, target, down=(0.0, 1.0, 0.0)):
@@ -487,8 +423,6 @@ def test_masked_render_checks_the_mask(camera):
 def test_masked_candidates_keep_every_surfel_that_covers_a_masked_pixel(cell_size_m):
     """Masked renders drop a cell or surfel only if no ray through a pixel to render hits a
     disk in it (dense float64 check), and drop most of those far from the mask."""
-    from diffloc.render.splat import _summed_area, _views
-
     centers, normals, radii, T_wc, camera = _masked_scene()
     renderer = SurfelIndexRenderer(centers, normals, radii, cell_size_m=cell_size_m)
     g = torch.Generator().manual_seed(9)
@@ -536,8 +470,6 @@ def test_surfels_that_win_nowhere_change_no_pixel(camera):
 def test_camera_frame_transform_rounds_alike_for_any_number_of_surfels():
     """A (3, 3) x (3, M) matrix product rounds differently for small and large M; the
     renderer's transform must not, or a surfel would differ between renders of subsets."""
-    from diffloc.render.splat import _rigid_columns
-
     g = torch.Generator().manual_seed(6)
     R = se3_exp(torch.randn(6, generator=g, dtype=torch.float64))[:3, :3].float()
     t = torch.randn(3, 1, generator=g)
@@ -549,27 +481,7 @@ def test_camera_frame_transform_rounds_alike_for_any_number_of_surfels():
         assert torch.equal(_rigid_columns(R, x[:, -m:]), _rigid_columns(R, x)[:, -m:])
 
 
-def test_keypoint_disk_mask_is_what_neighbour_surfels_reads():
-    g = torch.Generator().manual_seed(4)
-    keypoints = torch.rand(30, 2, generator=g) * torch.tensor([40.0, 30.0]) - 2.0
-    radius = torch.rand(30, generator=g) * 5.0
-    mask = keypoint_disk_mask(keypoints, radius, 30, 40)
-    v, u = torch.meshgrid(torch.arange(30.0), torch.arange(40.0), indexing="ij")
-    inside = (u[None] - keypoints[:, 0, None, None]).square() + (
-        v[None] - keypoints[:, 1, None, None]
-    ).square() <= radius[:, None, None].square()
-    assert torch.equal(mask, inside.any(0))
-    ids = torch.randint(-1, 50, (30, 40), generator=g)
-    hidden = torch.where(mask, ids, torch.randint(-1, 50, (30, 40), generator=g))
-    assert torch.equal(
-        neighbour_surfels(hidden, keypoints, radius), neighbour_surfels(ids, keypoints, radius)
-    )
-    assert not bool(keypoint_disk_mask(torch.zeros(0, 2), 3.0, 30, 40).any())
-
-
 def test_cells_cull_the_same_surfels_as_the_plain_frustum_test():
-    from diffloc.render.splat import _frustum_candidates, _SurfelCells, _views
-
     g = torch.Generator().manual_seed(8)
     centers = torch.rand(20000, 3, generator=g) * 10.0 - 5.0
     normals = torch.randn(20000, 3, generator=g)
@@ -601,8 +513,6 @@ def test_renderer_validates_once_and_checks_its_inputs(camera):
 def test_tie_breakers_survive_the_window_product():
     """The z-buffer tie-breaker is a float32 constant term of a matrix product (see
     ``_rasterise_surfels``): it must come out bit for bit at every pixel of the largest window."""
-    from diffloc.render.splat import _MAX_SURFELS, _make_window_basis, _tie_breakers
-
     local = torch.tensor([0, 1, 2, 1000, 2**24 + 1, _MAX_SURFELS - 1])
     ties = _tie_breakers(local)
     assert bool((ties >= torch.finfo(torch.float32).tiny).all() and torch.isfinite(ties).all())
@@ -829,113 +739,6 @@ def test_point_sizes_passes():
     assert sizes.level_index(z).tolist() == [2, 2, 2, 1, 1, 0, 0]
 
 
-# ---------------------------------------------------------------------------- neighbours
-
-
-def brute_force_neighbours(ids, keypoint, radius):
-    h, w = ids.shape
-    found = set()
-    for v in range(h):
-        for u in range(w):
-            if (u - keypoint[0]) ** 2 + (v - keypoint[1]) ** 2 <= radius**2 and ids[v, u] >= 0:
-                found.add(int(ids[v, u]))
-    return sorted(found)
-
-
-def test_neighbour_surfels_constructed_map():
-    ids = torch.full((12, 16), -1)
-    ids[2:5, 3:7] = 4
-    ids[3, 8] = 9
-    ids[6:9, 2:4] = 1
-    ids[10, 15] = 2
-    keypoints = torch.tensor([[5.0, 3.0], [3.2, 7.4], [15.0, 10.0], [12.0, 1.0], [40.0, 3.0]])
-    radii = torch.tensor([3.0, 1.5, 0.0, 2.0, 5.0])
-    out = neighbour_surfels(ids, keypoints, radii)
-    assert out.dtype == torch.int64 and out.shape == (5, 2)
-    assert out.tolist() == [[4, 9], [1, -1], [2, -1], [-1, -1], [-1, -1]]
-    for k in range(5):
-        row = [int(x) for x in out[k] if x >= 0]
-        assert row == brute_force_neighbours(ids, keypoints[k].tolist(), float(radii[k]))
-
-
-def test_neighbour_surfels_random_batched_against_brute_force():
-    g = torch.Generator().manual_seed(5)
-    ids = torch.randint(-3, 20, (2, 20, 24), generator=g).clamp_min(-1)
-    keypoints = torch.rand(2, 7, 2, generator=g) * torch.tensor([24.0, 20.0])
-    radii = torch.rand(2, 7, generator=g) * 4
-    out = neighbour_surfels(ids, keypoints, radii)
-    assert out.shape[:2] == (2, 7)
-    for b in range(2):
-        for k in range(7):
-            row = [int(x) for x in out[b, k] if x >= 0]
-            assert row == brute_force_neighbours(
-                ids[b], keypoints[b, k].tolist(), float(radii[b, k])
-            )
-    scalar = neighbour_surfels(ids, keypoints, 2.0)
-    per_point = neighbour_surfels(ids, keypoints, torch.full((7,), 2.0))
-    assert torch.equal(scalar, per_point)
-
-
-def float32_disk_neighbours(ids, keypoint, radius):
-    """Sorted distinct ids of the pixels passing the float32 disk test (exact boundaries)."""
-    h, w = ids.shape
-    v, u = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
-    ku, kv = keypoint.float()
-    inside = (u - ku).square() + (v - kv).square() <= radius.float().square()
-    return torch.unique(ids[inside & (ids >= 0)]).tolist()
-
-
-def test_neighbour_surfels_mixed_sizes_against_reference():
-    """ORB-like radii from 0 to beyond the image in one call: every keypoint gets the set of
-    its own disk, decided on the boundary exactly as the float32 test decides it."""
-    g = torch.Generator().manual_seed(11)
-    height, width = 30, 41
-    blobs = torch.randint(0, 9, (height // 3 + 1, width // 2 + 1), generator=g)
-    ids = blobs.repeat_interleave(3, 0).repeat_interleave(2, 1)[:height, :width].clone()
-    ids[torch.rand(height, width, generator=g) < 0.2] = -1  # holes and runs of equal ids
-    ids[ids >= 0] += torch.randint(0, 3, (int((ids >= 0).sum()),), generator=g) * 10
-    random_kp = torch.rand(40, 2, generator=g) * torch.tensor([width + 10.0, height + 10.0]) - 5
-    exact_kp = torch.tensor([[10.0, 10.0], [5.5, 20.5], [0.0, 0.0], [40.0, 29.0], [20.0, 14.5]])
-    keypoints = torch.cat([random_kp, exact_kp, torch.tensor([[-60.0, 5.0], [1e6, -1e6]])])
-    random_r = torch.rand(40, generator=g) * torch.tensor([0.5, 2, 8, 25]).repeat(10)
-    exact_r = torch.tensor([5.0, 2.5, 3.0, 13.0, 2.0])  # boundary pixels at exactly r
-    radii = torch.cat([random_r, exact_r, torch.tensor([61.0, 3.0])])
-    out = neighbour_surfels(ids, keypoints, radii)
-    expected = [float32_disk_neighbours(ids, kp, r) for kp, r in zip(keypoints, radii, strict=True)]
-    assert out.shape == (len(keypoints), max(len(e) for e in expected))
-    for row, e in zip(out.tolist(), expected, strict=True):
-        assert row == e + [-1] * (out.shape[1] - len(e))
-    batched = neighbour_surfels(
-        torch.stack([ids, ids.flip(1)]), torch.stack([keypoints, keypoints]), radii
-    )
-    flipped = neighbour_surfels(ids.flip(1), keypoints, radii)
-    assert torch.equal(batched[0, :, : out.shape[1]], out)
-    assert torch.equal(batched[1, :, : flipped.shape[1]], flipped)
-    assert (batched[0, :, out.shape[1] :] == -1).all()
-
-
-def test_neighbour_surfels_edge_cases():
-    ids = torch.zeros(4, 5, dtype=torch.int64)
-    assert neighbour_surfels(ids, torch.zeros(0, 2), 2.0).shape == (0, 0)
-    assert neighbour_surfels(torch.full((4, 5), -1), torch.ones(3, 2), 2.0).shape == (3, 0)
-    with pytest.raises(ValueError, match="radius"):
-        neighbour_surfels(ids, torch.ones(1, 2), -1.0)
-    with pytest.raises(ValueError, match="keypoints"):
-        neighbour_surfels(ids, torch.full((1, 2), math.nan), 1.0)
-    with pytest.raises(ShapeError):
-        neighbour_surfels(ids, torch.ones(1, 3), 1.0)
-    with pytest.raises(ShapeError):
-        neighbour_surfels(ids, torch.ones(2, 2), torch.ones(3))
-    with pytest.raises(ShapeError):
-        neighbour_surfels(ids[None].expand(2, 4, 5), torch.ones(3, 1, 2), 1.0)
-
-
-def test_surfel_index_to_neighbours_round_trip(camera):
-    """The index map feeds the neighbour sets: a keypoint on a disk sees that disk."""
-    centers = torch.tensor([[-0.3, 0.0, 2.0], [0.3, 0.0, 2.0]])
-    normals = torch.tensor([[0.0, 0.0, -1.0]]).expand(2, 3)
-    out = render_surfel_index(centers, normals, torch.tensor([0.3, 0.3]), identity(), camera)
-    u_left = float(camera.fx * -0.3 / 2.0 + camera.cx)
-    keypoints = torch.tensor([[u_left, 23.5], [31.5, 23.5]])
-    sets = neighbour_surfels(out.ids[0], keypoints, torch.tensor([2.0, 6.0]))
-    assert sets.tolist() == [[0, -1], [0, 1]]
+@pytest.mark.parametrize("module", [surfel_render, point_sizes, point_render])
+def test_doctests(module) -> None:
+    assert doctest.testmod(module, extraglobs={"torch": torch}).failed == 0

@@ -43,6 +43,7 @@ from diffloc.database.culling import (
 )
 from diffloc.database.database import VisualDatabase
 from diffloc.database.epipolar_matching import EpipolarMatchingConfig, match_epipolar
+from diffloc.database.neighbours import KeypointDisks
 from diffloc.features.local import Features, LocalFeatureExtractor
 from diffloc.features.matching import match_guided
 from diffloc.geometry.camera import PinholeCamera
@@ -50,7 +51,7 @@ from diffloc.geometry.se3 import invert, transform_points
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.surfel import SurfelMap
 from diffloc.progress import progress
-from diffloc.render.splat import KeypointDisks, SurfelIndexRenderer, SurfelRender
+from diffloc.render.surfel_render import SurfelIndexRenderer, SurfelRender
 
 __all__ = ["ASSOCIATIONS", "BuildCounts", "BuilderConfig", "DatabaseBuilder"]
 

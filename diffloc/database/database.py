@@ -351,7 +351,7 @@ class VisualDatabase:
             sizes: (N,) keypoint diameters in pixels.
             keypoint_surfels: (N,) int64 surfel at each keypoint (-1 none); default all -1.
             neighbour_surfels: (N, M) int64 neighbouring surfel sets padded with -1 (as
-                returned by :func:`diffloc.render.splat.neighbour_surfels`); default empty.
+                returned by :func:`diffloc.database.neighbours.neighbour_surfels`); default empty.
             global_descriptor: (G,) global descriptor; required iff the database has them.
 
         Returns:

@@ -583,7 +583,7 @@ class SurfelOptimConfig:
         kernel: robust kernel on the whitened residuals (Huber, ``sqrt(5.991)``).
         lm: Levenberg-Marquardt settings. Defaults: at most 100 iterations, three step
             expansions (up to 8x the plain step: under a Cauchy kernel the IRLS steps are
-            2-6x short, see :mod:`diffloc.optim.lm`) and a relative cost tolerance of 1e-3:
+            2-6x short, see :mod:`diffloc.optim.lm.loop`) and a relative cost tolerance of 1e-3:
             on the default indoor scene (position noise 0.2 / 0.4 m) this stops after 11 / 13
             iterations with the keyframe position RMSE within 5 % of its value at full
             convergence (``cost_tolerance=1e-12``: 214 / 106 iterations).

@@ -33,7 +33,7 @@ from diffloc.maps.lidar_source import lidar_points_with_origins
 from diffloc.maps.pointcloud import ColorizeConfig, PointMap
 from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
 from diffloc.progress import progress
-from diffloc.render.splat import render_surfel_index
+from diffloc.render.surfel_render import render_surfel_index
 
 __all__ = ["BUILD_MAP_FORMAT_VERSION", "BuildMapConfig", "build_maps", "render_views"]
 

@@ -26,7 +26,7 @@ colours and the radii. They are zero through the depth order, the window placeme
 clamped sizes/opacities (piecewise-constant choices), as in other splatting renderers.
 
 Points with NaN/inf coordinates or behind the camera (``z <= MIN_DEPTH`` of
-:mod:`diffloc.geometry.camera`) are culled, like in :mod:`diffloc.render.splat`.
+:mod:`diffloc.geometry.camera`) are culled, like in :mod:`diffloc.render.point_render`.
 """
 
 from __future__ import annotations

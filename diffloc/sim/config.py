@@ -7,8 +7,9 @@ from dataclasses import dataclass, field
 from omegaconf import MISSING
 
 from diffloc.sim.imaging import LightingConfig, SensorConfig
+from diffloc.sim.indoor_layout import IndoorLayoutConfig
 from diffloc.sim.lidar import SpinningLidarConfig, TerrestrialScannerConfig
-from diffloc.sim.scene import IndoorLayoutConfig, OutdoorLayoutConfig
+from diffloc.sim.outdoor_layout import OutdoorLayoutConfig
 from diffloc.sim.trajectory import TrajectoryConfig
 
 HALF_PI = 1.5707963267948966

@@ -34,8 +34,9 @@ from diffloc.sim.imaging import expose, shade
 from diffloc.sim.lidar import accumulate_map, simulate_station_scan, simulate_sweep
 from diffloc.sim.placement import check_free_space
 from diffloc.sim.preview import write_preview
-from diffloc.sim.scene import World, generate_world
+from diffloc.sim.scene import generate_world
 from diffloc.sim.trajectory import interpolate_pose, make_trajectory
+from diffloc.sim.world import World
 
 DATASET_FORMAT_VERSION = 1
 DEPTH_SCALE = 1000.0

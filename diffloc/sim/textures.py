@@ -30,6 +30,7 @@ from diffloc.checks import check_shape
 __all__ = [
     "BUNDLED_PHOTOS",
     "MATERIALS",
+    "POSTERS",
     "MaterialSpec",
     "load_photo",
     "make_materials",
@@ -761,6 +762,8 @@ MATERIALS: tuple[MaterialSpec, ...] = (
     MaterialSpec("poster_page", _poster("page", (0.5, 0.3, 1.0)), 0.0),
     MaterialSpec("poster_galaxy", _poster("hubble_deep_field", (0.3, 0.7, 0.45)), 0.0),
 )
+POSTERS = tuple(spec.name for spec in MATERIALS if spec.name.startswith("poster_"))
+"""The poster materials of the catalogue (wall posters, banners), in catalogue order."""
 
 _BY_NAME = {spec.name: index for index, spec in enumerate(MATERIALS)}
 
