@@ -13,14 +13,7 @@ from diffloc.checks import ShapeError
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, transform_points
 from diffloc.reloc.epnp import solve_epnp
-from diffloc.reloc.pnp import (
-    PnPRansacConfig,
-    _bailout_keep,
-    _batch_count,
-    refine_pnp,
-    solve_pnp,
-    solve_pnp_ransac,
-)
+from diffloc.reloc.pnp import PnPRansacConfig, refine_pnp, solve_pnp, solve_pnp_ransac
 from diffloc.testing import random_points, random_se3
 
 # Measured worst cases over 30 seeds (500 points, 50 % outliers, 1 px noise): 0.036 deg and
@@ -184,28 +177,6 @@ def test_ransac_pose_is_the_least_squares_optimum_on_its_inliers(ratio):
     assert math.radians(rot) < 1e-6 and trans < 1e-5
 
 
-def test_bailout_keeps_candidates_near_the_best_subset_count():
-    # 64 subset points. At a low inlier ratio (best count 7) counts of 0 and 1 are hopeless
-    # (a normal approximation of the binomial would keep them), 2 and more are kept.
-    assert _bailout_keep(torch.tensor([7, 0, 1, 2, 5]), 64, 0.0).tolist() == [0, 3, 4]
-    # Half inliers: the bound is ~20.3, three standard deviations below 32.
-    assert _bailout_keep(torch.tensor([32, 21, 20, 19]), 64, 0.0).tolist() == [0, 1]
-    # The best model so far (ratio 0.5) is the reference when no candidate comes close.
-    assert _bailout_keep(torch.tensor([10, 9]), 64, 0.5).tolist() == []
-    # Counts too small to tell candidates apart: all are scored (None).
-    assert _bailout_keep(torch.tensor([2, 0, 1]), 64, 0.0) is None
-
-
-def test_a_small_remainder_joins_the_batch():
-    config = PnPRansacConfig(batch_size=512, min_iterations=100)
-    assert _batch_count(50, config) == 50
-    assert _batch_count(515, config) == 515  # not 512 and then 3
-    assert _batch_count(611, config) == 611
-    assert _batch_count(612, config) == 512
-    small = PnPRansacConfig(batch_size=64, min_iterations=100)  # a remainder below 64 joins
-    assert (_batch_count(127, small), _batch_count(128, small)) == (127, 64)
-
-
 def test_ransac_agrees_with_poselib():
     poselib = pytest.importorskip("poselib")
     camera = _camera()
@@ -272,6 +243,16 @@ def test_ransac_reports_failure_without_structure():
     points_world, keypoints, _, _ = _scene(300, 1.0, 9, camera)  # every match is random
     result = solve_pnp_ransac(points_world, keypoints, camera, PnPRansacConfig(), _generator())
     assert not result.success
+
+
+def test_ransac_without_any_p3p_solution_is_not_an_error():
+    # All points at one place: no sample has a P3P solution (this raised OverflowError once).
+    camera = _camera()
+    points_world = torch.tensor([[0.0, 0.0, 4.0]], dtype=torch.float64).repeat(50, 1)
+    keypoints = torch.rand(50, 2, generator=_generator(1), dtype=torch.float64) * 400
+    config = PnPRansacConfig(max_iterations=300)
+    result = solve_pnp_ransac(points_world, keypoints, camera, config, _generator())
+    assert not result.success and result.num_inliers == 0 and result.iterations == 300
 
 
 @pytest.mark.parametrize("n", [0, 3])

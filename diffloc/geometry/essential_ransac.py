@@ -23,22 +23,20 @@ Conventions:
   cameras differ.
 - Geometry is float64; every random draw uses the ``torch.Generator`` given.
 
-RANSAC: minimal 5-point samples are drawn in batches and all of them are solved at once by
+RANSAC runs the shared core :func:`diffloc.geometry.ransac.ransac` (batched uniform samples,
+adaptive number of samples ``k = log(1 - confidence) / log(1 - w^5)`` for the best inlier
+ratio ``w``, bail-out test on a random subset of ``bailout_points`` correspondences, local
+optimisation of every batch's best candidates). All 5-point samples of a batch are solved at once by
 Nister's five-point method (:func:`~diffloc.geometry.epipolar.five_point_essential`, up to
-10 real candidates per sample), and
-all candidates are scored in one batched pass with
-:func:`kornia.geometry.epipolar.sampson_epipolar_distance` and the MSAC cost (truncated squared
-error). Scoring dominates the cost, so candidates are first scored on a fixed random subset of
-``bailout_points`` correspondences and only those whose subset inlier count is within three
-binomial standard deviations of the best are scored on all of them. The number of samples
-adapts to the best inlier ratio ``w``: ``k = log(1 - confidence) / log(1 - w^5)``, clamped to
-``[min_iterations, max_iterations]``.
-The ``lo_candidates`` best models of every batch are locally optimised (LO-RANSAC, Chum et
-al. 2003): Gauss-Newton steps on the Sampson distances of their inliers over the 5-dof
-essential manifold, each re-scored and kept only if the MSAC cost drops; the final best model
-is polished the same way for up to ``refine_iterations`` steps. (kornia's non-minimal solver,
-the 5-point method on the 4-dimensional least-squares null space, was tried for LO first: at
-1 px noise its fits to the true inliers were worse than the best minimal sample.)
+10 real candidates per sample), and all candidates are scored in one batched pass with
+:func:`kornia.geometry.epipolar.sampson_epipolar_distance` and the MSAC cost (truncated
+squared error). The ``lo_candidates`` best models of every batch are locally optimised
+(LO-RANSAC, Chum et al. 2003): Gauss-Newton steps on the Sampson distances of their inliers
+over the 5-dof essential manifold, each re-scored and kept only if the MSAC cost drops, and
+the best of them becomes the best model if it beats it; the final best model is polished the
+same way for up to ``refine_iterations`` steps. (kornia's non-minimal solver, the 5-point
+method on the 4-dimensional least-squares null space, was tried for LO first: at 1 px noise
+its fits to the true inliers were worse than the best minimal sample.)
 
 On a badly conditioned geometry (small baseline against the depth range) the MSAC optimum
 itself can lie a few hundredths (unit-norm Frobenius distance) from the true ``E``; the inlier
@@ -73,6 +71,7 @@ from kornia.geometry.epipolar import sampson_epipolar_distance
 from diffloc.checks import ShapeError, check_finite, check_ransac_settings, check_shape
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.epipolar import decompose_essential, five_point_essential
+from diffloc.geometry.ransac import bailout_keep, bailout_subset, ransac
 from diffloc.geometry.se3 import hat, so3_exp
 from diffloc.threads import intra_op_threads
 
@@ -80,7 +79,6 @@ __all__ = ["EssentialCheckConfig", "EssentialCheckResult", "essential_check"]
 
 _SAMPLE_SIZE = 5
 _GN_DAMPING = 1e-9  # relative to the mean diagonal of J^T J, only against singular steps
-_BAILOUT_SIGMAS = 3.0  # keep candidates within this many binomial std of the best subset count
 _LO_COST_TOL = 1e-6  # LO stops once the inlier set is stable and the cost drops less than this
 
 
@@ -100,11 +98,12 @@ class EssentialCheckConfig:
             batch costs almost as much as the first: solve, score and LO all run again).
         max_iterations: most 5-point samples drawn.
         batch_size: most samples solved and scored together (each gives up to 10 candidate
-            matrices, typically ~4 real ones).
+            matrices, typically ~4 real ones), except that a remainder of fewer than
+            ``min(min_iterations, batch_size)`` samples joins the batch before it.
         min_inliers: the check passes (``success``) only with at least this many inliers.
         bailout_points: size of the random subset every candidate is scored on first; only
-            candidates within 3 binomial standard deviations of the best subset inlier count
-            are scored on all correspondences. 0 (or fewer than twice as many correspondences)
+            candidates that pass :func:`~diffloc.geometry.ransac.bailout_keep` on it are
+            scored on all correspondences. 0 (or fewer than twice as many correspondences)
             scores all candidates on all points.
         lo_rounds: most local-optimisation steps (Gauss-Newton on the Sampson distances of
             the inliers, then a re-score) per locally optimised candidate; 0 disables LO.
@@ -179,19 +178,29 @@ class _Problem:
 
 @dataclass(frozen=True)
 class _Models:
-    """K models and their scores on all M correspondences."""
+    """K models and their scores on all M correspondences; ``cost`` and ``num_inliers`` are
+    those of the first (a :class:`~diffloc.geometry.ransac.RansacModel`)."""
 
     E: torch.Tensor  # (K, 3, 3)
     err2: torch.Tensor  # (K, M) squared scaled Sampson distances
-    cost: torch.Tensor  # (K,) MSAC cost
+    inliers: torch.Tensor  # (K, M) bool, err2 at most the squared threshold
+    costs: torch.Tensor  # (K,) MSAC costs
 
     @staticmethod
     def scored(E: torch.Tensor, problem: _Problem, threshold2: float) -> _Models:
         err2 = _score(E, problem)
-        return _Models(E, err2, err2.clamp(max=threshold2).sum(dim=1))
+        return _Models(E, err2, err2 <= threshold2, err2.clamp(max=threshold2).sum(dim=1))
 
     def __getitem__(self, index: torch.Tensor | slice) -> _Models:
-        return _Models(self.E[index], self.err2[index], self.cost[index])
+        return _Models(self.E[index], self.err2[index], self.inliers[index], self.costs[index])
+
+    @property
+    def cost(self) -> float:
+        return float(self.costs[0])
+
+    @property
+    def num_inliers(self) -> int:
+        return int(self.inliers[0].sum())
 
 
 def _normalised(keypoints: torch.Tensor, camera: PinholeCamera) -> tuple[torch.Tensor, float]:
@@ -219,25 +228,14 @@ def _score(E: torch.Tensor, problem: _Problem) -> torch.Tensor:
     return sampson_epipolar_distance(problem.scaled_kf, problem.scaled_q, E * problem.unscale)
 
 
-def _bailout_keep(counts: torch.Tensor, subset_size: int, best_ratio: float) -> torch.Tensor:
-    """Mask of candidates worth a full score, from their subset inlier counts (H,).
-
-    The reference is the larger of the best subset count and the count the best model so far
-    would have; candidates more than ``_BAILOUT_SIGMAS`` binomial standard deviations below it
-    are dropped (a batched form of the bail-out test of Capel, BMVC 2005).
-    """
-    ref = max(float(counts.max()), best_ratio * subset_size)
-    p = min(ref / subset_size, 1.0)
-    return counts >= ref - _BAILOUT_SIGMAS * math.sqrt(subset_size * p * (1.0 - p))
-
-
 def _candidates(
     E: torch.Tensor, problem: _Problem, threshold2: float, k: int, best_ratio: float
 ) -> _Models | None:
     """The ``k`` lowest-MSAC-cost models among (H, 10, 3, 3) five-point slots, best first.
 
     NaN slots (complex roots, degenerate samples) are skipped; with a bail-out subset, only
-    the candidates passing :func:`_bailout_keep` on it are scored on all correspondences.
+    the candidates passing :func:`~diffloc.geometry.ransac.bailout_keep` on it are scored on
+    all correspondences.
     ``None`` if no candidate is left.
     """
     E = E.reshape(-1, 3, 3)
@@ -247,29 +245,13 @@ def _candidates(
         err2 = sampson_epipolar_distance(
             problem.scaled_kf[:, sub], problem.scaled_q[:, sub], E * problem.unscale
         )
-        E = E[_bailout_keep((err2 <= threshold2).sum(dim=1), len(sub), best_ratio)]
+        keep = bailout_keep((err2 <= threshold2).sum(dim=1), len(sub), best_ratio)
+        if keep is not None:
+            E = E[keep]
     if E.shape[0] == 0:
         return None
     models = _Models.scored(E, problem, threshold2)
-    return models[models.cost.topk(min(k, E.shape[0]), largest=False).indices]
-
-
-def _sample(m: int, count: int, generator: torch.Generator) -> torch.Tensor:
-    """(count, 5) random index sets of 5 distinct elements of range(m)."""
-    keys = torch.rand(count, m, generator=generator, dtype=torch.float64)
-    return keys.topk(_SAMPLE_SIZE, dim=1, sorted=False).indices
-
-
-def _target_samples(best_inliers: int, m: int, config: EssentialCheckConfig) -> int:
-    """Samples to draw in total given the inlier count of the best model so far."""
-    p_good = (best_inliers / m) ** _SAMPLE_SIZE
-    if p_good >= 1.0:
-        needed = 0
-    elif p_good <= 0.0:
-        needed = config.max_iterations
-    else:
-        needed = math.ceil(math.log(1.0 - config.confidence) / math.log1p(-p_good))
-    return min(config.max_iterations, max(config.min_iterations, needed))
+    return models[models.costs.topk(min(k, E.shape[0]), largest=False).indices]
 
 
 def _gauss_newton_step(E: torch.Tensor, problem: _Problem, weights: torch.Tensor) -> torch.Tensor:
@@ -329,60 +311,51 @@ def _local_optimisation(
     once its inlier count is stable and its cost drops by less than a relative
     ``_LO_COST_TOL``. Models with at most 5 inliers are left alone.
     """
-    inliers = models.err2 <= threshold2
-    active = inliers.sum(dim=1) > _SAMPLE_SIZE
+    active = models.inliers.sum(dim=1) > _SAMPLE_SIZE
     for _ in range(rounds):
         if not bool(active.any()):
             break
-        step = _Models.scored(
-            _gauss_newton_step(models.E, problem, inliers.to(models.E.dtype)), problem, threshold2
-        )
-        step_inliers = step.err2 <= threshold2
-        accept = active & (step.cost < models.cost) & torch.isfinite(step.E).flatten(1).all(1)
-        stable = (step_inliers.sum(1) == inliers.sum(1)) & (
-            models.cost - step.cost < _LO_COST_TOL * models.cost
+        weights = models.inliers.to(models.E.dtype)
+        step = _Models.scored(_gauss_newton_step(models.E, problem, weights), problem, threshold2)
+        accept = active & (step.costs < models.costs) & torch.isfinite(step.E).flatten(1).all(1)
+        stable = (step.inliers.sum(1) == models.inliers.sum(1)) & (
+            models.costs - step.costs < _LO_COST_TOL * models.costs
         )
         models = _Models(
             torch.where(accept[:, None, None], step.E, models.E),
             torch.where(accept[:, None], step.err2, models.err2),
-            torch.where(accept, step.cost, models.cost),
+            torch.where(accept[:, None], step.inliers, models.inliers),
+            torch.where(accept, step.costs, models.costs),
         )
-        inliers = torch.where(accept[:, None], step_inliers, inliers)
         active = accept & ~stable
     return models
 
 
-def _ransac(
-    problem: _Problem, config: EssentialCheckConfig, generator: torch.Generator
-) -> tuple[_Models | None, int]:
-    """The best model (K = 1) after adaptive batched sampling, and the samples drawn."""
-    m = problem.xy_kf.shape[0]
-    threshold2 = config.threshold_px**2
-    best: _Models | None = None
-    drawn = 0
-    target = max(config.min_iterations, 1)
-    while drawn < target:
-        count = min(config.batch_size, target - drawn)
-        idx = _sample(m, count, generator)
-        drawn += count
-        best_inliers = 0 if best is None else int((best.err2 <= threshold2).sum())
-        candidates = _candidates(
-            five_point_essential(problem.xy_kf[idx], problem.xy_q[idx]),
-            problem,
-            threshold2,
-            config.lo_candidates,
-            best_inliers / m,
+@dataclass(frozen=True)
+class _Search:
+    """The check as a :class:`~diffloc.geometry.ransac.RansacProblem`: five-point samples,
+    the ``lo_candidates`` best of a batch (:func:`_candidates`), LO by
+    :func:`_local_optimisation`."""
+
+    problem: _Problem
+    threshold2: float
+    config: EssentialCheckConfig
+    sample_size: int = _SAMPLE_SIZE
+
+    @property
+    def num_points(self) -> int:
+        return self.problem.xy_kf.shape[0]
+
+    def candidates(self, samples: torch.Tensor, best_ratio: float) -> _Models | None:
+        E = five_point_essential(self.problem.xy_kf[samples], self.problem.xy_q[samples])
+        return _candidates(E, self.problem, self.threshold2, self.config.lo_candidates, best_ratio)
+
+    def local_optimisation(self, candidates: _Models) -> _Models:
+        models = _local_optimisation(
+            candidates, self.problem, self.threshold2, self.config.lo_rounds
         )
-        if candidates is not None:
-            candidates = _local_optimisation(candidates, problem, threshold2, config.lo_rounds)
-            j = int(candidates.cost.argmin())
-            if best is None or bool(candidates.cost[j] < best.cost[0]):
-                best = candidates[j : j + 1]
-        best_inliers = 0 if best is None else int((best.err2 <= threshold2).sum())
-        target = _target_samples(best_inliers, m, config)
-    if best is not None:
-        best = _local_optimisation(best, problem, threshold2, config.refine_iterations)
-    return best, drawn
+        j = int(models.costs.argmin())
+        return models[j : j + 1]
 
 
 def essential_check(
@@ -469,9 +442,7 @@ def _essential_check(
     s_kf = torch.tensor([1.0 / f_kf, 1.0 / f_kf, 1.0], dtype=torch.float64, device=uv_kf.device)
     s_q = torch.tensor([1.0 / f_q, 1.0 / f_q, 1.0], dtype=torch.float64, device=uv_kf.device)
     m = xy_kf.shape[0]
-    subset = None
-    if 0 < config.bailout_points and 2 * config.bailout_points <= m:
-        subset = torch.randperm(m, generator=generator)[: config.bailout_points].to(uv_kf.device)
+    subset = bailout_subset(m, config.bailout_points, generator)
     problem = _Problem(
         xy_kf=xy_kf,
         xy_q=xy_q,
@@ -479,14 +450,16 @@ def _essential_check(
         scaled_q=(xy_q * f_q)[None],
         homogeneous_kf=torch.nn.functional.pad(xy_kf * f_kf, (0, 1), value=1.0),
         homogeneous_q=torch.nn.functional.pad(xy_q * f_q, (0, 1), value=1.0),
-        subset=subset,
+        subset=None if subset is None else subset.to(uv_kf.device),
         unscale=s_q[:, None] * s_kf[None, :],
     )
-    best, drawn = _ransac(problem, config, generator)
+    threshold2 = config.threshold_px**2
+    best, drawn = ransac(_Search(problem, threshold2, config), config, generator)
     if best is None:
         return dataclasses.replace(no_model, iterations=drawn)
+    best = _local_optimisation(best, problem, threshold2, config.refine_iterations)
     inliers = torch.zeros(n, dtype=torch.bool, device=uv_kf.device)
-    inliers[usable] = best.err2[0] <= config.threshold_px**2
+    inliers[usable] = best.inliers[0]
     errors[usable] = best.err2[0].sqrt()
     num_inliers = int(inliers.sum())
     return EssentialCheckResult(

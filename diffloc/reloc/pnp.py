@@ -12,27 +12,23 @@ Conventions:
   distortion map (a few percent at most for usual lenses).
 - All optimised geometry is float64. Every random draw uses the ``torch.Generator`` given.
 
-RANSAC (seed 1, Sec. III-C: "PnP with RANSAC to find a rough camera pose") draws minimal
-samples in batches and solves Lambda Twist P3P for all of them at once. Candidate poses are
-first scored on a fixed random subset of ``bailout_points`` correspondences; only those whose
-subset inlier count is within three standard deviations of the best one seen (on the
-variance-stabilised scale of binomial counts, :func:`_bailout_keep`) are scored on all
-correspondences (a batched form of the bail-out test of Capel, BMVC 2005).
-Both scorings project the points under all candidates with one GEMM; only the winner is then
-projected again keeping its normalised coordinates and inverse depths, which its first
-Gauss-Newton step needs. Scores are MSAC (truncated squared error). The number of samples
-adapts to the best inlier ratio ``w``: ``k = log(1 - confidence) / log(1 - w^3)``, clamped to
-``[min_iterations, max_iterations]``; the first batch has ``min_iterations`` samples and each
-later one the samples still needed (at most ``batch_size``, unless that would leave a remainder
-smaller than ``min_iterations``). A new best model is locally optimised (LO-RANSAC, Chum et al.
-2003) when sampling goes on after its batch: Gauss-Newton steps on its inliers, each re-scored
-and kept only if the MSAC cost drops (so the inlier set is re-estimated after every step),
-until the inlier count is stable. The best model is finally refined the same way until the next
-step would be below 1e-6 (m, rad), a step that is then not taken, or until a step below 3e-4
-leaves the inlier count unchanged (Gauss-Newton converges quadratically here, typically with
-steps of 1e-2, 1e-3 and 1e-6, so the next step would be below 1e-6): the pose is within ~1e-6
-of the least-squares optimum on its inliers, orders of magnitude below the error due to the
-keypoint noise, and its ``inliers`` and ``reprojection_errors`` are those of the returned pose.
+RANSAC (seed 1, Sec. III-C: "PnP with RANSAC to find a rough camera pose") runs the shared core
+:func:`diffloc.geometry.ransac.ransac` (batched uniform samples, adaptive number of samples
+``k = log(1 - confidence) / log(1 - w^3)`` for the best inlier ratio ``w``, bail-out test on a
+random subset of ``bailout_points`` correspondences, local optimisation of every batch's best
+candidate) and solves Lambda Twist P3P for all samples of a batch at once. Both scorings (on
+the bail-out subset, then on all correspondences) project the points under all candidates with
+one GEMM; only the winner is then projected again keeping its normalised coordinates and
+inverse depths, which its first Gauss-Newton step needs. Scores are MSAC (truncated squared
+error). Local optimisation (LO-RANSAC, Chum et al. 2003) takes Gauss-Newton steps on the
+inliers, each re-scored and kept only if the MSAC cost drops (so the inlier set is re-estimated
+after every step), until the inlier count is stable. The best model is finally refined the same
+way until the next step would be below 1e-6 (m, rad), a step that is then not taken, or until a
+step below 3e-4 leaves the inlier count unchanged (Gauss-Newton converges quadratically here,
+typically with steps of 1e-2, 1e-3 and 1e-6, so the next step would be below 1e-6): the pose is
+within ~1e-6 of the least-squares optimum on its inliers, orders of magnitude below the error
+due to the keypoint noise, and its ``inliers`` and ``reprojection_errors`` are those of the
+returned pose.
 
 The non-minimal :func:`solve_pnp` (EPnP + Levenberg-Marquardt) and :func:`refine_pnp` (LM)
 are batched over problems and take per-correspondence weights.
@@ -68,6 +64,7 @@ import torch
 
 from diffloc.checks import ShapeError, check_finite, check_ransac_settings, check_shape
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera, pose_jacobian_map
+from diffloc.geometry.ransac import bailout_keep, bailout_subset, ransac
 from diffloc.geometry.se3 import cayley_rotation, invert
 from diffloc.optim.lm import LMConfig, PoseSystem, minimize
 from diffloc.reloc.epnp import epnp_flat
@@ -83,7 +80,6 @@ __all__ = [
 ]
 
 _SAMPLE_SIZE = 3
-_BAILOUT_SIGMAS = 3.0  # keep candidates within this many std of the best subset count
 _REFINE_STEP_TOL = 1e-6  # Gauss-Newton on inliers stops before a step this small (m, rad)
 # ... or after a step this small that leaves the inlier count unchanged: Gauss-Newton converges
 # so fast here that the next step would be below _REFINE_STEP_TOL (at most 2.1e-7 over 300
@@ -112,7 +108,7 @@ class PnPRansacConfig:
             hypothesis as for hundreds, so few large batches are fastest.
         min_inliers: a pose with fewer inliers is reported with ``success = False``.
         lo_rounds: most local-optimisation steps (Gauss-Newton on the inliers + re-score)
-            per new best model; 0 disables LO.
+            per batch's best candidate; 0 disables LO.
         refine_iterations: most Gauss-Newton steps of the final refinement on the inliers of
             the best model (re-scored after each); 0 disables it.
         bailout_points: size of the random subset every candidate is scored on first; 0 (or
@@ -269,8 +265,9 @@ def _make_problem(
         torch.nn.functional.pad(X, (0, 1), value=1.0).t().contiguous(), xy_t * focal_t
     )
     subset = None
-    if 0 < bailout_points and 2 * bailout_points <= n:
-        pick = torch.randperm(n, generator=generator)[:bailout_points].to(X.device)
+    pick = bailout_subset(n, bailout_points, generator)
+    if pick is not None:
+        pick = pick.to(X.device)
         subset = _PointSet(points.points_h.index_select(1, pick), points.uv_t.index_select(1, pick))
     rays = torch.nn.functional.pad(xy, (0, 1), value=1.0)
     return _Problem(
@@ -308,49 +305,6 @@ def _squared_errors(rows: torch.Tensor, points: _PointSet) -> torch.Tensor:
 def _msac(err2: torch.Tensor, threshold2: float) -> torch.Tensor:
     """MSAC cost (M,) (lower is better) from squared errors (M, n)."""
     return err2.clamp(max=threshold2).sum(-1)
-
-
-def _bailout_keep(counts: torch.Tensor, subset_size: int, best_ratio: float) -> torch.Tensor | None:
-    """Indices of the candidates worth a full score, from their subset inlier counts (M,).
-
-    The reference is the larger of the best subset count and the count the best model so
-    far would have; candidates more than ``_BAILOUT_SIGMAS`` standard deviations below it are
-    dropped. The deviations are measured on the variance-stabilised scale of the binomial
-    count ``k`` of ``n`` draws, ``asin(sqrt(k / n))`` (standard deviation ``1 / (2 sqrt(n))``
-    whatever the inlier ratio), which unlike the normal approximation of ``k`` itself stays
-    accurate for the small counts of low inlier ratios. ``None`` when every candidate is kept.
-    """
-    ref = max(float(counts.max()), best_ratio * subset_size)
-    angle = math.asin(math.sqrt(min(ref / subset_size, 1.0)))
-    angle -= _BAILOUT_SIGMAS / (2.0 * math.sqrt(subset_size))
-    if angle <= 0.0:
-        return None
-    keep = torch.nonzero(counts >= subset_size * math.sin(angle) ** 2)[:, 0]
-    return None if keep.shape[0] == counts.shape[0] else keep
-
-
-def _required_samples(inlier_ratio: float, confidence: float) -> float:
-    """Samples needed to draw an all-inlier minimal set with probability ``confidence``."""
-    p_good = inlier_ratio**_SAMPLE_SIZE
-    if p_good >= 1.0:
-        return 0.0
-    if p_good <= 0.0:
-        return math.inf
-    return math.log(1.0 - confidence) / math.log1p(-p_good)
-
-
-def _sample_triples(n: int, count: int, generator: torch.Generator) -> torch.Tensor:
-    """(count, 3) uniformly random index triples of distinct elements of range(n).
-
-    ``i0`` is uniform in range(n); ``i1 = i0 + d1`` and ``i2 = i0 + d2`` (mod n) with ``d1``
-    uniform in [1, n) and ``d2`` uniform in [1, n) without ``d1``.
-    """
-    u = torch.rand(count, 3, generator=generator, dtype=torch.float64)
-    draws = u.mul_(torch.tensor([n, n - 1, n - 2], dtype=torch.float64)).long()
-    offsets = draws[:, 1:].add_(1)
-    offsets[:, 1] += offsets[:, 1] >= offsets[:, 0]
-    offsets += draws[:, :1]
-    return draws.remainder_(n)
 
 
 # ---------------------------------------------------------------------------- refinement
@@ -564,7 +518,7 @@ def _best_of_batch(
     keep = None
     if problem.subset is not None:
         counts = (_squared_errors(rows, problem.subset) < threshold2).sum(-1)
-        keep = _bailout_keep(counts, problem.subset.uv_t.shape[1], best_ratio)
+        keep = bailout_keep(counts, problem.subset.uv_t.shape[1], best_ratio)
         if keep is not None:
             if keep.shape[0] == 0:
                 return None
@@ -575,66 +529,44 @@ def _best_of_batch(
     return _projected_model(R[j : j + 1], t[j : j + 1], problem.residuals, threshold2, False)
 
 
-def _target_samples(model: _Model | None, n: int, config: PnPRansacConfig) -> int:
-    """Samples to draw in total given the best model so far (adaptive termination)."""
-    ratio = 0.0 if model is None else model.num_inliers / n
-    needed = math.ceil(_required_samples(ratio, config.confidence))
-    return min(config.max_iterations, max(config.min_iterations, needed))
+@dataclass(frozen=True)
+class _Search:
+    """A PnP problem as a :class:`~diffloc.geometry.ransac.RansacProblem`: P3P on minimal
+    samples, the best candidate of a batch (:func:`_best_of_batch`), LO by :func:`_optimise`."""
 
+    problem: _Problem
+    threshold2: float
+    lo_rounds: int
+    sample_size: int = _SAMPLE_SIZE
 
-def _batch_count(needed: int, config: PnPRansacConfig) -> int:
-    """Samples of the next batch given the ``needed`` ones: ``batch_size``, or all of them if
-    that would leave fewer than ``min(min_iterations, batch_size)`` for another batch.
+    @property
+    def num_points(self) -> int:
+        return self.problem.points_world.shape[0]
 
-    A batch has a fixed cost of a few hundred small torch operations, about that of solving
-    and scoring 150 samples (measured with 1000 points), so a small remainder is cheaper
-    drawn with the current batch than in a batch of its own.
-    """
-    tail = min(config.min_iterations, config.batch_size)
-    return needed if needed < config.batch_size + tail else config.batch_size
-
-
-def _ransac(
-    problem: _Problem, config: PnPRansacConfig, generator: torch.Generator
-) -> tuple[_Model | None, int]:
-    """Best model after adaptive batched sampling; returns (best, samples drawn).
-
-    A new best model is locally optimised only if sampling goes on after its batch (the
-    better inlier ratio then shortens the search); the last one is left to the final
-    refinement, which does the same.
-    """
-    n = problem.points_world.shape[0]
-    threshold2 = config.threshold_px**2
-    best: _Model | None = None
-    drawn = 0
-    target = max(config.min_iterations, 1)
-    while drawn < target:
-        count = _batch_count(target - drawn, config)
-        idx = _sample_triples(n, count, generator).view(-1)
-        drawn += count
+    def candidates(self, samples: torch.Tensor, best_ratio: float) -> _Model | None:
+        count = samples.shape[0]
+        idx = samples.view(-1)
         R, t, valid = p3p_flat(
-            problem.bearings.index_select(0, idx).view(count, 3, 3),
-            problem.points_world.index_select(0, idx).view(count, 3, 3),
+            self.problem.bearings.index_select(0, idx).view(count, 3, 3),
+            self.problem.points_world.index_select(0, idx).view(count, 3, 3),
             _P3P_REFINE_ITERATIONS,
         )
         solutions = torch.nonzero(valid.view(-1))[:, 0]
-        candidate = None
-        if solutions.shape[0] > 0:
-            ratio = 0.0 if best is None else best.num_inliers / n
-            R = R.view(-1, 3, 3).index_select(0, solutions)
-            t = t.view(-1, 3).index_select(0, solutions)
-            candidate = _best_of_batch(R, t, problem, threshold2, ratio)
-        if candidate is None or (best is not None and candidate.cost >= best.cost):
-            target = _target_samples(best, n, config)
-            continue
-        best = candidate
-        target = _target_samples(best, n, config)
-        if drawn < target and config.lo_rounds > 0:
-            best = _optimise(
-                best, problem, threshold2, config.lo_rounds, _REFINE_STEP_TOL, until_stable=True
-            )
-            target = _target_samples(best, n, config)
-    return best, drawn
+        if solutions.shape[0] == 0:
+            return None
+        R = R.view(-1, 3, 3).index_select(0, solutions)
+        t = t.view(-1, 3).index_select(0, solutions)
+        return _best_of_batch(R, t, self.problem, self.threshold2, best_ratio)
+
+    def local_optimisation(self, candidates: _Model) -> _Model:
+        return _optimise(
+            candidates,
+            self.problem,
+            self.threshold2,
+            self.lo_rounds,
+            _REFINE_STEP_TOL,
+            until_stable=True,
+        )
 
 
 def solve_pnp_ransac(
@@ -717,9 +649,9 @@ def _solve(
     """RANSAC and the final refinement; returns (best model or None, samples drawn)."""
     if problem.points_world.shape[0] < max(4, config.min_inliers):
         return None, 0
-    best, drawn = _ransac(problem, config, generator)
+    threshold2 = config.threshold_px**2
+    best, drawn = ransac(_Search(problem, threshold2, config.lo_rounds), config, generator)
     if best is not None and config.refine_iterations > 0:
-        threshold2 = config.threshold_px**2
         best = _optimise(best, problem, threshold2, config.refine_iterations, _REFINE_STEP_TOL)
     return best, drawn
 
