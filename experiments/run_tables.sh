@@ -139,6 +139,9 @@ table "$runs/noise_outdoor_epipolar" noise table3_noise_outdoor_epipolar "$cmd"
 
 # Indoors: main job and Tables I/II (XFeat, ORB) on seeds 1-5, Table III on seeds 1-3.
 heldout_main 1,2,3,4,5 main
+# Whether the validation's evidence separates the wrong query_reverse poses from right ones.
+python3 experiments/validation_evidence.py "$runs/heldout_main" \
+  --out experiments/results/validation_evidence_indoor
 heldout_ablation 1,2,3,4,5 ablation_xfeat naive,F,FN netvlad,bow
 heldout_main 1,2,3,4,5 main_orb db.local_features=orb
 heldout_ablation 1,2,3,4,5 ablation_orb naive,F,FN netvlad db.local_features=orb
@@ -147,6 +150,8 @@ heldout_noise 1,2,3 table3_noise_epipolar "$all_levels" db.builder.association=e
 
 # Outdoors: main job and Tables I/II on seeds 1-3, Table III on seeds 1-2.
 heldout_main 1,2,3 main_outdoor scene=outdoor
+python3 experiments/validation_evidence.py "$runs/heldout_main_outdoor" \
+  --out experiments/results/validation_evidence_outdoor
 heldout_ablation 1,2,3 ablation_xfeat_outdoor naive,F,FN netvlad,bow scene=outdoor
 heldout_noise 1,2 table3_noise_outdoor_prior2x "0.2:0.4 0.4:0.8" scene=outdoor "$t3_seqs"
 heldout_noise 1,2 table3_noise_outdoor "$all_levels" scene=outdoor "$t3_seqs"

@@ -334,7 +334,7 @@ RESULT_COLUMNS = [
 """The columns of ``results.md``; mATE is over all accepted poses, right or wrong."""
 
 
-def _table_row(name: str, entry: dict) -> dict:
+def table_row(name: str, entry: dict) -> dict:
     """One ``results.md`` row of a sequence's results entry."""
     near, rule = entry["nearest_db_pose"], entry["seed1_rule"]
     rule_precision = "-" if rule["precision"] is None else f"{100 * rule['precision']:.1f}"
@@ -393,7 +393,7 @@ def relocalize_dataset(
         run = _relocalize_sequence(dataset, name, cfg, extractor, relocalizer, show_progress)
         entry = _report_sequence(run, cfg, out / name, name, T_wc_db_true)
         results["sequences"][name] = entry
-        rows.append(_table_row(name, entry))
+        rows.append(table_row(name, entry))
     headline = results["sequences"].get("query_same") or next(iter(results["sequences"].values()))
     for key in ("recall", "mATE_m", "queries", "median_reloc_ms"):
         results[key] = headline[key]
