@@ -46,7 +46,7 @@ heldout_ablation() {
   shift 4
   cmd="diffloc -m task=relocalize ${*:+$* }scene.seed=$seeds reloc.method.points=$points reloc.retriever=$retrievers hydra.sweep.dir=$runs/heldout_$name"
   $cmd
-  cmds="$main_cmd$nl$cmd"
+  cmds="${main_cmd:+$main_cmd$nl}$cmd"
   heldout stats "$name" "$cmds" -- "$runs/heldout_$name"
   heldout differences "$name" "$cmds" --compare reloc.method.points=FN,F \
     --compare reloc.method.points=F,naive -- "$runs/heldout_$name"
@@ -143,6 +143,8 @@ heldout_main 1,2,3,4,5 main
 python3 experiments/validation_evidence.py "$runs/heldout_main" \
   --out experiments/results/validation_evidence_indoor
 heldout_ablation 1,2,3,4,5 ablation_xfeat naive,F,FN netvlad,bow
+# The same on query_same and query_lane of seeds 1-3 alone (cheaper; the first one committed).
+heldout_ablation 1,2,3 ablation_xfeat_small naive,F,FN netvlad "$t3_seqs"
 heldout_main 1,2,3,4,5 main_orb db.local_features=orb
 heldout_ablation 1,2,3,4,5 ablation_orb naive,F,FN netvlad db.local_features=orb
 heldout_noise 1,2,3 table3_noise_epipolar_prior2x "0.2:0.4 0.4:0.8" db.builder.association=epipolar "$t3_seqs"
