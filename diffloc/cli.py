@@ -28,7 +28,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from diffloc.benchmark import peak_rss_mb
-from diffloc.config import register_configs
+from diffloc.config import CONF_DIR, register_configs
 from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.colmap_stage import export_colmap
@@ -37,8 +37,6 @@ from diffloc.pipeline.reloc_stage import relocalize_dataset
 from diffloc.pipeline.rig_stage import calibrate_database_rig
 from diffloc.pipeline.update_stage import update_database
 from diffloc.sim.dataset import simulate_dataset
-
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 def run_simulate(cfg: DictConfig) -> Path:

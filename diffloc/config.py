@@ -1,16 +1,25 @@
 """Root configuration schema of the ``diffloc`` app and its registration with Hydra.
 
-YAML files in ``conf/`` name these schemas in their defaults lists, so every key is typed and
-a misspelt key is an error rather than silently ignored.
+The YAML tree ships inside the package, in ``diffloc/conf/`` (:data:`CONF_DIR`), so an
+installed ``diffloc`` finds it from any folder. Its files name these schemas in their defaults
+lists, so every key is typed and a misspelt key is an error rather than silently ignored.
+
+Example:
+    >>> cfg = compose_config(["task=simulate", "scene.seed=3"])
+    >>> cfg.out_dir
+    'data/indoor_seed3'
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
+from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig
 
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.rig_calibration import RigCalibrationConfig
@@ -20,6 +29,9 @@ from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.reloc_stage import RelocStageConfig
 from diffloc.pipeline.update_stage import UpdateTaskConfig
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
+
+CONF_DIR = Path(__file__).resolve().parent / "conf"
+"""The Hydra config tree of the ``diffloc`` app (``config.yaml`` and its groups)."""
 
 
 @dataclass
@@ -114,3 +126,17 @@ def register_configs() -> None:
     store.store(group="reloc", name="schema_reloc", node=RelocStageConfig)
     store.store(group="scene", name="schema_indoor", node=IndoorSceneConfig)
     store.store(group="scene", name="schema_outdoor", node=OutdoorSceneConfig)
+
+
+def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
+    """Compose the app's ``config.yaml`` with command-line style overrides, outside a Hydra run.
+
+    Args:
+        overrides: e.g. ``["task=simulate", "scene.seed=3"]``, as on the command line.
+
+    Returns:
+        The composed config (interpolations unresolved, as the ``diffloc`` command gets it).
+    """
+    register_configs()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
