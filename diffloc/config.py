@@ -110,22 +110,35 @@ class DifflocConfig:
     progress: bool = True
 
 
+GROUP_SCHEMAS: dict[str, type] = {
+    "schema_task_simulate": SimulateTaskConfig,
+    "schema_task_build_map": BuildMapConfig,
+    "schema_task_database": DatabaseTaskConfig,
+    "schema_task_update_db": UpdateTaskConfig,
+    "schema_task_relocalize": RelocalizeTaskConfig,
+    "schema_task_calibrate_rig": RigCalibrationTaskConfig,
+    "schema_task_export_colmap": ExportColmapTaskConfig,
+    "schema_task_main": MainTaskConfig,
+    "schema_surfel": SurfelMapConfig,
+    "schema_reloc": RelocStageConfig,
+    "schema_scene_indoor": IndoorSceneConfig,
+    "schema_scene_outdoor": OutdoorSceneConfig,
+}
+"""The schemas of the group YAML files, by the name their defaults lists give them."""
+
+
 def register_configs() -> None:
-    """Store the schemas in Hydra's ConfigStore (idempotent)."""
+    """Store the schemas in Hydra's ConfigStore (idempotent).
+
+    The group schemas (:data:`GROUP_SCHEMAS`) are stored at the top level and named by the
+    YAML files with an absolute path (``- /schema_task_main@_here_``), so they are not
+    choices of their group: ``diffloc --help`` and the "available options" of a misspelt
+    choice list only real tasks, scenes, surfel and reloc settings.
+    """
     store = ConfigStore.instance()
     store.store(name="diffloc_schema", node=DifflocConfig)
-    store.store(group="task", name="schema_simulate", node=SimulateTaskConfig)
-    store.store(group="task", name="schema_build_map", node=BuildMapConfig)
-    store.store(group="task", name="schema_database", node=DatabaseTaskConfig)
-    store.store(group="task", name="schema_update_db", node=UpdateTaskConfig)
-    store.store(group="task", name="schema_relocalize", node=RelocalizeTaskConfig)
-    store.store(group="task", name="schema_calibrate_rig", node=RigCalibrationTaskConfig)
-    store.store(group="task", name="schema_export_colmap", node=ExportColmapTaskConfig)
-    store.store(group="task", name="schema_main", node=MainTaskConfig)
-    store.store(group="surfel", name="schema_surfel", node=SurfelMapConfig)
-    store.store(group="reloc", name="schema_reloc", node=RelocStageConfig)
-    store.store(group="scene", name="schema_indoor", node=IndoorSceneConfig)
-    store.store(group="scene", name="schema_outdoor", node=OutdoorSceneConfig)
+    for name, node in GROUP_SCHEMAS.items():
+        store.store(name=name, node=node)
 
 
 def compose_config(overrides: Sequence[str] = ()) -> DictConfig:

@@ -3,14 +3,18 @@
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError, ValidationError
 
+from diffloc.cli import TASKS
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
 from tests.conftest import TINY, compose_config
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize(
@@ -33,6 +37,31 @@ def test_every_scene_config_composes_into_its_schema(scene, schema):
 def test_unknown_scene_name_lists_the_choices():
     with pytest.raises(ConfigCompositionException, match="indoor"):
         compose_config(["scene=moon_base"])
+
+
+def test_unknown_task_lists_tasks_not_schemas():
+    with pytest.raises(ConfigCompositionException) as error:
+        compose_config(["task=mian"])
+    options = str(error.value).split("Available options in 'task':")[1].split("Config search")[0]
+    assert options.split() == sorted(TASKS)
+
+
+def test_help_lists_the_tasks_and_no_schema(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-m", "diffloc.cli", "--help"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "CI": "true", "PYTHONPATH": str(ROOT)},
+        cwd=tmp_path,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.startswith("diffloc:")
+    groups = dict(
+        line.split(": ", 1) for line in done.stdout.splitlines() if line.startswith("task: ")
+    )
+    assert groups["task"].split(", ") == sorted(TASKS)
+    assert "schema" not in done.stdout
 
 
 def test_non_integer_seed_is_refused():
