@@ -28,7 +28,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from diffloc.benchmark import peak_rss_mb
-from diffloc.config import CONF_DIR, register_configs
+from diffloc.config import CONF_DIR, check_known_keys, register_configs
 from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.colmap_stage import export_colmap
@@ -225,7 +225,13 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
 
 
 def run(cfg: DictConfig) -> object:
-    """Run the task named by ``cfg.task.name`` on a composed config."""
+    """Run the task named by ``cfg.task.name`` on a composed config.
+
+    Raises:
+        UnknownKeyError: the config holds a key no schema declares (``+scene.max_frames=5``).
+        ValueError: an unknown task name.
+    """
+    check_known_keys(cfg)
     name = cfg.task.name
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; choose one of {sorted(TASKS)}")

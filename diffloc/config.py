@@ -12,14 +12,16 @@ Example:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+import difflib
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.rig_calibration import RigCalibrationConfig
@@ -149,7 +151,77 @@ def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
 
     Returns:
         The composed config (interpolations unresolved, as the ``diffloc`` command gets it).
+
+    Raises:
+        UnknownKeyError: an override added a key no schema declares (``+scene.max_frames=5``).
+        hydra.errors.ConfigCompositionException: other bad overrides (a misspelt key without
+            ``+``, an unknown choice, a value of the wrong type).
     """
     register_configs()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides))
+        cfg = compose(config_name="config", overrides=list(overrides))
+    check_known_keys(cfg)
+    return cfg
+
+
+class UnknownKeyError(ValueError):
+    """A config key that no schema declares, e.g. one added on the command line with ``+``."""
+
+
+def _walk(node: DictConfig | ListConfig, prefix: str) -> Iterator[tuple[str, DictConfig]]:
+    """``(full key, node)`` of every dict node under ``node`` (itself included), skipping
+    missing and interpolated values."""
+    if isinstance(node, DictConfig):
+        yield prefix, node
+        children = ((_join(prefix, key), key) for key in node.keys())
+    else:
+        children = ((f"{prefix}.{index}", index) for index in range(len(node)))
+    for path, key in children:
+        if OmegaConf.is_missing(node, key) or OmegaConf.is_interpolation(node, key):
+            continue
+        child = node[key]
+        if isinstance(child, DictConfig | ListConfig):
+            yield from _walk(child, path)
+
+
+def check_known_keys(cfg: DictConfig) -> None:
+    """Refuse keys that no schema declares.
+
+    Hydra refuses a misspelt key on the command line (``scene.max_frame=5``), but with ``+``
+    (``+scene.max_frames=5``) it adds the key to the typed node, and the dataclass built from
+    it ignores it: the run would go ahead without the setting. This walks every node typed by
+    a dataclass and checks its keys against the dataclass fields.
+
+    Args:
+        cfg: a composed config (e.g. from :func:`compose_config`).
+
+    Raises:
+        UnknownKeyError: the first unknown key, with the known key of the same name if there
+            is one (``scene.trajectory.max_frames``) or close field names of its node.
+    """
+    typed = [
+        (path, node, [f.name for f in dataclasses.fields(OmegaConf.get_type(node))])
+        for path, node in _walk(cfg, "")
+        if dataclasses.is_dataclass(OmegaConf.get_type(node))
+    ]
+    for path, node, fields in typed:
+        for key in node.keys():
+            if key in fields:
+                continue
+            unknown = _join(path, key)
+            same_name = [_join(where, key) for where, _, known in typed if key in known]
+            close = [_join(path, k) for k in difflib.get_close_matches(str(key), fields, n=2)]
+            advice = (
+                f"did you mean {' or '.join((same_name or close)[:3])}?"
+                if same_name or close
+                else f"the keys of {path or 'the root'} are {', '.join(fields)}"
+            )
+            schema = OmegaConf.get_type(node).__name__
+            raise UnknownKeyError(
+                f"unknown config key {unknown}: {schema} has no field {key!r} ({advice})"
+            )
+
+
+def _join(path: str, key: object) -> str:
+    """The full key of ``key`` under the node at ``path`` (``""`` is the root)."""
+    return f"{path}.{key}" if path else str(key)

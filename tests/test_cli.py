@@ -1,16 +1,19 @@
 """The Hydra app: every config composes into typed objects; bad input gets clear errors."""
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError, ValidationError
 
-from diffloc.cli import TASKS
+from diffloc.cli import TASKS, run
+from diffloc.config import CONF_DIR, UnknownKeyError, register_configs
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
 from tests.conftest import TINY, compose_config
 
@@ -74,6 +77,30 @@ def test_misspelt_key_is_refused():
         compose_config(["scene.camera.widht=100"])
 
 
+@pytest.mark.parametrize(
+    ("override", "advice"),
+    [
+        ("+scene.max_frames=5", "scene.trajectory.max_frames"),
+        ("+db.xfeat.max_keypoint=500", "db.xfeat.max_keypoints"),
+        ("+scene.sequences.1.speed=2", "speed_mps"),
+        ("+task.outdir=x", "task.out_dir"),
+        ("++scene.camera.widht=100", "scene.camera.width"),
+        ("+frames=5", "the keys of the root"),
+    ],
+)
+def test_unknown_key_added_with_plus_is_refused(override, advice):
+    with pytest.raises(UnknownKeyError, match=f"unknown config key .*{re.escape(advice)}"):
+        compose_config([override])
+
+
+def test_run_refuses_a_config_with_an_unknown_key(tmp_path):
+    register_configs()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["+scene.max_frames=5"])
+    with pytest.raises(UnknownKeyError, match="scene.max_frames"):
+        run(cfg)
+
+
 def test_console_script_simulates_a_dataset(tmp_path):
     out = tmp_path / "ds"
     args = ["task=simulate", "scene=indoor", "scene.seed=2", f"out_dir={out}"]
@@ -120,7 +147,5 @@ def test_the_default_task_is_the_main_job():
 
 
 def test_relocalize_without_a_database_says_which_task_to_run(tmp_path):
-    from diffloc.cli import run
-
     with pytest.raises(FileNotFoundError, match="task=build_db"):
         run(compose_config(["task=relocalize", f"dataset={tmp_path}"]))
