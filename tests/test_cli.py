@@ -14,10 +14,25 @@ from omegaconf.errors import ConfigKeyError, ValidationError
 
 from diffloc.cli import TASKS, run
 from diffloc.config import CONF_DIR, UnknownKeyError, register_configs
+from diffloc.pipeline.hints import MissingStageError
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
 from tests.conftest import TINY, compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def _diffloc(
+    *args: str, cwd: Path, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    """Run ``python -m diffloc.cli ARGS`` in ``cwd`` (with this checkout's package)."""
+    return subprocess.run(
+        [sys.executable, "-m", "diffloc.cli", *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "CI": "true", "PYTHONPATH": str(ROOT), **(env or {})},
+        cwd=cwd,
+        timeout=600,
+    )
 
 
 @pytest.mark.parametrize(
@@ -50,14 +65,7 @@ def test_unknown_task_lists_tasks_not_schemas():
 
 
 def test_help_lists_the_tasks_and_no_schema(tmp_path):
-    done = subprocess.run(
-        [sys.executable, "-m", "diffloc.cli", "--help"],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "CI": "true", "PYTHONPATH": str(ROOT)},
-        cwd=tmp_path,
-        timeout=600,
-    )
+    done = _diffloc("--help", cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.startswith("diffloc:")
     groups = dict(
@@ -146,6 +154,60 @@ def test_the_default_task_is_the_main_job():
     assert compose_config([]).task.name == "main"
 
 
-def test_relocalize_without_a_database_says_which_task_to_run(tmp_path):
-    with pytest.raises(FileNotFoundError, match="task=build_db"):
-        run(compose_config(["task=relocalize", f"dataset={tmp_path}"]))
+def test_relocalize_without_a_database_says_which_task_to_run(tiny_indoor_dataset):
+    with pytest.raises(MissingStageError, match="task=build_db"):
+        run(compose_config(["task=relocalize", f"dataset={tiny_indoor_dataset}"]))
+
+
+def test_a_task_without_a_dataset_says_how_to_simulate_it(tmp_path):
+    with pytest.raises(MissingStageError, match=f"task=simulate out_dir={tmp_path}` first"):
+        run(compose_config(["task=build_map", f"dataset={tmp_path}"]))
+
+
+@pytest.mark.parametrize(
+    ("case", "expected"),
+    [
+        ("no_dataset", "missing: run `diffloc task=simulate scene=outdoor dataset={data} "),
+        ("bad_seed", "error: seed must be a non-negative integer, got -1"),
+        (
+            "no_database",
+            "build_db.json is missing: run `diffloc task=build_db scene=outdoor "
+            "dataset={data} db.noise_sigma=0.3 reloc.database=database` first",
+        ),
+        ("unknown_key", "unknown config key scene.max_frames"),
+    ],
+)
+def test_a_checked_error_prints_one_line_with_the_users_overrides(
+    case, expected, tiny_indoor_dataset, tmp_path
+):
+    data = {"no_dataset": tmp_path / "nothing"}.get(case, tiny_indoor_dataset)
+    args = {
+        "no_dataset": ["task=build_map", "scene=outdoor", f"dataset={data}"],
+        "bad_seed": ["task=simulate", "scene.seed=-1", f"out_dir={tmp_path / 'sim'}"],
+        "no_database": [
+            "task=relocalize",
+            "scene=outdoor",
+            f"dataset={data}",
+            "db.noise_sigma=0.3",
+            "reloc.database=database",
+            f"task.out_dir={tmp_path / 'reloc'}",
+        ],
+        "unknown_key": ["+scene.max_frames=5", f"out_dir={tmp_path / 'sim'}"],
+    }[case]
+    done = _diffloc(*args, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    assert done.returncode == 1
+    assert done.stderr.count("\n") == 1 and done.stderr.startswith("error: "), done.stderr
+    assert expected.format(data=data) in done.stderr
+    assert not (tmp_path / "sim").exists()  # nothing simulated
+
+
+def test_hydra_full_error_shows_the_traceback(tmp_path):
+    done = _diffloc(
+        "task=build_map",
+        f"dataset={tmp_path}",
+        f"hydra.run.dir={tmp_path / 'run'}",
+        cwd=tmp_path,
+        env={"HYDRA_FULL_ERROR": "1"},
+    )
+    assert done.returncode == 1
+    assert "Traceback" in done.stderr and "MissingStageError" in done.stderr
