@@ -27,6 +27,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
@@ -286,6 +287,18 @@ def _error_line(error: Exception) -> str:
     return " ".join(line.strip() for line in message.splitlines())
 
 
+def _show_warning(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: object = None,
+    line: str | None = None,
+) -> None:
+    """``warnings.showwarning`` of the command: ``warning: <message>`` on stderr."""
+    print(f"warning: {message}", file=sys.stderr)
+
+
 register_configs()
 
 
@@ -294,14 +307,17 @@ def main(cfg: DictConfig) -> None:
     """Entry point of the ``diffloc`` console script.
 
     A checked error prints one line and exits with status 1 (unless ``HYDRA_FULL_ERROR=1``);
-    in a multirun that stops the sweep at the failed job.
+    in a multirun that stops the sweep at the failed job. Warnings print as one line each,
+    without the source line that raised them.
     """
-    try:
-        run(cfg)
-    except CHECKED_ERRORS as error:
-        if os.environ.get("HYDRA_FULL_ERROR") == "1":
-            raise
-        sys.exit(f"error: {_error_line(error)}")
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
+        try:
+            run(cfg)
+        except CHECKED_ERRORS as error:
+            if os.environ.get("HYDRA_FULL_ERROR") == "1":
+                raise
+            sys.exit(f"error: {_error_line(error)}")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError, ValidationError
 
-from diffloc.cli import TASKS, run
+from diffloc.cli import TASKS, _show_warning, run
 from diffloc.config import CONF_DIR, UnknownKeyError, register_configs
 from diffloc.pipeline.hints import MissingStageError
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
@@ -199,6 +199,11 @@ def test_a_checked_error_prints_one_line_with_the_users_overrides(
     assert done.stderr.count("\n") == 1 and done.stderr.startswith("error: "), done.stderr
     assert expected.format(data=data) in done.stderr
     assert not (tmp_path / "sim").exists()  # nothing simulated
+
+
+def test_warnings_print_one_line_each(capsys):
+    _show_warning(UserWarning("the check rejected it"), UserWarning, "x.py", 3, None, "code")
+    assert capsys.readouterr().err == "warning: the check rejected it\n"
 
 
 def test_hydra_full_error_shows_the_traceback(tmp_path):
