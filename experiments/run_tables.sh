@@ -118,7 +118,7 @@ $cmd
 table "$runs/noise_epipolar" noise table3_noise "$cmd"
 
 # Outdoor courtyard (scene=outdoor): the query sequence `query_lane` and the validation thresholds
-# of conf/reloc/outdoor.yaml (theta_dist 0.8 m, 6 m/s); recall is still within 0.3 m.
+# of diffloc/conf/reloc/outdoor.yaml (theta_dist 0.8 m, 6 m/s); recall is still within 0.3 m.
 # Tables I/II and IV outdoors: XFeat ablation and runtime.
 diffloc task=main scene=outdoor
 cmd="diffloc -m task=relocalize scene=outdoor reloc.method.points=naive,F,FN reloc.retriever=netvlad,bow hydra.sweep.dir=$runs/ablation_xfeat_outdoor"

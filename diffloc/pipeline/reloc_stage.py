@@ -9,7 +9,10 @@ into ``out``:
   ``queries.json`` (per query: found, accepted by the configured validation and by seed 1's
   rule, correct, the found position, inliers, errors, stage times and every candidate's
   inliers, matches, coverage and distance to the chosen pose);
-- ``<sequence>/precision_recall.png``, ``trajectory.png``, ``errors.png``;
+- ``<sequence>/precision_recall.png`` (precision and recall of every found pose as the inlier
+  threshold is swept, with the operating points of pose validation and of seed 1's rule),
+  ``trajectory.png``, ``errors.png`` (cumulative position error of the found and of the
+  accepted poses, log x axis);
 - ``results.md`` (a Markdown table) and ``results.json`` with, per sequence, ``recall``
   (verified poses within ``max_trans_m``), ``recall_at`` (within 0.1 / 0.3 / 1.0 m),
   ``precision`` (the share of verified poses within ``max_trans_m``), ``seed1_rule`` (recall
@@ -42,7 +45,7 @@ from diffloc.eval.metrics import (
     recall,
     write_localized_tum,
 )
-from diffloc.eval.plots import plot_error_histogram, plot_precision_recall, plot_trajectory_topdown
+from diffloc.eval.plots import plot_error_cdf, plot_precision_recall, plot_trajectory_topdown
 from diffloc.eval.tables import Column, markdown_table
 from diffloc.features.local import make_extractor
 from diffloc.geometry.pose_offsets import nearest_pose_offsets, offset_summary
@@ -247,13 +250,21 @@ def _report_sequence(
     )
     write_localized_tum(out / "estimates.tum", run.timestamps, run.T_wc_est, run.accepted)
     write_tum(out / "groundtruth.tum", run.timestamps, torch.from_numpy(run.T_wc_true))
-    curves = {
-        "with validation": precision_recall_curve(run.inliers, raw, run.accepted, cfg.max_trans_m),
-        "without validation": precision_recall_curve(run.inliers, raw, None, cfg.max_trans_m),
-    }
+    seed1_recall = recall(seed1, cfg.max_trans_m)
+    seed1_precision = precision(seed1, cfg.max_trans_m)
     plots = {
         "precision_recall": plot_precision_recall(
-            curves, out / "precision_recall.png", title=f"{name}: sweep of the inlier threshold"
+            {
+                "every found pose, by inlier count": precision_recall_curve(
+                    run.inliers, raw, None, cfg.max_trans_m
+                )
+            },
+            out / "precision_recall.png",
+            operating_points={
+                "pose validation": (metrics.recall, metrics.precision),
+                "seed 1's rule": (seed1_recall, seed1_precision),
+            },
+            title=f"{name}: inlier threshold swept, and the validated poses",
         ),
         "trajectory": plot_trajectory_topdown(
             run.T_wc_true,
@@ -262,11 +273,11 @@ def _report_sequence(
             out / "trajectory.png",
             title=f"{name}: accepted (green) and rejected (red) poses",
         ),
-        "errors": plot_error_histogram(
-            raw.translation_m,
+        "errors": plot_error_cdf(
+            {"every found pose": raw.translation_m, "accepted": verified.translation_m},
             out / "errors.png",
             threshold=cfg.max_trans_m,
-            title=f"{name}: position error of every found pose",
+            title=f"{name}: cumulative position error",
         ),
     }
     stages = sorted({k for t in run.timings for k in t})
@@ -297,8 +308,8 @@ def _report_sequence(
         "precision": _finite(metrics.precision),
         "seed1_rule": {
             "accepted": int(run.accepted_seed1.sum()),
-            "recall": recall(seed1, cfg.max_trans_m),
-            "precision": _finite(precision(seed1, cfg.max_trans_m)),
+            "recall": seed1_recall,
+            "precision": _finite(seed1_precision),
         },
         "nearest_db_pose": offsets,
         "mATE_m": _finite(metrics.mATE_m),
