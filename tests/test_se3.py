@@ -14,6 +14,7 @@ from diffloc.checks import ShapeError
 from diffloc.geometry import se3
 from diffloc.geometry.se3 import (
     adjoint,
+    cayley_rotation,
     compose,
     hat,
     invert,
@@ -88,6 +89,23 @@ def test_so3_exp_matches_pytorch_kinematics_and_is_a_rotation(angle: float) -> N
     assert_close(
         R @ R.transpose(-1, -2), torch.eye(3, dtype=F64).expand(5, 3, 3), atol=1e-14, rtol=0
     )
+
+
+@pytest.mark.parametrize("shape", BATCH_SHAPES)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cayley_rotation_is_so3_exp_at_the_cayley_angle(
+    shape: tuple[int, ...], dtype: torch.dtype
+) -> None:
+    # Cay(w) rotates by 2 atan(|w| / 2) about w: exp of that rotation vector, exactly.
+    g = torch.Generator().manual_seed(7)
+    w = torch.randn(*shape, 3, generator=g, dtype=F64) * 1.5
+    norm = w.norm(dim=-1, keepdim=True)
+    expected = so3_exp(w / norm * 2.0 * torch.atan(norm / 2.0))
+    R = cayley_rotation(w.to(dtype))
+    assert R.shape == (*shape, 3, 3) and R.dtype == dtype
+    assert_close(R, expected.to(dtype))
+    assert_close(cayley_rotation(torch.zeros(3, dtype=dtype)), torch.eye(3, dtype=dtype))
+    assert gradcheck(cayley_rotation, [w])
 
 
 @pytest.mark.parametrize("angle", [0.3, 1.5, 2.5, 3.0])
@@ -274,6 +292,7 @@ def test_non_finite_tum_inputs_raise() -> None:
         (vee, torch.zeros(3, 4)),
         (so3_exp, torch.zeros(2, 2)),
         (so3_log, torch.zeros(4, 4)),
+        (cayley_rotation, torch.zeros(2)),
         (se3_exp, torch.zeros(5)),
         (se3_log, torch.zeros(3, 3)),
         (invert, torch.zeros(3, 4)),

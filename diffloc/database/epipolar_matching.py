@@ -19,8 +19,9 @@ position:
    geometries nearly coincide) is metres away;
 3. the matches are verified two-view: for the ``verify_keyframes`` covisible keyframes that
    observe most matched points, an essential matrix between that keyframe's detected keypoints
-   and the new keypoints is fitted by RANSAC (:func:`diffloc.reloc.essential.essential_check`,
-   which needs only the intrinsics); a match is kept when it is an inlier of every successful
+   and the new keypoints is fitted by RANSAC
+   (:func:`diffloc.geometry.essential_ransac.essential_check`, which needs only the
+   intrinsics); a match is kept when it is an inlier of every successful
    check whose keyframe observes its point, and at least one such check exists.
 
 A wrong match that happens to lie on one keyframe's epipolar line is unlikely to lie on the
@@ -42,7 +43,7 @@ from diffloc.database.database import VisualDatabase
 from diffloc.features.local import Features
 from diffloc.features.matching import match_descriptors
 from diffloc.geometry.camera import PinholeCamera
-from diffloc.reloc.essential import EssentialCheckConfig, essential_check
+from diffloc.geometry.essential_ransac import EssentialCheckConfig, essential_check
 
 __all__ = ["EpipolarMatchingConfig", "match_epipolar"]
 

@@ -9,6 +9,7 @@ from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera
 from diffloc.geometry.rig import SensorRig, rotation_from_rpy, rpy_from_rotation
 from diffloc.geometry.se3 import (
     adjoint,
+    cayley_rotation,
     compose,
     hat,
     invert,
@@ -27,6 +28,7 @@ __all__ = [
     "PinholeCamera",
     "SensorRig",
     "adjoint",
+    "cayley_rotation",
     "compose",
     "hat",
     "invert",

@@ -6,12 +6,16 @@ Conventions (see ``ARCHITECTURE.md``):
   ``a``: ``p_a = R_ab p_b + t_ab``.
 - A twist is ``xi = [v, w]`` of shape ``(..., 6)``: translation part ``v`` first, rotation
   part ``w`` (axis-angle, radians) last. ``se3_exp(xi) = [[exp(hat(w)), V(w) v], [0, 1]]``.
+- ``cayley_rotation`` is the cheap retraction of the pose updates of the optimisers: an exact
+  rotation that agrees with ``so3_exp`` to second order.
 - All functions broadcast over any leading dimensions ``(...)``, work in float32 and float64
   and are differentiable, including at the identity (Taylor expansions, no NaN gradients) and
   at rotation angles close to pi (the log uses the symmetric part of ``R`` there).
 """
 
 from __future__ import annotations
+
+import functools
 
 import torch
 from pytorch_kinematics import transforms as pk_tf
@@ -20,6 +24,7 @@ from diffloc.checks import check_finite, check_shape
 
 __all__ = [
     "adjoint",
+    "cayley_rotation",
     "compose",
     "hat",
     "invert",
@@ -186,6 +191,59 @@ def so3_log(R: torch.Tensor) -> torch.Tensor:
 
     out = torch.where(near_pi[..., None], w_pi, w_reg)
     return torch.where(near_zero[..., None], w_small, out)
+
+
+@functools.lru_cache(maxsize=8)
+def _cayley_coefficients(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(16, 10) map from the outer product ``q q^T`` (flattened) of ``q = (s, x, y, z)`` to
+    the nine entries of ``|q|^2 R(q)`` (row-major) and ``|q|^2``. Never modified in place."""
+    terms = (
+        ((0, 0, 1), (1, 1, 1), (2, 2, -1), (3, 3, -1)),  # R00 = ss + xx - yy - zz
+        ((1, 2, 2), (0, 3, -2)),  # R01 = 2 (xy - sz)
+        ((1, 3, 2), (0, 2, 2)),  # R02 = 2 (xz + sy)
+        ((1, 2, 2), (0, 3, 2)),  # R10 = 2 (xy + sz)
+        ((0, 0, 1), (1, 1, -1), (2, 2, 1), (3, 3, -1)),  # R11
+        ((2, 3, 2), (0, 1, -2)),  # R12 = 2 (yz - sx)
+        ((1, 3, 2), (0, 2, -2)),  # R20 = 2 (xz - sy)
+        ((2, 3, 2), (0, 1, 2)),  # R21 = 2 (yz + sx)
+        ((0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, 1)),  # R22
+        ((0, 0, 1), (1, 1, 1), (2, 2, 1), (3, 3, 1)),  # |q|^2
+    )
+    with torch.inference_mode(False):  # an ordinary tensor even if first made in one
+        coefficients = torch.zeros(16, len(terms), dtype=dtype, device=device)
+        for column, entries in enumerate(terms):
+            for a, b, value in entries:
+                coefficients[4 * a + b, column] = value
+    return coefficients
+
+
+def cayley_rotation(w: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices of the Cayley map, a cheap retraction onto SO(3).
+
+    ``Cay(w) = ((1 - |c|^2) I + 2 hat(c) + 2 c c^T) / (1 + |c|^2)`` with ``c = w / 2`` is the
+    rotation of the quaternion ``(1, c)``: an exact rotation that agrees with
+    ``so3_exp(w)`` up to second order (angle ``2 atan(|w| / 2)`` about ``w``), computed with
+    a handful of tensor operations (one outer product and one small matrix product).
+
+    Args:
+        w: (..., 3) rotation vectors (radians).
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+
+    Example:
+        >>> R = cayley_rotation(torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64))
+        >>> torch.allclose(R @ R.mT, torch.eye(3, dtype=torch.float64))
+        True
+        >>> round(float(torch.atan2(R[1, 0], R[0, 0])), 4)  # 2 atan(0.25), not 0.5
+        0.49
+    """
+    if not isinstance(w, torch.Tensor) or w.shape[-1:] != (3,):  # checked only if wrong
+        check_shape(w, "*,3", "w")
+    q = torch.nn.functional.pad(w, (1, 0), value=2.0)  # 2 (1, w / 2): the scale cancels
+    outer = (q[..., :, None] * q[..., None, :]).flatten(-2)
+    m = outer @ _cayley_coefficients(w.dtype, w.device)
+    return (m[..., :9] / m[..., 9:]).unflatten(-1, (3, 3))
 
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:

@@ -59,8 +59,8 @@ from torch import nn
 
 from diffloc.checks import ShapeError, check_finite, check_positive_int, check_shape
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera, pose_jacobian_map
-from diffloc.geometry.se3 import invert, se3_exp
-from diffloc.optim.lm import LMConfig, PoseSystem, cayley_rotation, minimize, solve_spd
+from diffloc.geometry.se3 import cayley_rotation, invert, se3_exp
+from diffloc.optim.lm import LMConfig, PoseSystem, minimize, solve_spd
 from diffloc.optim.robust import KernelFn, RobustKernel, make_robust_kernel
 
 __all__ = ["MotionOnlyCost", "MotionRefineConfig", "RefineResult", "refine_pose"]
@@ -554,8 +554,8 @@ class _RoundProblem:
     ``used`` (B, N) matches under ``kernel``; parameters: the poses ``T_cw`` (B, 3, 4).
 
     Steps are left twists ``delta = [v, w]`` of ``T_cw``: ``[[Cay(w), v], [0, 1]] @ T_cw``
-    (the Cayley map :func:`~diffloc.optim.lm.cayley_rotation` agrees with ``se3_exp`` to first
-    order, the convention of the Jacobians).
+    (the Cayley map :func:`~diffloc.geometry.se3.cayley_rotation` agrees with ``se3_exp`` to
+    first order, the convention of the Jacobians).
     """
 
     problem: _Problem

@@ -45,9 +45,9 @@ from diffloc.database.database import VisualDatabase
 from diffloc.features.local import Features
 from diffloc.features.matching import match_descriptors, match_guided
 from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.essential_ransac import EssentialCheckConfig, essential_check
 from diffloc.geometry.se3 import invert, transform_points
 from diffloc.optim.motion_cost import MotionRefineConfig, refine_pose
-from diffloc.reloc.essential import EssentialCheckConfig, essential_check
 from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
 from diffloc.reloc.retrieval import KeyframeRetriever
 

@@ -42,7 +42,7 @@ far more in fixed overhead than in arithmetic, so the code minimises operations:
 in ``torch.inference_mode``, one projection per Gauss-Newton step serves both its score and
 the next step's normal equations, the Jacobians are one product of a constant matrix with the
 outer products of ``(x, y, 1, 1/z)`` (:func:`~diffloc.geometry.camera.pose_jacobian_map`),
-updates use the Cayley retraction (:func:`~diffloc.optim.lm.cayley_rotation`), and the
+updates use the Cayley retraction (:func:`~diffloc.geometry.se3.cayley_rotation`), and the
 arrays keep the points innermost (``(B, k, N)``), where torch's kernels are fastest.
 
 Example:
@@ -68,8 +68,8 @@ import torch
 
 from diffloc.checks import ShapeError, check_finite, check_ransac_settings, check_shape
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera, pose_jacobian_map
-from diffloc.geometry.se3 import invert
-from diffloc.optim.lm import LMConfig, PoseSystem, cayley_rotation, minimize
+from diffloc.geometry.se3 import cayley_rotation, invert
+from diffloc.optim.lm import LMConfig, PoseSystem, minimize
 from diffloc.reloc.epnp import epnp_flat
 from diffloc.reloc.p3p import p3p_flat
 from diffloc.threads import intra_op_threads
@@ -432,7 +432,7 @@ def _retract(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Apply a step ``[v, w]`` (B, 6): ``R <- Cay(w) R``, ``t <- Cay(w) t + v``.
 
-    :func:`~diffloc.optim.lm.cayley_rotation` is an exact rotation that agrees with
+    :func:`~diffloc.geometry.se3.cayley_rotation` is an exact rotation that agrees with
     ``exp(hat(w))`` to second order, i.e. a retraction whose first-order term is the left
     twist the Jacobian is taken for.
     """

@@ -13,10 +13,11 @@ Problem
 Pose update (right, body-frame perturbation)
     ``T_wc <- T_wc @ [[Cay(w), v], [0, 1]]`` with ``delta = [v, w]`` (translation first, as in
     :mod:`diffloc.geometry.se3`) expressed in the camera frame and ``Cay`` the Cayley map
-    (:func:`cayley_rotation`). This retraction agrees with ``T_wc @ se3_exp(delta)`` to first
-    order (so the Jacobians are the same) and costs a handful of tensor operations instead of
-    the exponential's trigonometric branches. Jacobians given by the caller
-    must follow this convention: ``J_a = d r(T_a @ se3_exp(d)) / d d`` at ``d = 0``. For a
+    (:func:`diffloc.geometry.se3.cayley_rotation`). This retraction agrees with
+    ``T_wc @ se3_exp(delta)`` to first order (so the Jacobians are the same) and costs a
+    handful of tensor operations instead of the exponential's trigonometric branches.
+    Jacobians given by the caller must follow this convention:
+    ``J_a = d r(T_a @ se3_exp(d)) / d d`` at ``d = 0``. For a
     reprojection residual ``r = project(T_cw X) - p`` this is
     ``-camera.project_jacobian_pose(X_cam)`` (that method perturbs ``T_cw`` on the left,
     which is ``T_wc`` on the right with the opposite sign). A body-frame step makes the
@@ -90,7 +91,6 @@ from diffloc.optim.lm.pose_front_end import levenberg_marquardt_single_pose
 from diffloc.optim.lm.pose_system import PoseSystem
 from diffloc.optim.lm.problem import LinearSystem, LMProblem
 from diffloc.optim.lm.result import LMResult
-from diffloc.optim.lm.retraction import cayley_rotation
 
 __all__ = [
     "BlockJacobianFn",
@@ -106,7 +106,6 @@ __all__ = [
     "PoseSystem",
     "SOLVERS",
     "autodiff_linearize",
-    "cayley_rotation",
     "levenberg_marquardt",
     "levenberg_marquardt_single_pose",
     "minimize",

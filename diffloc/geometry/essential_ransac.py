@@ -1,10 +1,14 @@
-"""Essential-matrix check between a canonical keyframe and a query (seed 1, Sec. III-C).
+"""Essential-matrix check: a robust essential matrix between a keyframe and a query (LO-RANSAC).
 
-Before 2D-3D matches go to the PnP solver, seed 1 checks them with an essential matrix between
-the canonical keyframe ``F_c`` and the query ``F_q``. Each match gives a keyframe keypoint (the
-detected keypoint when the map point is visible in ``F_c``, else the map point projected into
-``F_c``) and a query keypoint. Projected keypoints may lie *outside* the keyframe image; they
-are used as they are and kept when they are inliers, so they are never filtered here.
+Before 2D-3D matches go to the PnP solver, seed 1 (Sec. III-C) checks them with an essential
+matrix between the canonical keyframe ``F_c`` and the query ``F_q``
+(:class:`diffloc.reloc.hierarchical.HierarchicalRelocalizer`); the database builder verifies
+descriptor matches of a new keyframe against covisible keyframes the same way
+(:mod:`diffloc.database.epipolar_matching`), so the check lives in the geometry layer both sit
+on. Each match gives a keyframe keypoint (in the relocaliser: the detected keypoint when the
+map point is visible in ``F_c``, else the map point projected into ``F_c``) and a query
+keypoint. Projected keypoints may lie *outside* the keyframe image; they are used as they are
+and kept when they are inliers, so they are never filtered here.
 
 Conventions:
 
@@ -20,7 +24,8 @@ Conventions:
 - Geometry is float64; every random draw uses the ``torch.Generator`` given.
 
 RANSAC: minimal 5-point samples are drawn in batches and all of them are solved at once by
-Nister's five-point method (:func:`_five_point`, up to 10 real candidates per sample), and
+Nister's five-point method (:func:`~diffloc.geometry.epipolar.five_point_essential`, up to
+10 real candidates per sample), and
 all candidates are scored in one batched pass with
 :func:`kornia.geometry.epipolar.sampson_epipolar_distance` and the MSAC cost (truncated squared
 error). Scoring dominates the cost, so candidates are first scored on a fixed random subset of
@@ -35,12 +40,6 @@ is polished the same way for up to ``refine_iterations`` steps. (kornia's non-mi
 the 5-point method on the 4-dimensional least-squares null space, was tried for LO first: at
 1 px noise its fits to the true inliers were worse than the best minimal sample.)
 
-The five-point solver follows kornia's :func:`kornia.geometry.epipolar.find_essential`
-(Nister's elimination, the degree-10 polynomial's roots as companion-matrix eigenvalues), in
-about a tenth of its tensor operations: its polynomial products are single matrix products
-with constant tables, and it skips what only autograd and accelerators need (a gradient
-through the roots, host round trips).
-
 On a badly conditioned geometry (small baseline against the depth range) the MSAC optimum
 itself can lie a few hundredths (unit-norm Frobenius distance) from the true ``E``; the inlier
 set, which is what the relocaliser uses, is much less sensitive.
@@ -48,12 +47,12 @@ set, which is what the relocaliser uses, is much less sensitive.
 Example:
     >>> import math
     >>> from diffloc.geometry.camera import PinholeCamera
-    >>> from diffloc.testing import random_se3
+    >>> from diffloc.geometry.se3 import se3_exp
     >>> cam = PinholeCamera.from_fov(640, 480, math.pi / 2, dtype=torch.float64)
     >>> g = torch.Generator().manual_seed(0)
     >>> X = torch.rand(100, 3, generator=g, dtype=torch.float64) * 4 - 2
     >>> X[:, 2] += 6.0
-    >>> T_qk = random_se3(generator=g, max_angle=0.2, max_translation=0.5)
+    >>> T_qk = se3_exp(torch.tensor([0.3, -0.1, 0.2, 0.05, -0.1, 0.08], dtype=torch.float64))
     >>> uv_kf = cam.project(X)[0]
     >>> uv_q = cam.project(X @ T_qk[:3, :3].T + T_qk[:3, 3])[0]
     >>> r = essential_check(uv_kf, uv_q, cam, cam, EssentialCheckConfig(), g)
@@ -64,10 +63,8 @@ Example:
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -75,6 +72,7 @@ from kornia.geometry.epipolar import sampson_epipolar_distance
 
 from diffloc.checks import ShapeError, check_finite, check_ransac_settings, check_shape
 from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.epipolar import decompose_essential, five_point_essential
 from diffloc.geometry.se3 import hat, so3_exp
 from diffloc.threads import intra_op_threads
 
@@ -236,7 +234,7 @@ def _bailout_keep(counts: torch.Tensor, subset_size: int, best_ratio: float) -> 
 def _candidates(
     E: torch.Tensor, problem: _Problem, threshold2: float, k: int, best_ratio: float
 ) -> _Models | None:
-    """The ``k`` lowest-MSAC-cost models among (H, 10, 3, 3) kornia slots, best first.
+    """The ``k`` lowest-MSAC-cost models among (H, 10, 3, 3) five-point slots, best first.
 
     NaN slots (complex roots, degenerate samples) are skipped; with a bail-out subset, only
     the candidates passing :func:`_bailout_keep` on it are scored on all correspondences.
@@ -254,165 +252,6 @@ def _candidates(
         return None
     models = _Models.scored(E, problem, threshold2)
     return models[models.cost.topk(min(k, E.shape[0]), largest=False).indices]
-
-
-# Monomials (exponents of x, y, z) of Nister's five-point method: the linear forms in
-# (x, y, z, 1) whose coefficients are the null-space basis, their products, and the twenty
-# cubic monomials in the order of the elimination (the first ten are eliminated; rows 4-9 of
-# the result are those of x^2 z, x^2, y^2 z, y^2, x y z, x y).
-_LINEAR = ((1, 0, 0), (0, 1, 0), (0, 0, 1), (0, 0, 0))
-_QUADRATIC = (
-    (2, 0, 0), (1, 1, 0), (1, 0, 1), (1, 0, 0), (0, 2, 0), (0, 1, 1), (0, 1, 0), (0, 0, 2),
-    (0, 0, 1), (0, 0, 0),
-)  # fmt: skip
-_CUBIC = (
-    (3, 0, 0), (0, 3, 0), (2, 1, 0), (1, 2, 0), (2, 0, 1), (2, 0, 0), (0, 2, 1), (0, 2, 0),
-    (1, 1, 1), (1, 1, 0), (1, 0, 2), (1, 0, 1), (1, 0, 0), (0, 1, 2), (0, 1, 1), (0, 1, 0),
-    (0, 0, 3), (0, 0, 2), (0, 0, 1), (0, 0, 0),
-)  # fmt: skip
-_HIDDEN_ROWS = (4, 6, 8, 5, 7, 9)  # <x^2 z>, <y^2 z>, <x y z>, then <x^2>, <y^2>, <x y>
-_RANK_EPS = 1e3  # a design whose R factor has a diagonal below this many epsilons is singular
-_REAL_ROOT_TOL = 1e-10  # |imag| of a real root, relative to max(1, |root|)
-
-
-class _Tables(NamedTuple):
-    """Constant tables of :func:`_five_point` (float64, never modified in place)."""
-
-    linear_products: torch.Tensor  # (16, 10): (a, c) linear x linear -> quadratic
-    cubic_products: torch.Tensor  # (40, 20): (q, c) quadratic x linear -> cubic
-    cross: torch.Tensor  # (3, 9): (j, k) -> sum of eps_jki a_j b_k, the cross product
-    half_eye: torch.Tensor  # (9, 1) flattened I / 2
-    hidden: torch.Tensor  # (20, 13) [top | bottom] rows -> three polynomials in z
-    cubic_times_cubic: torch.Tensor  # (16, 7) polynomial product (highest degree first)
-    sextic_times_quartic: torch.Tensor  # (35, 11)
-    subdiagonal: torch.Tensor  # (9, 10) the companion matrix below its first row
-    hidden_rows: torch.Tensor  # (6,) long
-    degrees: torch.Tensor  # (5,) 4, 3, 2, 1, 0
-
-
-def _product_table(
-    left: tuple[tuple[int, ...], ...], right: tuple[tuple[int, ...], ...], out: tuple
-) -> torch.Tensor:
-    """(len(left) * len(right), len(out)) table of monomial products."""
-    index = {monomial: k for k, monomial in enumerate(out)}
-    table = torch.zeros(len(left), len(right), len(out), dtype=torch.float64)
-    for a, ma in enumerate(left):
-        for b, mb in enumerate(right):
-            table[a, b, index[tuple(p + q for p, q in zip(ma, mb, strict=True))]] = 1.0
-    return table.flatten(0, 1)
-
-
-def _convolution_table(m: int, n: int) -> torch.Tensor:
-    """(m * n, m + n - 1) table of the product of polynomials of m and n coefficients."""
-    table = torch.zeros(m, n, m + n - 1, dtype=torch.float64)
-    for i in range(m):
-        for j in range(n):
-            table[i, j, i + j] = 1.0
-    return table.flatten(0, 1)
-
-
-@functools.lru_cache(maxsize=4)
-def _tables(device: torch.device) -> _Tables:
-    """The constant tables of :func:`_five_point` on ``device``."""
-    cross = torch.zeros(3, 3, 3, dtype=torch.float64)
-    for j, k, i in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):  # eps_jki = 1, eps_kji = -1
-        cross[j, k, i], cross[k, j, i] = 1.0, -1.0
-    # <k> = top_k - z bottom_k: the coefficients (highest degree first) of x (a cubic), y (a
-    # cubic) and 1 (a quartic) from the ten non-eliminated monomials
-    # (x z^2, x z, x, y z^2, y z, y, z^3, z^2, z, 1) of a top and a bottom row.
-    hidden = torch.zeros(20, 13, dtype=torch.float64)
-    for k in range(10):
-        column = (0, 4, 8)[(k >= 3) + (k >= 6)] + k - (0, 3, 6)[(k >= 3) + (k >= 6)]
-        hidden[k, column + 1] = 1.0
-        hidden[10 + k, column] = -1.0
-    with torch.inference_mode(False):
-        return _Tables(
-            *(
-                t.to(device)
-                for t in (
-                    _product_table(_LINEAR, _LINEAR, _QUADRATIC),
-                    _product_table(_QUADRATIC, _LINEAR, _CUBIC),
-                    cross.view(9, 3).T.contiguous(),
-                    (0.5 * torch.eye(3, dtype=torch.float64)).view(9, 1),
-                    hidden,
-                    _convolution_table(4, 4),
-                    _convolution_table(7, 5),
-                    torch.eye(9, 10, dtype=torch.float64),
-                    torch.tensor(_HIDDEN_ROWS),
-                    torch.arange(4, -1, -1, dtype=torch.float64),
-                )
-            )
-        )
-
-
-def _five_point(xy_kf: torch.Tensor, xy_q: torch.Tensor) -> torch.Tensor:
-    """Essential matrices of minimal samples by Nister's five-point method.
-
-    The null space of the five epipolar constraints ``x_q^T E x_kf = 0`` is four-dimensional,
-    ``E = x X + y Y + z Z + W``; ``det E = 0`` and ``2 E E^T E - tr(E E^T) E = 0`` are ten
-    cubics in ``(x, y, z)``, Gauss-Jordan elimination of ten of their monomials leaves three
-    equations linear in ``(x, y, 1)`` with polynomial coefficients in ``z``, whose determinant
-    (degree ten) has the ``z`` of every solution as a real root; ``x`` and ``y`` follow from
-    the cross product of two of the equations.
-
-    Args:
-        xy_kf: (B, 5, 2) float64 undistorted normalised keyframe coordinates.
-        xy_q: (B, 5, 2) the query's.
-
-    Returns:
-        (B, 10, 3, 3) candidates of unit Frobenius norm, NaN in the slots without a real
-        solution and in all slots of a rank-deficient sample (repeated or degenerate points).
-    """
-    const = _tables(xy_kf.device)
-    B = xy_kf.shape[0]
-    h_kf = torch.nn.functional.pad(xy_kf, (0, 1), value=1.0)
-    h_q = torch.nn.functional.pad(xy_q, (0, 1), value=1.0)
-    design = (h_q[..., :, None] * h_kf[..., None, :]).flatten(2)  # (B, 5, 9): rows vec(x_q x_kf^T)
-    Q, R = torch.linalg.qr(design.mT, mode="complete")
-    pivots = R.diagonal(dim1=-2, dim2=-1).abs()
-    singular = pivots.amin(-1) <= _RANK_EPS * torch.finfo(R.dtype).eps * pivots.amax(-1)
-    N = Q[..., 5:]  # (B, 9, 4): entries of E as linear forms in (x, y, z, 1)
-    rows = N.view(B, 3, 3, 4)
-    # det E: the cross product of rows 0 and 1 (quadratics) dotted with row 2.
-    products = (rows[:, 0, :, None, :, None] * rows[:, 1, None, :, None, :]).reshape(B, 9, 16)
-    cofactors = const.cross @ (products @ const.linear_products)  # (B, 3, 10)
-    determinant = (cofactors.mT @ rows[:, 2]).reshape(B, 1, 40) @ const.cubic_products
-    # (E E^T - tr(E E^T) I / 2) E, the nine trace constraints.
-    columns = rows.permute(0, 1, 3, 2).reshape(B, 12, 3)  # ((i, a), k)
-    EEt = (columns @ columns.view(B, 3, 4, 3).permute(0, 3, 1, 2).reshape(B, 3, 12)).view(
-        B, 3, 4, 3, 4
-    )
-    EEt = EEt.permute(0, 1, 3, 2, 4).reshape(B, 9, 16) @ const.linear_products  # (B, 9, 10)
-    EEt = EEt - const.half_eye * EEt[:, ::4].sum(1, keepdim=True)
-    trace = EEt.view(B, 3, 3, 10).permute(0, 1, 3, 2).reshape(B, 30, 3) @ rows.reshape(B, 3, 12)
-    trace = trace.view(B, 3, 10, 3, 4).permute(0, 1, 3, 2, 4).reshape(B, 9, 40)
-    coefficients = torch.cat((trace @ const.cubic_products, determinant), dim=1)  # (B, 10, 20)
-    reduced, info = torch.linalg.solve_ex(coefficients[..., :10], coefficients[..., 10:])
-    top_bottom = reduced.index_select(1, const.hidden_rows).view(B, 2, 3, 10)
-    hidden = top_bottom.transpose(1, 2).reshape(B, 3, 20) @ const.hidden  # (B, 3, 13)
-    cubics, quartic = hidden[..., :8].view(B, 3, 2, 4), hidden[..., 8:]
-    sextics = (cubics[:, :, None, 0, :, None] * cubics[:, None, :, 1, None, :]).reshape(B, 9, 16)
-    minors = const.cross @ (sextics @ const.cubic_times_cubic)  # (B, 3, 7)
-    polynomial = (minors.mT @ quartic).reshape(B, 1, 35) @ const.sextic_times_quartic
-    first_row = -polynomial[..., 1:] / polynomial[..., :1]  # monic, z^9 first
-    usable = torch.isfinite(first_row).all(-1) & ((info == 0) & ~singular)[:, None]
-    companion = torch.cat(
-        (torch.where(usable[..., None], first_row, 0.0), const.subdiagonal.expand(B, 9, 10)), 1
-    )
-    roots = torch.linalg.eigvals(companion)  # (B, 10)
-    real = (roots.imag.abs() <= _REAL_ROOT_TOL * roots.abs().clamp(min=1.0)) & usable
-    z = roots.real
-    powers = z[..., None] ** const.degrees  # (B, 10, 5): z^4 ... 1
-    xy_terms = (cubics @ powers[:, None, :, 1:].mT).unbind(2)  # two (B, 3, 10)
-    equations = torch.stack((*xy_terms, quartic @ powers.mT), dim=-1)  # (B, 3, 10, 3)
-    solution = torch.linalg.cross(equations[:, 0], equations[:, 1], dim=-1)  # ~ (x, y, 1)
-    weights = torch.cat(
-        (solution[..., :2] / solution[..., 2:], z[..., None], torch.ones_like(z)[..., None]), -1
-    )
-    E = (N @ weights.mT).mT.reshape(B, 10, 3, 3)
-    E = E / torch.linalg.matrix_norm(E)[..., None, None]
-    valid = real & torch.isfinite(E).flatten(2).all(-1)
-    return torch.where(valid[..., None, None], E, math.nan)
 
 
 def _sample(m: int, count: int, generator: torch.Generator) -> torch.Tensor:
@@ -433,19 +272,6 @@ def _target_samples(best_inliers: int, m: int, config: EssentialCheckConfig) -> 
     return min(config.max_iterations, max(config.min_iterations, needed))
 
 
-def _decompose(E: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(R (K, 3, 3), t (K, 3), basis (K, 3, 2))`` of essential matrices E (K, 3, 3).
-
-    ``[t]_x R ~ E`` up to sign and scale, ``|t| = 1`` and ``basis`` is an orthonormal basis of
-    the plane orthogonal to ``t``.
-    """
-    U, _, Vh = torch.linalg.svd(E)
-    U = U * torch.linalg.det(U).sign()[:, None, None]
-    Vh = Vh * torch.linalg.det(Vh).sign()[:, None, None]
-    W = E.new_tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    return U @ W @ Vh, U[..., 2], U[..., :2]
-
-
 def _gauss_newton_step(E: torch.Tensor, problem: _Problem, weights: torch.Tensor) -> torch.Tensor:
     """One Gauss-Newton step per model on its weighted squared Sampson distances.
 
@@ -461,7 +287,7 @@ def _gauss_newton_step(E: torch.Tensor, problem: _Problem, weights: torch.Tensor
     Returns:
         (K, 3, 3) updated essential matrices (unit-norm ``t``).
     """
-    R, t, basis = _decompose(E)
+    R, t, basis = decompose_essential(E)
     eye = torch.eye(3, dtype=E.dtype, device=E.device)
     T = hat(t)  # (K, 3, 3)
     # dE/dw_i = [t]_x R [e_i]_x, dE/dd_j = [b_j]_x R: (K, 5, 3, 3)
@@ -541,7 +367,7 @@ def _ransac(
         drawn += count
         best_inliers = 0 if best is None else int((best.err2 <= threshold2).sum())
         candidates = _candidates(
-            _five_point(problem.xy_kf[idx], problem.xy_q[idx]),
+            five_point_essential(problem.xy_kf[idx], problem.xy_q[idx]),
             problem,
             threshold2,
             config.lo_candidates,

@@ -1,5 +1,5 @@
-"""Essential-matrix check: known answers with noise and outliers, out-of-image keyframe keypoints,
-distortion, OpenCV agreement, determinism, too few points and bad inputs."""
+"""Essential-matrix check (LO-RANSAC): known answers with noise and outliers, out-of-image
+keyframe keypoints, distortion, OpenCV agreement, determinism, too few points and bad inputs."""
 
 from __future__ import annotations
 
@@ -8,13 +8,11 @@ import math
 import cv2
 import pytest
 import torch
-from kornia.geometry.epipolar import find_essential
 
 from diffloc.checks import ShapeError
 from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.essential_ransac import EssentialCheckConfig, essential_check
 from diffloc.geometry.se3 import hat, se3_exp
-from diffloc.reloc import essential
-from diffloc.reloc.essential import EssentialCheckConfig, essential_check
 
 # Unit-norm E distance (up to sign) to the true E at 1 px noise and 40 % outliers. Measured
 # over 30 seeds each: worst 0.031 (one camera), 0.046 (EuRoC distortion + a second camera with
@@ -91,45 +89,6 @@ def _e_error(E: torch.Tensor, E_true: torch.Tensor) -> float:
 def _precision_recall(found: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
     tp = int((found & truth).sum())
     return tp / max(int(found.sum()), 1), tp / max(int(truth.sum()), 1)
-
-
-def _sign_free_distance(E: torch.Tensor, E_ref: torch.Tensor) -> torch.Tensor:
-    """(..., K, L) sign-free Frobenius distances of unit-norm (..., K, 3, 3), (..., L, 3, 3)."""
-    diff = (E[..., :, None, :, :] - E_ref[..., None, :, :, :]).flatten(-2).norm(dim=-1)
-    summ = (E[..., :, None, :, :] + E_ref[..., None, :, :, :]).flatten(-2).norm(dim=-1)
-    return torch.minimum(diff, summ)
-
-
-def test_five_point_solver_finds_the_true_e_and_agrees_with_kornia() -> None:
-    g = torch.Generator().manual_seed(3)
-    B = 200
-    points = torch.rand(B, 5, 3, generator=g, dtype=torch.float64) * 4 - 2
-    points[..., 2] += 6.0
-    xi = torch.cat(
-        (
-            torch.rand(B, 3, generator=g, dtype=torch.float64) - 0.5,
-            0.3 * (torch.rand(B, 3, generator=g, dtype=torch.float64) - 0.5),
-        ),
-        dim=1,
-    )
-    T_qk = se3_exp(xi)
-    points_q = points @ T_qk[:, :3, :3].mT + T_qk[:, None, :3, 3]
-    xy_kf, xy_q = points[..., :2] / points[..., 2:], points_q[..., :2] / points_q[..., 2:]
-    E_true = hat(T_qk[:, :3, 3]) @ T_qk[:, :3, :3]
-    E_true = E_true / torch.linalg.matrix_norm(E_true)[:, None, None]
-    E = essential._five_point(xy_kf, xy_q)
-    assert E.shape == (B, 10, 3, 3)
-    # As accurate as kornia's solver: median ~1e-13, a few ill-conditioned samples ~1e-6.
-    closest = _sign_free_distance(E, E_true[:, None]).nan_to_num(math.inf).amin((-1, -2))
-    assert float(closest.median()) < 1e-10 and float(closest.max()) < 1e-4
-    # Every real candidate of kornia's solver is one of ours.
-    E_kornia = find_essential(xy_kf, xy_q)
-    valid_kornia = torch.isfinite(E_kornia).flatten(2).all(-1)
-    match = _sign_free_distance(E_kornia, E).nan_to_num(math.inf).amin(-1)
-    assert float(match[valid_kornia].quantile(0.98)) < 1e-6
-    # A sample of five identical correspondences has no solution.
-    same = torch.full((1, 5, 2), 0.1, dtype=torch.float64)
-    assert bool(essential._five_point(same, same).isnan().all())
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
