@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 from matplotlib.image import imread
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from diffloc.checks import ShapeError
@@ -21,6 +22,7 @@ from diffloc.crossmodal import (
     VIEW_NAMES,
     PoseSelectionConfig,
     select_render_poses,
+    view_poses,
     write_floor_plan_figures,
 )
 
@@ -30,6 +32,7 @@ CEILING_M = 2.8
 CORRIDOR = [(0.0, 12.0, 0.0, 2.0), (10.0, 12.0, 0.0, 10.0)]  # (x0, x1, y0, y1) rectangles
 ROOM = [(4.0, 9.8, 4.0, 10.0), (9.8, 10.0, 6.4, 7.6)]  # room + door through the 0.2 m wall
 TABLE = (6.0, 7.0, 6.5, 7.5, 0.75)  # x0, x1, y0, y1, top height
+SCANNER_XY = (6.0, 1.0)  # a scanner station here does not see the floor within 0.6 m
 CONFIG = PoseSelectionConfig()
 
 
@@ -44,7 +47,8 @@ def _storey(rects: list[tuple[float, ...]], z: float) -> tuple[np.ndarray, ...]:
     ys = np.arange(-0.5, 10.5, RES) + RES / 2
     grid = np.stack(np.meshgrid(xs, ys), axis=-1)  # (H, W, 2), rows along y
     region = _inside(grid, rects)
-    floor_xy = grid[region]
+    blind = np.linalg.norm(grid - np.array(SCANNER_XY), axis=-1) < 0.6
+    floor_xy = grid[region & ~blind]
     walls, wall_normals = [], []
     for axis, step in ((1, 1), (1, -1), (0, 1), (0, -1)):  # neighbour along x (axis 1) or y
         neighbour = np.roll(region, -step, axis=axis)
@@ -122,6 +126,13 @@ def test_samples_lie_in_free_space_with_clearance(building, selection):
     assert not _inside(selection.floors[1].samples_xy, ROOM[:1]).any()
 
 
+def test_scanner_blind_spot_is_filled_and_corridors_connect(selection):
+    for plan in selection.floors:
+        col, row = np.round((np.array(SCANNER_XY) - plan.origin_xy) / CONFIG.cell_size_m)
+        assert plan.free[int(row), int(col)]
+        assert ndimage.label(plan.corridor, structure=np.ones((3, 3)))[1] == 1
+
+
 def test_samples_are_spaced_along_the_skeleton(selection):
     spacing = CONFIG.spacing_m
     for plan in selection.floors:
@@ -162,6 +173,20 @@ def test_four_orthogonal_horizontal_views_per_sample(selection):
     torch.testing.assert_close(looks[:, 2], left, atol=1e-12, rtol=0)
     centres = T_wc[:, :3, 3].reshape(n_samples, 4, 3)
     assert torch.equal(centres, centres[:, :1].expand_as(centres))
+
+
+def test_view_poses_known_answer():
+    T_wc, view = view_poses(np.array([[1.0, 2.0, 3.0]]), np.array([[2.0, 0.0]]))
+    # Looking along world +x with z up: camera x (right) is world -y, camera y (down) is -z.
+    forward = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    torch.testing.assert_close(T_wc[0, :3, :3], forward.double())
+    torch.testing.assert_close(T_wc[2, :3, 2], torch.tensor([0.0, 1.0, 0.0]).double())  # left
+    torch.testing.assert_close(
+        T_wc[:, :3, 3], torch.tensor([[1.0, 2.0, 3.0]]).double().expand(4, 3)
+    )
+    assert view.tolist() == [0, 1, 2, 3]
+    with pytest.raises(ValueError, match="zero-length"):
+        view_poses(np.zeros((1, 3)), np.zeros((1, 2)))
 
 
 def test_forward_follows_the_corridor(selection):
@@ -226,6 +251,7 @@ def test_empty_corridor_raises(building):
         {"floor_max_normal_angle_rad": math.pi / 2},
         {"min_floor_fraction": 0.0},
         {"obstacle_min_height_m": 2.5},
+        {"max_floor_hole_m2": -1.0},
         {"camera_height_m": True},
     ],
 )

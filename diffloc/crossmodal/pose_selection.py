@@ -11,7 +11,8 @@ choose camera poses from which database images are rendered:
    an upward point within ``floor_tolerance_m`` of the floor height; *obstacle* cells hold any
    point between ``obstacle_min_height_m`` and ``obstacle_max_height_m`` above the floor. Both
    masks are closed (dilation then erosion, disk of ``closing_radius_m``) to fill sampling
-   holes; free space is floor and not obstacle.
+   gaps, and enclosed holes of the floor mask up to ``max_floor_hole_m2`` are filled (the
+   unseen disk under a terrestrial scanner's station); free space is floor and not obstacle.
 3. **Corridor.** The Euclidean distance transform of free space gives each free cell its
    clearance (distance to the nearest cell centre that is not free, so unmapped areas count as
    walls). The paper thresholds the distance transform normalised by its maximum; a fraction of
@@ -63,6 +64,7 @@ from matplotlib.figure import Figure
 from scipy import ndimage
 from scipy.signal import find_peaks
 from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
 from skimage.morphology import disk, skeletonize
 
 from diffloc.checks import ArrayLike, check_finite, check_shape
@@ -103,6 +105,8 @@ class PoseSelectionConfig:
         cell_size_m: edge of a top-down image cell, metres (0.05 indoors, 0.2 outdoors).
         closing_radius_m: radius of the disk used to close the floor and obstacle masks,
             metres (0 disables closing).
+        max_floor_hole_m2: enclosed holes of the floor mask up to this area are filled, square
+            metres (0 disables filling).
         min_clearance_m: smallest distance from a corridor cell to non-free space, metres.
         blur_sigma_m: standard deviation of the Gaussian that smooths the corridor, metres
             (0 disables smoothing).
@@ -120,6 +124,7 @@ class PoseSelectionConfig:
     obstacle_max_height_m: float = 2.0
     cell_size_m: float = 0.05
     closing_radius_m: float = 0.1
+    max_floor_hole_m2: float = 2.0
     min_clearance_m: float = 0.4
     blur_sigma_m: float = 0.2
     min_corridor_area_m2: float = 1.0
@@ -141,6 +146,7 @@ class PoseSelectionConfig:
         for name in (
             "obstacle_min_height_m",
             "closing_radius_m",
+            "max_floor_hole_m2",
             "min_clearance_m",
             "blur_sigma_m",
             "min_corridor_area_m2",
@@ -373,6 +379,7 @@ def _floor_plan(
     origin_xy = floor_xy.min(axis=0) - margin * cell
     shape = tuple(np.ceil((floor_xy.max(axis=0) - origin_xy) / cell).astype(int)[::-1] + margin)
     floor_mask = _close(_rasterize(floor_xy, origin_xy, cell, shape), closing_cells)
+    floor_mask = _fill_holes(floor_mask, config.max_floor_hole_m2 / cell**2)
     obstacle_mask = _close(_rasterize(points[in_band, :2], origin_xy, cell, shape), closing_cells)
     free = floor_mask & ~obstacle_mask
     clearance_m = ndimage.distance_transform_edt(free) * cell
@@ -417,6 +424,16 @@ def _close(mask: np.ndarray, radius_cells: int) -> np.ndarray:
     if radius_cells == 0:
         return mask
     return ndimage.binary_closing(mask, structure=disk(radius_cells))
+
+
+def _fill_holes(mask: np.ndarray, max_cells: float) -> np.ndarray:
+    """``mask`` with its holes (pieces of ``~mask`` not touching the border) of at most
+    ``max_cells`` cells set."""
+    labels, _ = ndimage.label(~mask)
+    small = np.bincount(labels.ravel()) <= max_cells
+    small[np.unique(np.r_[labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel()])] = False
+    small[0] = False  # label 0 is the mask itself
+    return mask | small[labels]
 
 
 def _corridor(clearance_m: np.ndarray, config: PoseSelectionConfig) -> np.ndarray:
@@ -608,8 +625,8 @@ def plot_floor_plan(
     Args:
         plan: the floor.
         path: the ``.png`` file (written atomically; parent folders are created).
-        arrow_m: length of the view arrows in metres (default: a quarter of the mean spacing
-            between samples, or 0.5 m with fewer than two samples).
+        arrow_m: length of the view arrows in metres (default: 0.4 times the median distance
+            from a sample to its nearest other sample, or 0.5 m with fewer than two samples).
         dpi: resolution; the figure is 15 x 9 inches.
 
     Returns:
@@ -619,12 +636,10 @@ def plot_floor_plan(
         >>> plot_floor_plan(selection.floors[0], "floor_0.png")
         PosixPath('floor_0.png')
     """
-    occupancy = np.full(plan.free.shape, 0.0)
-    occupancy[plan.floor_mask] = 0.6
-    occupancy[plan.free] = 1.0
+    occupancy = np.where(plan.free, 1.0, np.where(plan.obstacle_mask, 0.0, 0.35))
     skeleton_view = 0.3 * plan.corridor + 0.7 * plan.skeleton
     panels = (
-        ("occupancy (white free, grey floor, black obstacle)", occupancy, "gray"),
+        ("occupancy (white free, black obstacle, grey no floor)", occupancy, "gray"),
         ("normalised distance transform", plan.clearance_normalized, "viridis"),
         ("free-path corridor", plan.corridor, "gray"),
         ("skeleton", skeleton_view, "magma"),
@@ -651,8 +666,10 @@ def plot_floor_plan(
 def _draw_views(ax: Axes, plan: FloorPlan, arrow_m: float | None) -> None:
     xy, f = plan.samples_xy, plan.forward_xy
     if arrow_m is None:
-        gaps = np.linalg.norm(np.diff(xy, axis=0), axis=1)
-        arrow_m = 0.25 * float(np.median(gaps)) if len(gaps) else 0.5
+        arrow_m = 0.5
+        if len(xy) > 1:
+            gaps, _ = cKDTree(xy).query(xy, k=2)
+            arrow_m = 0.4 * float(np.median(gaps[:, 1]))
     left = np.stack([-f[:, 1], f[:, 0]], axis=1)
     for direction, color in ((f, "red"), (-f, "tab:blue"), (left, "tab:blue"), (-left, "tab:blue")):
         ax.quiver(
