@@ -18,7 +18,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from diffloc.checks import ShapeError
-from diffloc.crossmodal import (
+from diffloc.crossmodal.pose_selection import (
     VIEW_NAMES,
     PoseSelectionConfig,
     select_render_poses,
