@@ -37,6 +37,7 @@ import torch
 
 from diffloc.database.database import VisualDatabase
 from diffloc.eval.metrics import (
+    PoseErrors,
     is_correct,
     localization_metrics,
     pose_errors,
@@ -243,7 +244,6 @@ def _report_sequence(
     reloc_ms = [sum(v for k, v in t.items() if k not in EXTRACTION_STAGES) for t in run.timings]
     total_ms = [sum(t.values()) for t in run.timings]
     metrics = localization_metrics(verified, reloc_ms, cfg.max_trans_m)
-    metrics_rot = localization_metrics(verified, None, cfg.max_trans_m, cfg.max_rot_deg)
     correct = is_correct(verified, cfg.max_trans_m)
     offsets = offset_summary(
         *nearest_pose_offsets(torch.from_numpy(run.T_wc_true), T_wc_db_true.double())
@@ -292,8 +292,8 @@ def _report_sequence(
                 [round(float(x), 6) for x in run.T_wc_est[q, :3, 3]] if run.found[q] else None
             ),
             "inliers": int(run.inliers[q]),
-            "translation_error_m": _finite(raw.translation_m[q]),
-            "rotation_error_deg": _finite(raw.rotation_deg[q]),
+            "translation_error_m": finite_or_none(raw.translation_m[q]),
+            "rotation_error_deg": finite_or_none(raw.rotation_deg[q]),
             "timings_ms": {k: round(v, 3) for k, v in run.timings[q].items()},
             "candidates": run.candidates[q],
         }
@@ -301,24 +301,12 @@ def _report_sequence(
     ]
     atomic_write_text(out / "queries.json", json.dumps(per_query, indent=1) + "\n")
     return {
-        "recall": metrics.recall,
-        "recall_at": {
-            f"{threshold:.1f}": recall(verified, threshold) for threshold in RECALL_THRESHOLDS_M
-        },
-        "precision": _finite(metrics.precision),
-        "seed1_rule": {
-            "accepted": int(run.accepted_seed1.sum()),
-            "recall": seed1_recall,
-            "precision": _finite(seed1_precision),
-        },
+        **verdict_figures(verified, seed1, cfg.max_trans_m, cfg.max_rot_deg),
         "nearest_db_pose": offsets,
-        "mATE_m": _finite(metrics.mATE_m),
         "queries": metrics.queries,
-        "median_reloc_ms": _finite(metrics.median_reloc_ms),
+        "median_reloc_ms": finite_or_none(metrics.median_reloc_ms),
         "median_total_ms": statistics.median(total_ms) if total_ms else None,
-        "recall_rot": metrics_rot.recall,
         "found": int(run.found.sum()),
-        "accepted": int(run.accepted.sum()),
         "median_stage_ms": {
             s: statistics.median(t.get(s, 0.0) for t in run.timings) for s in stages
         },
@@ -359,8 +347,40 @@ def table_row(name: str, entry: dict) -> dict:
     }
 
 
-def _finite(x: float) -> float | None:
+def finite_or_none(x: float) -> float | None:
+    """``x`` as a float, ``None`` where it is NaN or infinite (JSON has no NaN)."""
     return float(x) if math.isfinite(x) else None
+
+
+def verdict_figures(
+    verified: PoseErrors, seed1: PoseErrors, max_trans_m: float, max_rot_deg: float
+) -> dict:
+    """The figures of a sequence's results entry that follow from the validation verdicts.
+
+    Args:
+        verified: errors with ``localized`` = accepted by the configured validation.
+        seed1: errors with ``localized`` = accepted by seed 1's rule alone.
+        max_trans_m: position threshold of a correct pose.
+        max_rot_deg: rotation threshold of ``recall_rot``.
+
+    Returns:
+        ``recall``, ``recall_at``, ``precision``, ``seed1_rule``, ``mATE_m``, ``recall_rot``
+        and ``accepted``.
+    """
+    metrics = localization_metrics(verified, None, max_trans_m)
+    return {
+        "recall": metrics.recall,
+        "recall_at": {f"{t:.1f}": recall(verified, t) for t in RECALL_THRESHOLDS_M},
+        "precision": finite_or_none(metrics.precision),
+        "seed1_rule": {
+            "accepted": int(seed1.localized.sum()),
+            "recall": recall(seed1, max_trans_m),
+            "precision": finite_or_none(precision(seed1, max_trans_m)),
+        },
+        "mATE_m": finite_or_none(metrics.mATE_m),
+        "recall_rot": localization_metrics(verified, None, max_trans_m, max_rot_deg).recall,
+        "accepted": int(verified.localized.sum()),
+    }
 
 
 def relocalize_dataset(

@@ -30,10 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from diffloc.eval.metrics import PoseErrors, is_correct, localization_metrics, precision, recall
+from diffloc.eval.metrics import PoseErrors, is_correct
 from diffloc.eval.tables import markdown_table
 from diffloc.io.atomic import atomic_write_text
-from diffloc.pipeline.reloc_stage import RECALL_THRESHOLDS_M, RESULT_COLUMNS, table_row
+from diffloc.pipeline.reloc_stage import RESULT_COLUMNS, table_row, verdict_figures
 from diffloc.reloc.validation import PoseEvidence, PoseValidator, ValidationConfig
 
 __all__ = ["replay_validation", "revalidate_run"]
@@ -60,35 +60,6 @@ def _errors(records: list[dict], accepted: np.ndarray) -> PoseErrors:
         return np.array([math.nan if r[key] is None else r[key] for r in records], np.float64)
 
     return PoseErrors(column("translation_error_m"), column("rotation_error_deg"), accepted)
-
-
-def _finite(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
-
-
-def _rescored_entry(
-    entry: dict,
-    verified: PoseErrors,
-    seed1_errors: PoseErrors,
-    max_trans: float,
-    max_rot: float,
-) -> dict:
-    """A sequence's results entry with the verdict-dependent figures recomputed."""
-    metrics = localization_metrics(verified, None, max_trans)
-    return {
-        **entry,
-        "recall": metrics.recall,
-        "recall_at": {f"{t:.1f}": recall(verified, t) for t in RECALL_THRESHOLDS_M},
-        "precision": _finite(metrics.precision),
-        "seed1_rule": {
-            "accepted": int(seed1_errors.localized.sum()),
-            "recall": recall(seed1_errors, max_trans),
-            "precision": _finite(precision(seed1_errors, max_trans)),
-        },
-        "mATE_m": _finite(metrics.mATE_m),
-        "recall_rot": localization_metrics(verified, None, max_trans, max_rot).recall,
-        "accepted": int(verified.localized.sum()),
-    }
 
 
 def _accepted_tum_lines(source: Path, records: list[dict], accepted: np.ndarray) -> str:
@@ -139,7 +110,7 @@ def revalidate_run(src: str | Path, dst: str | Path, config: ValidationConfig) -
         accepted = replay_validation(records, config)
         seed1 = replay_validation(records, config.seed1_rule())
         verified, seed1_errors = _errors(records, accepted), _errors(records, seed1)
-        sequences[name] = _rescored_entry(entry, verified, seed1_errors, max_trans, max_rot)
+        sequences[name] = {**entry, **verdict_figures(verified, seed1_errors, max_trans, max_rot)}
         out = dst / name
         out.mkdir(parents=True, exist_ok=True)
         correct = is_correct(verified, max_trans)
