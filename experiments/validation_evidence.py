@@ -61,7 +61,7 @@ def evidence(query: dict) -> dict[str, float] | None:
         "coverage": float(best["coverage"]),
         "rival_share": max(rivals, default=0) / best["inliers"],
         "right": query["translation_error_m"] is not None
-        and query["translation_error_m"] < MAX_TRANS_M,
+        and query["translation_error_m"] <= MAX_TRANS_M,
     }
 
 
