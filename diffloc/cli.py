@@ -12,13 +12,22 @@ Examples:
     diffloc task=relocalize reloc.method.points=F    # relocalise the query sequences
     diffloc task=export_colmap task.database=optimized  # the database as a COLMAP model
     diffloc task=main                               # all of the above, each stage cached
+
+Errors: a checked error (an ``OSError`` such as a missing dataset or database, a
+``ValueError`` such as a bad value or an unknown config key) prints one line, ``error: ...``,
+and exits with status 1; ``HYDRA_FULL_ERROR=1`` shows Hydra's full traceback instead. A
+message that names a command to run carries the user's own overrides (``scene=outdoor``,
+``dataset=...``). Any other exception is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
@@ -28,17 +37,16 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from diffloc.benchmark import peak_rss_mb
-from diffloc.config import register_configs
+from diffloc.config import CONF_DIR, check_known_keys, register_configs
 from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.colmap_stage import export_colmap
 from diffloc.pipeline.database_stage import build_database, database_dir, optimize_database
+from diffloc.pipeline.hints import Command, CommandHint, MissingStageError, override_key
 from diffloc.pipeline.reloc_stage import relocalize_dataset
 from diffloc.pipeline.rig_stage import calibrate_database_rig
 from diffloc.pipeline.update_stage import update_database
 from diffloc.sim.dataset import simulate_dataset
-
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 def run_simulate(cfg: DictConfig) -> Path:
@@ -226,12 +234,69 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
 }
 
 
+MAKE_DATASET = ("simulate", "main")
+"""Tasks that write the dataset folder; every other task reads an existing one."""
+
+
 def run(cfg: DictConfig) -> object:
-    """Run the task named by ``cfg.task.name`` on a composed config."""
+    """Run the task named by ``cfg.task.name`` on a composed config.
+
+    Raises:
+        UnknownKeyError: the config holds a key no schema declares (``+scene.max_frames=5``).
+        MissingStageError: a task that reads ``dataset`` finds no ``dataset.json`` there; the
+            message names the ``task=simulate`` command that writes it.
+        ValueError: an unknown task name.
+    """
+    check_known_keys(cfg)
     name = cfg.task.name
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; choose one of {sorted(TASKS)}")
+    description = Path(cfg.dataset) / "dataset.json"
+    if name not in MAKE_DATASET and not description.is_file():
+        raise MissingStageError(description, Command("simulate", (), (f"out_dir={cfg.dataset}",)))
     return TASKS[name](cfg)
+
+
+CHECKED_ERRORS = (OSError, ValueError)
+"""Errors of bad input or a missing stage: one line on the command line (module docstring)."""
+
+
+def _users_overrides(task: str) -> list[str] | None:
+    """The overrides the user typed, for a command that runs ``task``.
+
+    ``task=...`` is left out, and so are ``task.*`` settings unless ``task`` is the task that
+    ran. ``None`` outside a Hydra run (the command line is unknown).
+    """
+    if not HydraConfig.initialized():
+        return None
+    typed = HydraConfig.get().overrides.task
+    same = task == HydraConfig.get().runtime.choices.get("task")
+    return [
+        word
+        for word in typed
+        if override_key(word) != "task" and (same or not override_key(word).startswith("task."))
+    ]
+
+
+def _error_line(error: Exception) -> str:
+    """The one-line message of a checked error; a command it names has the user's overrides."""
+    if isinstance(error, CommandHint):
+        message = error.render(_users_overrides(error.command.task))
+    else:
+        message = str(error)
+    return " ".join(line.strip() for line in message.splitlines())
+
+
+def _show_warning(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: object = None,
+    line: str | None = None,
+) -> None:
+    """``warnings.showwarning`` of the command: ``warning: <message>`` on stderr."""
+    print(f"warning: {message}", file=sys.stderr)
 
 
 register_configs()
@@ -239,8 +304,20 @@ register_configs()
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> None:
-    """Entry point of the ``diffloc`` console script."""
-    run(cfg)
+    """Entry point of the ``diffloc`` console script.
+
+    A checked error prints one line and exits with status 1 (unless ``HYDRA_FULL_ERROR=1``);
+    in a multirun that stops the sweep at the failed job. Warnings print as one line each,
+    without the source line that raised them.
+    """
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
+        try:
+            run(cfg)
+        except CHECKED_ERRORS as error:
+            if os.environ.get("HYDRA_FULL_ERROR") == "1":
+                raise
+            sys.exit(f"error: {_error_line(error)}")
 
 
 if __name__ == "__main__":

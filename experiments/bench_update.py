@@ -7,7 +7,7 @@ Usage:
 
 On one dataset (simulated with ``scene=<scene>`` and the trailing Hydra ``overrides`` if the
 folder does not exist; its surfel map is built if missing) the script runs, through the same
-functions as the ``diffloc`` tasks and with the configs composed from ``conf/``:
+functions as the ``diffloc`` tasks and with the configs composed from ``diffloc/conf/``:
 
 1. ``task=build_db`` on the mapping sequence (``build_database``);
 2. ``task=update_db task.sequence=<update>`` (``update_database``): the update sequence's
@@ -45,10 +45,9 @@ from pathlib import Path
 import numpy as np
 import torch
 from culling_diagnostic import culling_diagnostic
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from diffloc.cli import CONF_DIR
+from diffloc.config import compose_config
 from diffloc.database.database import VisualDatabase
 from diffloc.eval.tables import Column, markdown_table
 from diffloc.geometry.se3 import invert
@@ -109,11 +108,6 @@ def correct_queries(reloc_dir: Path, max_trans_m: float) -> np.ndarray:
     )
 
 
-def compose_config(scene: str, overrides: list[str]):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="config", overrides=[f"scene={scene}", *overrides])
-
-
 def ensure_mapped(root: Path, cfg) -> None:
     """Simulate the scene and build its surfel map unless they exist."""
     if not (root / "dataset.json").is_file():
@@ -148,8 +142,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     data = args.data
     cfg = compose_config(
-        args.scene,
         [
+            f"scene={args.scene}",
             "task=update_db",
             f"task.sequence={args.update}",
             f"dataset={data}",
@@ -159,7 +153,7 @@ def main() -> None:
             *args.overrides,
         ],
     )
-    ensure_mapped(data, compose_config(args.scene, ["task=main", *args.overrides]))
+    ensure_mapped(data, compose_config([f"scene={args.scene}", "task=main", *args.overrides]))
     db_cfg = OmegaConf.to_object(cfg.db)
     result: dict = {
         "command": " ".join([Path(sys.executable).name, *sys.argv]),

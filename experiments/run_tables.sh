@@ -46,7 +46,7 @@ heldout_ablation() {
   shift 4
   cmd="diffloc -m task=relocalize ${*:+$* }scene.seed=$seeds reloc.method.points=$points reloc.retriever=$retrievers hydra.sweep.dir=$runs/heldout_$name"
   $cmd
-  cmds="$main_cmd$nl$cmd"
+  cmds="${main_cmd:+$main_cmd$nl}$cmd"
   heldout stats "$name" "$cmds" -- "$runs/heldout_$name"
   heldout differences "$name" "$cmds" --compare reloc.method.points=FN,F \
     --compare reloc.method.points=F,naive -- "$runs/heldout_$name"
@@ -118,7 +118,7 @@ $cmd
 table "$runs/noise_epipolar" noise table3_noise "$cmd"
 
 # Outdoor courtyard (scene=outdoor): the query sequence `query_lane` and the validation thresholds
-# of conf/reloc/outdoor.yaml (theta_dist 0.8 m, 6 m/s); recall is still within 0.3 m.
+# of diffloc/conf/reloc/outdoor.yaml (theta_dist 0.8 m, 6 m/s); recall is still within 0.3 m.
 # Tables I/II and IV outdoors: XFeat ablation and runtime.
 diffloc task=main scene=outdoor
 cmd="diffloc -m task=relocalize scene=outdoor reloc.method.points=naive,F,FN reloc.retriever=netvlad,bow hydra.sweep.dir=$runs/ablation_xfeat_outdoor"
@@ -139,7 +139,12 @@ table "$runs/noise_outdoor_epipolar" noise table3_noise_outdoor_epipolar "$cmd"
 
 # Indoors: main job and Tables I/II (XFeat, ORB) on seeds 1-5, Table III on seeds 1-3.
 heldout_main 1,2,3,4,5 main
+# Whether the validation's evidence separates the wrong query_reverse poses from right ones.
+python3 experiments/validation_evidence.py "$runs/heldout_main" \
+  --out experiments/results/validation_evidence_indoor
 heldout_ablation 1,2,3,4,5 ablation_xfeat naive,F,FN netvlad,bow
+# The same on query_same and query_lane of seeds 1-3 alone (cheaper; the first one committed).
+heldout_ablation 1,2,3 ablation_xfeat_small naive,F,FN netvlad "$t3_seqs"
 heldout_main 1,2,3,4,5 main_orb db.local_features=orb
 heldout_ablation 1,2,3,4,5 ablation_orb naive,F,FN netvlad db.local_features=orb
 heldout_noise 1,2,3 table3_noise_epipolar_prior2x "0.2:0.4 0.4:0.8" db.builder.association=epipolar "$t3_seqs"
@@ -147,6 +152,8 @@ heldout_noise 1,2,3 table3_noise_epipolar "$all_levels" db.builder.association=e
 
 # Outdoors: main job and Tables I/II on seeds 1-3, Table III on seeds 1-2.
 heldout_main 1,2,3 main_outdoor scene=outdoor
+python3 experiments/validation_evidence.py "$runs/heldout_main_outdoor" \
+  --out experiments/results/validation_evidence_outdoor
 heldout_ablation 1,2,3 ablation_xfeat_outdoor naive,F,FN netvlad,bow scene=outdoor
 heldout_noise 1,2 table3_noise_outdoor_prior2x "0.2:0.4 0.4:0.8" scene=outdoor "$t3_seqs"
 heldout_noise 1,2 table3_noise_outdoor "$all_levels" scene=outdoor "$t3_seqs"

@@ -1,4 +1,4 @@
-"""Shared fixtures: configs composed from the real ``conf/`` tree, tiny simulated datasets."""
+"""Shared fixtures: configs composed from the packaged ``diffloc/conf/`` tree, tiny datasets."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import shutil
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
-from diffloc.cli import CONF_DIR, run
+from diffloc.cli import run
+from diffloc.config import compose_config
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.sim.dataset import simulate_dataset
@@ -28,12 +28,6 @@ TINY = [
 
 FINE_SURFELS = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
 """Surfel map settings fine enough for the 160x120 tiny scene."""
-
-
-def compose_config(overrides: list[str]) -> DictConfig:
-    """Compose ``conf/config.yaml`` with command-line style overrides."""
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="config", overrides=overrides)
 
 
 def scene_config(overrides: list[str]):

@@ -212,9 +212,11 @@ def test_optimisation_of_a_noisy_database_is_accepted_and_cuts_the_rmse(
     )
 
 
-def test_missing_inputs_are_clear_errors(tmp_path: Path, mapped: Path):
-    with pytest.raises(FileNotFoundError, match="build_map"):
+def test_missing_inputs_are_clear_errors(tmp_path: Path, mapped: Path, tiny_indoor_dataset: Path):
+    with pytest.raises(FileNotFoundError, match="task=simulate"):
         _run("build_db", tmp_path)
+    with pytest.raises(FileNotFoundError, match="build_map"):
+        _run("build_db", tiny_indoor_dataset)
     with pytest.raises(FileNotFoundError, match="build_db"):
         _run("optimize_db", mapped, "db.noise_sigma=0.3")
     with pytest.raises(FileNotFoundError, match="build_db"):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +18,14 @@ from diffloc.features.local import XFeatConfig, make_extractor
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
+from diffloc.pipeline.revalidate import revalidate_run
 from diffloc.reloc.hierarchical import (
     HierarchicalRelocalizer,
     RelocConfig,
     covisibility_clusters,
 )
 from diffloc.reloc.retrieval import load_retriever
+from diffloc.reloc.validation import ValidationConfig
 from tests.conftest import TINY, compose_config
 
 FINE = ["surfel.voxel_size_m=0.02", "surfel.mean_radius_m=0.02", "surfel.normal_radius_m=0.08"]
@@ -198,3 +201,45 @@ def test_naive_needs_surfel_centres_and_configs_are_checked(relocalizer_parts):
         HierarchicalRelocalizer(database, retriever, RelocConfig(points="naive"))
     with pytest.raises(ValueError, match="points"):
         RelocConfig(points="everything")
+
+
+def test_revalidation_with_the_runs_own_thresholds_reproduces_it(main_run, tmp_path):
+    _, out, results = main_run
+    config = ValidationConfig(**results["config"]["validation"])
+    again = revalidate_run(out, tmp_path / "again", config)
+    for name, entry in results["sequences"].items():
+        assert again["sequences"][name] == entry
+        for file in ("queries.json", "estimates.tum", "groundtruth.tum"):
+            assert (tmp_path / "again" / name / file).read_bytes() == (
+                out / name / file
+            ).read_bytes()
+    assert (tmp_path / "again" / "results.md").read_text() == (out / "results.md").read_text()
+
+
+def test_revalidation_under_stricter_thresholds_rescores_the_same_poses(main_run, tmp_path):
+    _, out, results = main_run
+    strict = replace(ValidationConfig(**results["config"]["validation"]), theta_in=10**6)
+    again = revalidate_run(out, tmp_path / "strict", strict)
+    for name, entry in again["sequences"].items():
+        assert (entry["accepted"], entry["recall"], entry["precision"]) == (0, 0.0, None)
+        assert entry["queries"] == results["sequences"][name]["queries"]
+        lines = (tmp_path / "strict" / name / "estimates.tum").read_text().splitlines()
+        assert all(line.startswith("#") for line in lines)  # the header, no pose
+    assert again["config"]["validation"]["theta_in"] == 10**6
+
+
+def test_revalidation_refuses_what_it_cannot_do_exactly(main_run, tmp_path):
+    _, out, results = main_run
+    with pytest.raises(ValueError, match="new folder"):
+        revalidate_run(out, out, ValidationConfig())
+    # Single-image mode accepts the first inlier pose of a sequence, which the run (sequence
+    # mode) did not accept, so it never wrote that pose.
+    found_not_accepted = any(
+        q["found"] and q["inliers"] >= 15 and not q["accepted"]
+        for name in results["sequences"]
+        for q in json.loads((out / name / "queries.json").read_text())
+    )
+    assert found_not_accepted
+    single = ValidationConfig(theta_in=15, temporal=False)
+    with pytest.raises(ValueError, match="relocalise again"):
+        revalidate_run(out, tmp_path / "single", single)

@@ -40,19 +40,6 @@ def make_mesh(seed: int = 0) -> TexturedMesh:
     )
 
 
-def assert_meshes_equal(a: TexturedMesh, b: TexturedMesh) -> None:
-    np.testing.assert_array_equal(a.vertices, b.vertices)
-    np.testing.assert_array_equal(a.triangles, b.triangles)
-    np.testing.assert_array_equal(a.corner_uvs, b.corner_uvs)
-    np.testing.assert_array_equal(a.material_ids, b.material_ids)
-    np.testing.assert_array_equal(a.object_ids, b.object_ids)
-    assert a.material_names == b.material_names
-    assert len(a.textures) == len(b.textures)
-    for x, y in zip(a.textures, b.textures, strict=True):
-        assert x.dtype == y.dtype == np.float32
-        np.testing.assert_array_equal(x, y)
-
-
 def canonical(mesh: TexturedMesh) -> TexturedMesh:
     """The faces grouped by (object id, material id), as the reader returns them."""
     order = np.lexsort((mesh.material_ids, mesh.object_ids))

@@ -1,5 +1,6 @@
 """PLY reading (through trimesh) and writing: dtypes, custom properties, faces, bad files."""
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -332,30 +333,29 @@ def test_missing_coordinate_property(tmp_path: Path):
         read_point_cloud(tmp_path / "bad2.ply")
 
 
-def test_list_property_on_vertices(tmp_path: Path):
+BAD_ASCII_PLY = {
+    "list property on vertices": (
+        "property list uchar float weights\nend_header\n0 0 0 2 0.5 0.5\n",
+        "list properties on the vertex element",
+    ),
+    "face element without vertex_indices": (
+        "element face 0\nproperty uchar flags\nend_header\n0 0 0\n",
+        "PLY face element has no 'vertex_indices'",
+    ),
+    "face index out of range": (
+        "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n3 0 0 5\n",
+        "PLY faces index vertices that do not exist",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_ASCII_PLY))
+def test_bad_one_vertex_ply_is_refused_naming_the_file(tmp_path: Path, case: str):
+    tail, message = BAD_ASCII_PLY[case]
     (tmp_path / "bad.ply").write_text(
-        "ply\nformat ascii 1.0\nelement vertex 1\n" + XYZ_HEADER
-        + "property list uchar float weights\nend_header\n0 0 0 2 0.5 0.5\n"
-    )  # fmt: skip
-    with pytest.raises(ValueError, match=r"bad\.ply: list properties on the vertex element"):
-        read_ply(tmp_path / "bad.ply")
-
-
-def test_face_element_without_vertex_indices(tmp_path: Path):
-    (tmp_path / "bad.ply").write_text(
-        "ply\nformat ascii 1.0\nelement vertex 1\n" + XYZ_HEADER
-        + "element face 0\nproperty uchar flags\nend_header\n0 0 0\n"
-    )  # fmt: skip
-    with pytest.raises(ValueError, match=r"bad\.ply: PLY face element has no 'vertex_indices'"):
-        read_ply(tmp_path / "bad.ply")
-
-
-def test_face_index_out_of_range(tmp_path: Path):
-    (tmp_path / "bad.ply").write_text(
-        "ply\nformat ascii 1.0\nelement vertex 1\n" + XYZ_HEADER
-        + "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n3 0 0 5\n"
-    )  # fmt: skip
-    with pytest.raises(ValueError, match=r"bad\.ply: PLY faces index vertices that do not exist"):
+        "ply\nformat ascii 1.0\nelement vertex 1\n" + XYZ_HEADER + tail
+    )
+    with pytest.raises(ValueError, match=r"bad\.ply: " + re.escape(message)):
         read_ply(tmp_path / "bad.ply")
 
 

@@ -34,6 +34,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("diffloc.render",),
     ("diffloc.features",),
     ("diffloc.database",),
+    ("diffloc.crossmodal",),
     ("diffloc.optim",),
     ("diffloc.reloc",),
     ("diffloc.eval",),

@@ -10,13 +10,8 @@ import torch
 
 from diffloc.database.database import VisualDatabase
 from diffloc.io.dataset import read_sequence
-from diffloc.pipeline.database_select import (
-    check_database_name,
-    db_overrides,
-    select_database,
-    updated_dir,
-)
-from diffloc.pipeline.database_stage import DatabaseConfig, perturb_positions
+from diffloc.pipeline.database_select import check_database_name, select_database, updated_dir
+from diffloc.pipeline.database_stage import DatabaseConfig, db_overrides, perturb_positions
 from diffloc.pipeline.reloc_stage import RelocStageConfig
 from diffloc.pipeline.update_stage import UpdateTaskConfig
 from diffloc.reloc.retrieval import load_retriever
@@ -126,8 +121,11 @@ def test_database_names_are_validated():
             RelocStageConfig(database=name)
     with pytest.raises(ValueError, match="task.sequence"):
         UpdateTaskConfig(sequence="")
-    assert (
-        db_overrides("d", DatabaseConfig(local_features="orb")) == "dataset=d db.local_features=orb"
+    orb = DatabaseConfig(local_features="orb", pose_prior_sigma_m=0.2)
+    assert db_overrides("d", orb) == (
+        "dataset=d",
+        "db.pose_prior_sigma_m=0.2",
+        "db.local_features=orb",
     )
 
 

@@ -5,13 +5,14 @@ figure state and no display is needed) and written atomically. Every function ta
 an output path and returns the path; the image is ``figsize * dpi`` pixels.
 
 Example:
-    >>> plot_error_histogram(np.array([0.01, 0.05, 0.4, np.nan]), tmp_path / "errors.png")
+    >>> plot_error_cdf({"found": np.array([0.01, 0.05, 0.4, np.nan])}, tmp_path / "errors.png")
     PosixPath('.../errors.png')
 """
 
 from __future__ import annotations
 
 import io
+import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -26,7 +27,7 @@ from diffloc.checks import check_shape
 from diffloc.eval.metrics import PrecisionRecallCurve
 from diffloc.io.atomic import atomic_write_bytes
 
-__all__ = ["plot_error_histogram", "plot_precision_recall", "plot_trajectory_topdown"]
+__all__ = ["log_axis_limits", "plot_error_cdf", "plot_precision_recall", "plot_trajectory_topdown"]
 
 FIGSIZE = (6.0, 4.5)
 """Default figure size in inches."""
@@ -59,15 +60,22 @@ def plot_precision_recall(
     curves: Mapping[str, PrecisionRecallCurve],
     path: str | os.PathLike,
     *,
+    operating_points: Mapping[str, tuple[float, float]] | None = None,
     title: str | None = None,
     figsize: tuple[float, float] = FIGSIZE,
     dpi: int = DPI,
 ) -> Path:
-    """Precision over recall, one line per curve (e.g. with and without pose validation).
+    """Precision over recall: one line per curve, one marker per operating point.
+
+    A curve sweeps a score threshold (e.g. the inlier count of every found pose); an operating
+    point is one verdict (e.g. the poses that pose validation accepted), drawn as a marker
+    whose legend entry gives its recall and precision.
 
     Args:
         curves: label -> curve from :func:`~diffloc.eval.metrics.precision_recall_curve`.
         path: the PNG to write.
+        operating_points: label -> ``(recall, precision)``; a NaN precision (nothing
+            accepted) gets a legend entry and no marker.
         title: optional figure title.
         figsize: inches.
         dpi: pixels per inch.
@@ -81,7 +89,8 @@ def plot_precision_recall(
     Example:
         >>> curve = PrecisionRecallCurve(np.array([1.0, 2.0]), np.array([0.8, 1.0]),
         ...                              np.array([0.6, 0.3]))
-        >>> plot_precision_recall({"with PV": curve}, tmp_path / "pr.png")
+        >>> plot_precision_recall({"found": curve}, tmp_path / "pr.png",
+        ...                       operating_points={"validated": (0.5, 1.0)})
         PosixPath('.../pr.png')
     """
     if not curves:
@@ -90,12 +99,27 @@ def plot_precision_recall(
     ax = fig.subplots()
     for label, curve in curves.items():
         ax.plot(curve.recall, curve.precision, marker=".", markersize=3, label=label)
+    markers = iter("o*sD^v")
+    for label, (recall, precision) in (operating_points or {}).items():
+        if np.isfinite(precision):
+            figures = f"recall {100 * recall:.1f} %, precision {100 * precision:.1f} %"
+        else:
+            figures, recall, precision = "nothing accepted", np.nan, np.nan
+        ax.plot(
+            [recall],
+            [precision],
+            linestyle="none",
+            marker=next(markers, "o"),
+            markersize=9,
+            clip_on=False,
+            label=f"{label}: {figures}",
+        )
     ax.set_xlabel("recall")
     ax.set_ylabel("precision")
     ax.set_xlim(0.0, 1.0)
     ax.set_ylim(0.0, 1.02)
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="lower left")
+    ax.legend(loc="best", fontsize="small")
     if title:
         ax.set_title(title)
     fig.tight_layout()
@@ -174,25 +198,52 @@ def plot_trajectory_topdown(
     return _save(fig, path)
 
 
-def plot_error_histogram(
-    errors: np.ndarray | torch.Tensor,
+def log_axis_limits(values: np.ndarray, threshold: float | None = None) -> tuple[float, float]:
+    """Whole decades around the positive finite ``values`` (and ``threshold``), at least one.
+
+    Args:
+        values: (N,) errors; NaN, infinite and zero entries are ignored.
+        threshold: a value the axis must show too.
+
+    Returns:
+        ``(low, high)``, powers of ten; ``(1e-3, 1)`` when there is nothing to show.
+
+    Example:
+        >>> log_axis_limits(np.array([0.004, 0.02, 16.0, np.nan]), 0.3)
+        (0.001, 100.0)
+    """
+    positive = values[np.isfinite(values) & (values > 0)]
+    bounds = [threshold] if threshold is not None else []
+    if positive.size:
+        bounds += [float(positive.min()), float(positive.max())]
+    if not bounds:
+        return 1e-3, 1.0
+    low = 10.0 ** math.floor(math.log10(min(bounds)))
+    high = 10.0 ** math.ceil(math.log10(max(bounds)))
+    return low, max(high, 10.0 * low)
+
+
+def plot_error_cdf(
+    errors: Mapping[str, np.ndarray | torch.Tensor],
     path: str | os.PathLike,
     *,
-    bins: int = 30,
-    max_value: float | None = None,
     threshold: float | None = None,
-    xlabel: str = "translation error [m]",
+    xlabel: str = "position error [m]",
     title: str | None = None,
     figsize: tuple[float, float] = FIGSIZE,
     dpi: int = DPI,
 ) -> Path:
-    """Histogram of per-query errors (NaN entries, the unlocalized queries, are left out).
+    """Cumulative error curves on a log x axis: the share of queries within each error.
+
+    Each curve rises by ``1 / Q`` at every finite error of its ``Q`` queries; a NaN entry (a
+    query without a pose) never counts, so a curve tops out at the share of queries with a
+    pose. The log axis keeps millimetre and metre errors apart (a linear histogram puts every
+    centimetre error in one bar next to a single far outlier). At ``threshold`` a curve of the
+    accepted poses reads the recall. Errors of 0 are drawn at the left end of the axis.
 
     Args:
-        errors: (Q,) errors, e.g. ``PoseErrors.translation_m``.
+        errors: label -> (Q,) errors, e.g. ``PoseErrors.translation_m``.
         path: the PNG to write.
-        bins: number of bins.
-        max_value: errors above it are counted in the last bin (default: the largest error).
         threshold: optional vertical line, e.g. the 0.3 m recall threshold.
         xlabel: the x-axis label.
         title: optional figure title.
@@ -203,27 +254,45 @@ def plot_error_histogram(
         ``path`` as a :class:`~pathlib.Path`.
 
     Raises:
-        ShapeError: ``errors`` is not 1-D.
-        ValueError: ``bins`` < 1, or a non-positive ``max_value``.
+        ShapeError: an error array is not 1-D.
+        TypeError: an error array is neither a numpy array nor a torch tensor.
+        ValueError: no curves, a negative error, a non-positive ``threshold``.
     """
-    values = _numpy(errors, "errors").astype(np.float64)
-    check_shape(values, "Q", "errors")
-    if bins < 1:
-        raise ValueError(f"bins must be positive, got {bins}")
-    if max_value is not None and not max_value > 0:
-        raise ValueError(f"max_value must be positive, got {max_value}")
-    values = values[~np.isnan(values)]
-    top = max_value if max_value is not None else float(values.max()) if values.size else 1.0
-    top = top if top > 0 else 1.0
+    if not errors:
+        raise ValueError("plot_error_cdf needs at least one error array")
+    if threshold is not None and not threshold > 0:
+        raise ValueError(f"threshold must be positive, got {threshold}")
+    arrays = {}
+    for label, values in errors.items():
+        array = _numpy(values, f"errors[{label!r}]").astype(np.float64)
+        check_shape(array, "Q", f"errors[{label!r}]")
+        if (array < 0).any():
+            raise ValueError(f"errors[{label!r}] holds negative errors")
+        arrays[label] = array
+    low, high = log_axis_limits(np.concatenate(list(arrays.values())), threshold)
+
     fig = _new_figure(figsize, dpi)
     ax = fig.subplots()
-    ax.hist(np.minimum(values, top), bins=bins, range=(0.0, top), color="tab:blue")
+    for label, array in arrays.items():
+        found = np.sort(np.clip(array[np.isfinite(array)], low, None))
+        share = np.arange(1, found.size + 1) / max(array.size, 1)
+        top = share[-1] if found.size else 0.0
+        ax.step(
+            np.r_[low, found, high],
+            np.r_[0.0, share, top],
+            where="post",
+            label=f"{label} ({found.size} of {array.size})",
+        )
     if threshold is not None:
-        ax.axvline(threshold, color="tab:red", linestyle="--", label=f"{threshold:g}")
-        ax.legend(loc="upper right")
+        ax.axvline(threshold, color="tab:red", linestyle="--", label=f"threshold {threshold:g}")
+    ax.set_xscale("log")
+    ax.set_xlim(low, high)
+    ax.set_ylim(0.0, 1.02)
     ax.set_xlabel(xlabel)
-    ax.set_ylabel("queries")
-    ax.grid(True, alpha=0.3)
-    ax.set_title(title if title else f"{values.size} localized queries")
+    ax.set_ylabel("share of queries within the error")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    if title:
+        ax.set_title(title)
     fig.tight_layout()
     return _save(fig, path)

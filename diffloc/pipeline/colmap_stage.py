@@ -25,13 +25,9 @@ from diffloc.database.colmap import write_colmap_text
 from diffloc.database.database import VisualDatabase
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap
-from diffloc.pipeline.database_select import (
-    BUILT,
-    check_database_name,
-    db_overrides,
-    select_database,
-)
-from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
+from diffloc.pipeline.database_select import BUILT, check_database_name, select_database
+from diffloc.pipeline.database_stage import DatabaseConfig, database_dir, db_overrides
+from diffloc.pipeline.hints import Command, ExistingOutputError
 
 __all__ = ["ExportColmapTaskConfig", "export_colmap"]
 
@@ -89,8 +85,9 @@ def export_colmap(
         points written), ``observations`` and ``colors`` (their source).
 
     Raises:
-        FileNotFoundError: the database was not made; the message names the command to run.
-        FileExistsError: ``out_dir`` is not empty and ``task.overwrite`` is false.
+        MissingStageError: the database was not made; the message names the command to run.
+        ExistingOutputError: ``out_dir`` is not empty and ``task.overwrite`` is false; the
+            message names the command with ``task.overwrite=true``.
     """
     dataset = Path(dataset)
     selected = select_database(dataset, db_cfg, task.database)
@@ -106,10 +103,12 @@ def export_colmap(
     try:
         write_colmap_text(db, out, names, colors, overwrite=task.overwrite)
     except FileExistsError as exc:
-        raise FileExistsError(
-            f"{exc}; on the command line: diffloc task=export_colmap "
-            f"{db_overrides(dataset, db_cfg)} task.overwrite=true"
-        ) from exc
+        chosen = [f"task.database={task.database}"]
+        chosen += [f"task.out_dir={task.out_dir}"] if task.out_dir else []
+        command = Command(
+            "export_colmap", (*db_overrides(dataset, db_cfg), *chosen), ("task.overwrite=true",)
+        )
+        raise ExistingOutputError(str(exc), command) from exc
     observed = int((db.observation_counts() > 0).sum())
     return {
         "model": str(out),

@@ -30,7 +30,8 @@ from pathlib import Path
 import torch
 
 from diffloc.io.dataset import read_sequence
-from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
+from diffloc.pipeline.database_stage import DatabaseConfig, database_dir, db_overrides
+from diffloc.pipeline.hints import Command, MissingStageError
 
 __all__ = [
     "BUILT",
@@ -39,7 +40,6 @@ __all__ = [
     "UPDATE_RECORD",
     "SelectedDatabase",
     "check_database_name",
-    "db_overrides",
     "keyframe_images",
     "keyframe_true_poses",
     "select_database",
@@ -83,24 +83,6 @@ def updated_dir(dataset: str | Path, db_cfg: DatabaseConfig, sequence: str) -> P
     return database_dir(dataset, db_cfg) / f"{UPDATED_PREFIX}{sequence}"
 
 
-def db_overrides(dataset: str | Path, db_cfg: DatabaseConfig) -> str:
-    """The command-line overrides that select this dataset's database folder, for messages.
-
-    Example:
-        >>> db_overrides("data/x", DatabaseConfig(noise_sigma=0.2))
-        'dataset=data/x db.noise_sigma=0.2'
-    """
-    default = DatabaseConfig()
-    words = [f"dataset={dataset}"]
-    if db_cfg.noise_sigma != default.noise_sigma:
-        words.append(f"db.noise_sigma={db_cfg.noise_sigma:g}")
-    if db_cfg.local_features != default.local_features:
-        words.append(f"db.local_features={db_cfg.local_features}")
-    if db_cfg.builder.association != default.builder.association:
-        words.append(f"db.builder.association={db_cfg.builder.association}")
-    return " ".join(words)
-
-
 @dataclass
 class SelectedDatabase:
     """A saved database and what identifies it.
@@ -121,10 +103,6 @@ class SelectedDatabase:
     keyframe_sources: list[tuple[str, int]]
 
 
-def _missing(path: Path, command: str) -> FileNotFoundError:
-    return FileNotFoundError(f"{path} is missing: run `diffloc {command}` first")
-
-
 def select_database(dataset: str | Path, db_cfg: DatabaseConfig, which: str) -> SelectedDatabase:
     """Resolve a database name of a dataset to its saved folder (module docstring).
 
@@ -138,7 +116,7 @@ def select_database(dataset: str | Path, db_cfg: DatabaseConfig, which: str) -> 
 
     Raises:
         ValueError: an unknown name, or an update record without valid keyframe sources.
-        FileNotFoundError: the database was not made; the message names the command to run.
+        MissingStageError: the database was not made; the message names the command to run.
     """
     check_database_name(which)
     folder = database_dir(dataset, db_cfg)
@@ -148,14 +126,16 @@ def select_database(dataset: str | Path, db_cfg: DatabaseConfig, which: str) -> 
         stage = updated_dir(dataset, db_cfg, sequence)
         record, path = stage / UPDATE_RECORD, stage / BUILT
         if not (record.is_file() and path.is_dir()):
-            raise _missing(stage, f"task=update_db {where} task.sequence={sequence}")
+            settings = (f"task.sequence={sequence}",)
+            raise MissingStageError(stage, Command("update_db", where, settings))
         sources = _read_sources(record)
         return SelectedDatabase(which, path, record, stage, sources)
     record, path = folder / "build_db.json", folder / which
     if not record.is_file():
-        raise _missing(record, f"task=build_db {where}")
+        raise MissingStageError(record, Command("build_db", where))
     if not path.is_dir():
-        raise _missing(path, f"task={'optimize_db' if which == OPTIMIZED else 'build_db'} {where}")
+        task = "optimize_db" if which == OPTIMIZED else "build_db"
+        raise MissingStageError(path, Command(task, where))
     built = json.loads(record.read_text())
     sources = [(db_cfg.sequence, int(frame)) for frame in built["keyframe_frames"]]
     return SelectedDatabase(which, path, record, folder, sources)

@@ -42,6 +42,7 @@ from diffloc.optim.holdout import (
 )
 from diffloc.optim.robust import RobustKernel
 from diffloc.optim.surfel_cost import SurfelOptimConfig, replace_map_points
+from diffloc.pipeline.hints import Command, MissingStageError
 
 LOCAL_FEATURES = ("xfeat", "orb")
 
@@ -52,6 +53,7 @@ __all__ = [
     "database_builder",
     "database_dir",
     "database_poses",
+    "db_overrides",
     "keyframe_frames",
     "keyframe_position_rmse",
     "optimize_database",
@@ -162,6 +164,28 @@ def database_dir(dataset: str | Path, cfg: DatabaseConfig) -> Path:
     return Path(dataset) / "db" / f"{name}{suffix}"
 
 
+def db_overrides(dataset: str | Path, db_cfg: DatabaseConfig) -> tuple[str, ...]:
+    """The command-line overrides that select this dataset's database folder, for messages.
+
+    They name every setting :func:`database_dir` reads.
+
+    Example:
+        >>> db_overrides("data/x", DatabaseConfig(noise_sigma=0.2))
+        ('dataset=data/x', 'db.noise_sigma=0.2')
+    """
+    default = DatabaseConfig()
+    words = [f"dataset={dataset}"]
+    if db_cfg.noise_sigma != default.noise_sigma:
+        words.append(f"db.noise_sigma={db_cfg.noise_sigma:g}")
+    if db_cfg.pose_prior_sigma_m != default.pose_prior_sigma_m:
+        words.append(f"db.pose_prior_sigma_m={db_cfg.pose_prior_sigma_m:g}")
+    if db_cfg.local_features != default.local_features:
+        words.append(f"db.local_features={db_cfg.local_features}")
+    if db_cfg.builder.association != default.builder.association:
+        words.append(f"db.builder.association={db_cfg.builder.association}")
+    return tuple(words)
+
+
 def perturb_positions(T_wc: torch.Tensor, sigma: float, generator: torch.Generator) -> torch.Tensor:
     """Add N(0, sigma^2) noise to each axis of each position; rotations are kept.
 
@@ -260,12 +284,13 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
         of each keyframe and the keyframe position RMSE of the (noisy) database.
 
     Raises:
-        FileNotFoundError: no dataset, sequence or surfel map.
+        MissingStageError: no surfel map (the message names the command to run).
+        FileNotFoundError: no dataset or sequence.
     """
     root = Path(dataset)
     surfel_path = root / "map" / "surfel_map.ply"
     if not surfel_path.is_file():
-        raise FileNotFoundError(f"{surfel_path} is missing: run `diffloc task=build_map` first")
+        raise MissingStageError(surfel_path, Command("build_map", (f"dataset={dataset}",)))
     seq = read_sequence(root, cfg.sequence)
     seq.T_wc = database_poses(seq.T_wc, cfg)
     builder = database_builder(cfg, SurfelMap.load(surfel_path))
@@ -348,13 +373,14 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
     (``kf_pos_rmse_optimized_m``). Ground truth is read after the decision and never by it.
 
     Raises:
-        FileNotFoundError: the database or surfel map is missing.
+        MissingStageError: the database is missing (the message names the command to run).
+        FileNotFoundError: the surfel map is missing.
     """
     root = Path(dataset)
     out = database_dir(root, cfg)
     built_path = out / "build_db.json"
     if not built_path.is_file():
-        raise FileNotFoundError(f"{built_path} is missing: run `diffloc task=build_db` first")
+        raise MissingStageError(built_path, Command("build_db", db_overrides(root, cfg)))
     built = json.loads(built_path.read_text())
     db = VisualDatabase.load(out / "database")
     surfels = SurfelMap.load(root / "map" / "surfel_map.ply")

@@ -9,7 +9,10 @@ into ``out``:
   ``queries.json`` (per query: found, accepted by the configured validation and by seed 1's
   rule, correct, the found position, inliers, errors, stage times and every candidate's
   inliers, matches, coverage and distance to the chosen pose);
-- ``<sequence>/precision_recall.png``, ``trajectory.png``, ``errors.png``;
+- ``<sequence>/precision_recall.png`` (precision and recall of every found pose as the inlier
+  threshold is swept, with the operating points of pose validation and of seed 1's rule),
+  ``trajectory.png``, ``errors.png`` (cumulative position error of the found and of the
+  accepted poses, log x axis);
 - ``results.md`` (a Markdown table) and ``results.json`` with, per sequence, ``recall``
   (verified poses within ``max_trans_m``), ``recall_at`` (within 0.1 / 0.3 / 1.0 m),
   ``precision`` (the share of verified poses within ``max_trans_m``), ``seed1_rule`` (recall
@@ -34,6 +37,7 @@ import torch
 
 from diffloc.database.database import VisualDatabase
 from diffloc.eval.metrics import (
+    PoseErrors,
     is_correct,
     localization_metrics,
     pose_errors,
@@ -42,7 +46,7 @@ from diffloc.eval.metrics import (
     recall,
     write_localized_tum,
 )
-from diffloc.eval.plots import plot_error_histogram, plot_precision_recall, plot_trajectory_topdown
+from diffloc.eval.plots import plot_error_cdf, plot_precision_recall, plot_trajectory_topdown
 from diffloc.eval.tables import Column, markdown_table
 from diffloc.features.local import make_extractor
 from diffloc.geometry.pose_offsets import nearest_pose_offsets, offset_summary
@@ -240,20 +244,27 @@ def _report_sequence(
     reloc_ms = [sum(v for k, v in t.items() if k not in EXTRACTION_STAGES) for t in run.timings]
     total_ms = [sum(t.values()) for t in run.timings]
     metrics = localization_metrics(verified, reloc_ms, cfg.max_trans_m)
-    metrics_rot = localization_metrics(verified, None, cfg.max_trans_m, cfg.max_rot_deg)
     correct = is_correct(verified, cfg.max_trans_m)
     offsets = offset_summary(
         *nearest_pose_offsets(torch.from_numpy(run.T_wc_true), T_wc_db_true.double())
     )
     write_localized_tum(out / "estimates.tum", run.timestamps, run.T_wc_est, run.accepted)
     write_tum(out / "groundtruth.tum", run.timestamps, torch.from_numpy(run.T_wc_true))
-    curves = {
-        "with validation": precision_recall_curve(run.inliers, raw, run.accepted, cfg.max_trans_m),
-        "without validation": precision_recall_curve(run.inliers, raw, None, cfg.max_trans_m),
-    }
+    seed1_recall = recall(seed1, cfg.max_trans_m)
+    seed1_precision = precision(seed1, cfg.max_trans_m)
     plots = {
         "precision_recall": plot_precision_recall(
-            curves, out / "precision_recall.png", title=f"{name}: sweep of the inlier threshold"
+            {
+                "every found pose, by inlier count": precision_recall_curve(
+                    run.inliers, raw, None, cfg.max_trans_m
+                )
+            },
+            out / "precision_recall.png",
+            operating_points={
+                "pose validation": (metrics.recall, metrics.precision),
+                "seed 1's rule": (seed1_recall, seed1_precision),
+            },
+            title=f"{name}: inlier threshold swept, and the validated poses",
         ),
         "trajectory": plot_trajectory_topdown(
             run.T_wc_true,
@@ -262,11 +273,11 @@ def _report_sequence(
             out / "trajectory.png",
             title=f"{name}: accepted (green) and rejected (red) poses",
         ),
-        "errors": plot_error_histogram(
-            raw.translation_m,
+        "errors": plot_error_cdf(
+            {"every found pose": raw.translation_m, "accepted": verified.translation_m},
             out / "errors.png",
             threshold=cfg.max_trans_m,
-            title=f"{name}: position error of every found pose",
+            title=f"{name}: cumulative position error",
         ),
     }
     stages = sorted({k for t in run.timings for k in t})
@@ -281,8 +292,8 @@ def _report_sequence(
                 [round(float(x), 6) for x in run.T_wc_est[q, :3, 3]] if run.found[q] else None
             ),
             "inliers": int(run.inliers[q]),
-            "translation_error_m": _finite(raw.translation_m[q]),
-            "rotation_error_deg": _finite(raw.rotation_deg[q]),
+            "translation_error_m": finite_or_none(raw.translation_m[q]),
+            "rotation_error_deg": finite_or_none(raw.rotation_deg[q]),
             "timings_ms": {k: round(v, 3) for k, v in run.timings[q].items()},
             "candidates": run.candidates[q],
         }
@@ -290,24 +301,12 @@ def _report_sequence(
     ]
     atomic_write_text(out / "queries.json", json.dumps(per_query, indent=1) + "\n")
     return {
-        "recall": metrics.recall,
-        "recall_at": {
-            f"{threshold:.1f}": recall(verified, threshold) for threshold in RECALL_THRESHOLDS_M
-        },
-        "precision": _finite(metrics.precision),
-        "seed1_rule": {
-            "accepted": int(run.accepted_seed1.sum()),
-            "recall": recall(seed1, cfg.max_trans_m),
-            "precision": _finite(precision(seed1, cfg.max_trans_m)),
-        },
+        **verdict_figures(verified, seed1, cfg.max_trans_m, cfg.max_rot_deg),
         "nearest_db_pose": offsets,
-        "mATE_m": _finite(metrics.mATE_m),
         "queries": metrics.queries,
-        "median_reloc_ms": _finite(metrics.median_reloc_ms),
+        "median_reloc_ms": finite_or_none(metrics.median_reloc_ms),
         "median_total_ms": statistics.median(total_ms) if total_ms else None,
-        "recall_rot": metrics_rot.recall,
         "found": int(run.found.sum()),
-        "accepted": int(run.accepted.sum()),
         "median_stage_ms": {
             s: statistics.median(t.get(s, 0.0) for t in run.timings) for s in stages
         },
@@ -334,7 +333,7 @@ RESULT_COLUMNS = [
 """The columns of ``results.md``; mATE is over all accepted poses, right or wrong."""
 
 
-def _table_row(name: str, entry: dict) -> dict:
+def table_row(name: str, entry: dict) -> dict:
     """One ``results.md`` row of a sequence's results entry."""
     near, rule = entry["nearest_db_pose"], entry["seed1_rule"]
     rule_precision = "-" if rule["precision"] is None else f"{100 * rule['precision']:.1f}"
@@ -348,8 +347,40 @@ def _table_row(name: str, entry: dict) -> dict:
     }
 
 
-def _finite(x: float) -> float | None:
+def finite_or_none(x: float) -> float | None:
+    """``x`` as a float, ``None`` where it is NaN or infinite (JSON has no NaN)."""
     return float(x) if math.isfinite(x) else None
+
+
+def verdict_figures(
+    verified: PoseErrors, seed1: PoseErrors, max_trans_m: float, max_rot_deg: float
+) -> dict:
+    """The figures of a sequence's results entry that follow from the validation verdicts.
+
+    Args:
+        verified: errors with ``localized`` = accepted by the configured validation.
+        seed1: errors with ``localized`` = accepted by seed 1's rule alone.
+        max_trans_m: position threshold of a correct pose.
+        max_rot_deg: rotation threshold of ``recall_rot``.
+
+    Returns:
+        ``recall``, ``recall_at``, ``precision``, ``seed1_rule``, ``mATE_m``, ``recall_rot``
+        and ``accepted``.
+    """
+    metrics = localization_metrics(verified, None, max_trans_m)
+    return {
+        "recall": metrics.recall,
+        "recall_at": {f"{t:.1f}": recall(verified, t) for t in RECALL_THRESHOLDS_M},
+        "precision": finite_or_none(metrics.precision),
+        "seed1_rule": {
+            "accepted": int(seed1.localized.sum()),
+            "recall": recall(seed1, max_trans_m),
+            "precision": finite_or_none(precision(seed1, max_trans_m)),
+        },
+        "mATE_m": finite_or_none(metrics.mATE_m),
+        "recall_rot": localization_metrics(verified, None, max_trans_m, max_rot_deg).recall,
+        "accepted": int(verified.localized.sum()),
+    }
 
 
 def relocalize_dataset(
@@ -393,7 +424,7 @@ def relocalize_dataset(
         run = _relocalize_sequence(dataset, name, cfg, extractor, relocalizer, show_progress)
         entry = _report_sequence(run, cfg, out / name, name, T_wc_db_true)
         results["sequences"][name] = entry
-        rows.append(_table_row(name, entry))
+        rows.append(table_row(name, entry))
     headline = results["sequences"].get("query_same") or next(iter(results["sequences"].values()))
     for key in ("recall", "mATE_m", "queries", "median_reloc_ms"):
         results[key] = headline[key]

@@ -50,8 +50,10 @@ from diffloc.pipeline.database_stage import (
     DatabaseConfig,
     database_dir,
     database_poses,
+    db_overrides,
     keyframe_position_rmse,
 )
+from diffloc.pipeline.hints import Command, MissingStageError
 
 __all__ = ["calibrate_database_rig"]
 
@@ -77,7 +79,7 @@ def calibrate_database_rig(
         The summary written to ``<database_dir>/rig_calibration.json`` (module docstring).
 
     Raises:
-        FileNotFoundError: no built database or surfel map.
+        MissingStageError: no built database or surfel map (the message names the command).
         ValueError: the sequence's ``calib.yaml`` has no ``rig.T_body_camera`` (nothing to
             calibrate), or the errors of :func:`~diffloc.optim.rig_calibration.calibrate_rig`.
     """
@@ -91,10 +93,10 @@ def calibrate_database_rig(
     out = database_dir(root, db_cfg)
     built_path = out / "build_db.json"
     if not built_path.is_file():
-        raise FileNotFoundError(f"{built_path} is missing: run `diffloc task=build_db` first")
+        raise MissingStageError(built_path, Command("build_db", db_overrides(root, db_cfg)))
     surfel_path = root / "map" / "surfel_map.ply"
     if not surfel_path.is_file():
-        raise FileNotFoundError(f"{surfel_path} is missing: run `diffloc task=build_map` first")
+        raise MissingStageError(surfel_path, Command("build_map", (f"dataset={root}",)))
     built = json.loads(built_path.read_text())
     frames = torch.tensor(built["keyframe_frames"], dtype=torch.int64)
     db = VisualDatabase.load(out / "database")

@@ -45,9 +45,11 @@ from diffloc.pipeline.database_select import (
 )
 from diffloc.pipeline.database_stage import (
     DatabaseConfig,
+    db_overrides,
     keyframe_position_rmse,
     perturb_positions,
 )
+from diffloc.pipeline.hints import Command, MissingStageError, StaleStageError
 
 __all__ = ["UpdateTaskConfig", "update_database"]
 
@@ -109,21 +111,22 @@ def update_database(
         docstring).
 
     Raises:
-        FileNotFoundError: no built database (the message names the command to run), no
-            surfel map or no such sequence.
-        ValueError: the build record does not describe the saved database.
+        MissingStageError: no built database or surfel map (the message names the command).
+        FileNotFoundError: no such sequence.
+        StaleStageError: the build record does not describe the saved database.
     """
     start = time.perf_counter()
     root = Path(dataset)
     base = select_database(root, db_cfg, BUILT)
     surfel_path = root / "map" / "surfel_map.ply"
     if not surfel_path.is_file():
-        raise FileNotFoundError(f"{surfel_path} is missing: run `diffloc task=build_map` first")
+        raise MissingStageError(surfel_path, Command("build_map", (f"dataset={root}",)))
     db = VisualDatabase.load(base.path)
     if db.num_keyframes != len(base.keyframe_sources):
-        raise ValueError(
+        raise StaleStageError(
             f"{base.record} lists {len(base.keyframe_sources)} keyframes but {base.path} has "
-            f"{db.num_keyframes}: rebuild with `diffloc task=build_db`"
+            f"{db.num_keyframes}",
+            Command("build_db", db_overrides(root, db_cfg)),
         )
     sequence = read_sequence(root, cfg.sequence)
     truth = sequence.T_wc.clone()

@@ -17,7 +17,7 @@ along) far apart in time would otherwise verify each other.
 
 Seed 1's tests let confident wrong poses through where the scene repeats or is seen from the
 other side: a chain of consistently wrong poses passes the distance test. Three further tests,
-on the evidence of the relocaliser's candidates (:class:`~diffloc.reloc.hierarchical.Candidate`),
+on the evidence of the relocaliser's candidates (:class:`PoseEvidence`),
 make an *inlier pose* also need
 
 - an inlier ratio ``n_in / matches >= min_inlier_ratio``;
@@ -43,9 +43,9 @@ from dataclasses import dataclass, replace
 import torch
 
 from diffloc.checks import check_finite, check_shape
-from diffloc.reloc.hierarchical import Candidate, RelocResult
+from diffloc.reloc.hierarchical import RelocResult
 
-__all__ = ["PoseValidator", "ValidationConfig"]
+__all__ = ["PoseEvidence", "PoseValidator", "ValidationConfig"]
 
 
 @dataclass
@@ -106,6 +106,61 @@ class ValidationConfig:
         )
 
 
+@dataclass(frozen=True)
+class PoseEvidence:
+    """What the validation reads of one query's answer (a :class:`RelocResult`, or the
+    candidates a relocalisation run recorded in ``queries.json``).
+
+    Attributes:
+        position: (3,) float64 camera position of the best candidate's refined pose.
+        num_inliers: its inliers ``n_in``.
+        num_matches: the matches its refinement started from.
+        coverage: the fraction of the image grid holding its inliers.
+        rivals: ``(inliers, distance to the best pose in metres)`` of every candidate (the
+            best one among them, at distance 0).
+    """
+
+    position: torch.Tensor
+    num_inliers: int
+    num_matches: int
+    coverage: float
+    rivals: tuple[tuple[int, float], ...]
+
+    @classmethod
+    def from_result(cls, result: RelocResult) -> PoseEvidence | None:
+        """The evidence of a relocaliser's answer (``None`` when it found nothing)."""
+        best = result.best
+        if best is None:
+            return None
+        position = best.T_wc[:3, 3]
+        rivals = tuple(
+            (c.num_inliers, float(torch.linalg.vector_norm(c.T_wc[:3, 3] - position)))
+            for c in result.candidates
+        )
+        return cls(position, best.num_inliers, best.num_matches, best.coverage, rivals)
+
+    @classmethod
+    def from_record(cls, record: dict) -> PoseEvidence | None:
+        """The evidence a relocalisation run recorded for one query in ``queries.json``
+        (``found``, ``position_m``, ``candidates`` with ``inliers``, ``matches``,
+        ``coverage`` and ``distance_to_chosen_m``); ``None`` when it found nothing.
+
+        Raises:
+            ValueError: a found query without a position or candidates.
+        """
+        if not record["found"]:
+            return None
+        candidates = record["candidates"]
+        if record.get("position_m") is None or not candidates:
+            raise ValueError("a found query needs position_m and candidates in queries.json")
+        best = max(candidates, key=lambda c: c["inliers"])
+        rivals = tuple((int(c["inliers"]), float(c["distance_to_chosen_m"])) for c in candidates)
+        position = torch.tensor(record["position_m"], dtype=torch.float64)
+        return cls(
+            position, int(best["inliers"]), int(best["matches"]), float(best["coverage"]), rivals
+        )
+
+
 class PoseValidator:
     """Stateful pose validation over one query sequence (module docstring).
 
@@ -122,43 +177,50 @@ class PoseValidator:
         self._last_position: torch.Tensor | None = None
         self._last_time = 0.0
 
-    def plausible(self, best: Candidate, candidates: list[Candidate]) -> bool:
-        """The tests beyond seed 1's: inlier ratio, coverage and no well-supported rival.
-
-        Args:
-            best: the candidate whose pose is validated.
-            candidates: every candidate of the query (``best`` among them).
-        """
+    def plausible(self, evidence: PoseEvidence) -> bool:
+        """The tests beyond seed 1's: inlier ratio, coverage and no well-supported rival."""
         cfg = self.config
-        if best.num_inliers < cfg.min_inlier_ratio * max(best.num_matches, 1):
+        if evidence.num_inliers < cfg.min_inlier_ratio * max(evidence.num_matches, 1):
             return False
-        if best.coverage < cfg.min_coverage:
+        if evidence.coverage < cfg.min_coverage:
             return False
         if cfg.ambiguity_ratio is None:
             return True
-        position = best.T_wc[:3, 3]
-        for other in candidates:
-            far = torch.linalg.vector_norm(other.T_wc[:3, 3] - position) > cfg.theta_dist_m
-            if far and other.num_inliers >= cfg.ambiguity_ratio * best.num_inliers:
-                return False
-        return True
+        return not any(
+            distance > cfg.theta_dist_m and inliers >= cfg.ambiguity_ratio * evidence.num_inliers
+            for inliers, distance in evidence.rivals
+        )
 
     def validate_result(self, result: RelocResult, timestamp: float) -> bool:
-        """Whether a relocaliser's answer is verified (module docstring); ``False`` when it
-        found nothing. A pose that fails the tests beyond seed 1's is not an inlier pose, so
-        it does not become the reference of the distance test."""
-        best = result.best
-        if not result.found or best is None:
+        """Whether a relocaliser's answer is verified (:meth:`validate_evidence`)."""
+        return self.validate_evidence(PoseEvidence.from_result(result), timestamp)
+
+    def validate_evidence(self, evidence: PoseEvidence | None, timestamp: float) -> bool:
+        """Whether an answer is verified (module docstring); ``False`` when nothing was found
+        (``evidence`` None). A pose that fails the tests beyond seed 1's is not an inlier
+        pose, so it does not become the reference of the distance test."""
+        if evidence is None:
             return False
-        if best.num_inliers >= self.config.theta_in and not self.plausible(best, result.candidates):
+        if evidence.num_inliers >= self.config.theta_in and not self.plausible(evidence):
             return False
-        return self.validate(result.T_wc, result.num_inliers, timestamp)
+        return self.validate_position(evidence.position, evidence.num_inliers, timestamp)
 
     def validate(self, T_wc: torch.Tensor, num_inliers: int, timestamp: float) -> bool:
+        """Whether a refined pose is verified (:meth:`validate_position` of its position).
+
+        Raises:
+            ShapeError: ``T_wc`` is not (4, 4).
+            ValueError: a non-finite pose or timestamp.
+        """
+        check_shape(T_wc, "4,4", "T_wc")
+        check_finite(T_wc, "T_wc")
+        return self.validate_position(T_wc[:3, 3], num_inliers, timestamp)
+
+    def validate_position(self, position: torch.Tensor, num_inliers: int, timestamp: float) -> bool:
         """Whether a refined pose is verified; updates the reference on inlier poses.
 
         Args:
-            T_wc: (4, 4) refined camera-to-world pose.
+            position: (3,) camera position of the refined pose (world frame).
             num_inliers: its inlier matches ``n_in``.
             timestamp: query time in seconds (increasing over the sequence).
 
@@ -167,18 +229,18 @@ class PoseValidator:
             test against the previous inlier pose.
 
         Raises:
-            ShapeError: ``T_wc`` is not (4, 4).
-            ValueError: a non-finite pose or timestamp.
+            ShapeError: ``position`` is not (3,).
+            ValueError: a non-finite position or timestamp.
         """
-        check_shape(T_wc, "4,4", "T_wc")
-        check_finite(T_wc, "T_wc")
+        check_shape(position, "3", "position")
+        check_finite(position, "position")
         if not math.isfinite(timestamp):
             raise ValueError(f"timestamp must be finite, got {timestamp}")
         if num_inliers < self.config.theta_in:
             return False
         if not self.config.temporal:
             return True
-        position = T_wc[:3, 3].to(torch.float64)
+        position = position.to(torch.float64)
         previous, dt = self._last_position, abs(timestamp - self._last_time)
         self._last_position, self._last_time = position, float(timestamp)
         age = self.config.max_reference_age_s

@@ -1,0 +1,1 @@
+"""Cross-modal localization pieces of seed 2: render-pose selection in 3D maps."""
