@@ -38,7 +38,11 @@ def check_shape(x: ArrayLike, spec: str, name: str = "input") -> None:
         name: the argument name used in the error message.
 
     Example:
-        >>> check_shape(torch.eye(4), "*,4,4", "T_wc")
+        >>> check_shape(torch.eye(4), "*,4,4", "T_wc")  # passes: returns None
+        >>> check_shape(torch.eye(3), "*,4,4", "T_wc")
+        Traceback (most recent call last):
+        ...
+        diffloc.checks.ShapeError: T_wc must have shape (*,4,4), got (3, 3)
     """
     if not isinstance(x, torch.Tensor | np.ndarray):
         raise TypeError(f"{name} must be a torch.Tensor or numpy array, got {type(x).__name__}")

@@ -40,11 +40,18 @@ centre is at least ``min_clearance_m``; to the obstacle points themselves it is 
 Indoor defaults are those of :class:`PoseSelectionConfig`; outdoors (seed 2) use
 ``cell_size_m=0.2``, ``spacing_m=4.0`` and coarser closing/blur/clearance.
 
-Example:
+Example (two bare 8 x 2 m floors 3 m apart; unmapped space counts as walls):
+    >>> import numpy as np
+    >>> xy = np.mgrid[0:8:0.05, 0:2:0.05].reshape(2, -1).T
+    >>> points = np.concatenate([np.c_[xy, np.full(len(xy), z)] for z in (0.0, 3.0)])
+    >>> normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))  # two 8 x 2 m floors, 3 m apart
     >>> selection = select_render_poses(points, normals, PoseSelectionConfig())
-    >>> selection.T_wc.shape  # (4 * samples, 4, 4)
-    torch.Size([96, 4, 4])
-    >>> paths = write_floor_plan_figures(selection, "out/pose_selection")
+    >>> selection.T_wc.shape  # (4 views * 8 samples, 4, 4)
+    torch.Size([32, 4, 4])
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as out:  # write_floor_plan_figures: every floor
+    ...     plot_floor_plan(selection.floors[0], f"{out}/floor_0.png", dpi=20).stat().st_size > 0
+    True
 """
 
 from __future__ import annotations
@@ -291,8 +298,12 @@ def find_floors(
         ValueError: NaN/inf values, empty input, or no upward-facing point ("no floor found").
 
     Example:
+        >>> import numpy as np
+        >>> xy = np.mgrid[0:8:0.05, 0:2:0.05].reshape(2, -1).T
+        >>> points = np.concatenate([np.c_[xy, np.full(len(xy), z)] for z in (0.0, 3.0)])
+        >>> normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))  # two 8 x 2 m floors, 3 m apart
         >>> find_floors(points, normals)
-        array([0. , 3.0])
+        array([0., 3.])
     """
     config = PoseSelectionConfig() if config is None else config
     points, normals = _checked_cloud(points, normals)
@@ -348,9 +359,13 @@ def floor_plan(
         ValueError: NaN/inf values, no upward point at ``height_m``, or an empty corridor.
 
     Example:
+        >>> import numpy as np
+        >>> xy = np.mgrid[0:8:0.05, 0:2:0.05].reshape(2, -1).T
+        >>> points = np.concatenate([np.c_[xy, np.full(len(xy), z)] for z in (0.0, 3.0)])
+        >>> normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))  # two 8 x 2 m floors, 3 m apart
         >>> plan = floor_plan(points, normals, 0.0)
-        >>> plan.samples_xy.shape
-        (12, 2)
+        >>> plan.samples_xy.shape  # along the 8 m floor, 2 m apart
+        (4, 2)
     """
     config = PoseSelectionConfig() if config is None else config
     points, normals = _checked_cloud(points, normals)
@@ -588,9 +603,13 @@ def select_render_poses(
             ("no floor found"), or a floor with an empty corridor.
 
     Example:
+        >>> import numpy as np
+        >>> xy = np.mgrid[0:8:0.05, 0:2:0.05].reshape(2, -1).T
+        >>> points = np.concatenate([np.c_[xy, np.full(len(xy), z)] for z in (0.0, 3.0)])
+        >>> normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))  # two 8 x 2 m floors, 3 m apart
         >>> selection = select_render_poses(points, normals)
-        >>> selection.T_wc.shape, selection.floors[0].height_m
-        (torch.Size([96, 4, 4]), 0.0)
+        >>> selection.T_wc.shape, selection.floors[1].height_m
+        (torch.Size([32, 4, 4]), 3.0)
     """
     config = PoseSelectionConfig() if config is None else config
     points, normals = _checked_cloud(points, normals)
@@ -632,9 +651,7 @@ def plot_floor_plan(
     Returns:
         ``path`` as a :class:`~pathlib.Path`.
 
-    Example:
-        >>> plot_floor_plan(selection.floors[0], "floor_0.png")
-        PosixPath('floor_0.png')
+    Example: see the module docstring (:func:`write_floor_plan_figures` calls this per floor).
     """
     occupancy = np.where(plan.free, 1.0, np.where(plan.obstacle_mask, 0.0, 0.35))
     skeleton_view = 0.3 * plan.corridor + 0.7 * plan.skeleton
@@ -696,9 +713,7 @@ def write_floor_plan_figures(selection: RenderPoses, out_dir: str | os.PathLike)
     Returns:
         The written paths, one per floor.
 
-    Example:
-        >>> write_floor_plan_figures(selection, "out")
-        [PosixPath('out/floor_0.png'), PosixPath('out/floor_1.png')]
+    Example: see the module docstring.
     """
     out = Path(out_dir)
     return [plot_floor_plan(plan, out / f"floor_{plan.index}.png") for plan in selection.floors]

@@ -22,9 +22,11 @@ For every image (keyframe) with its pose ``T_wc``:
 
 Updating with a new sequence uses the same path: call :meth:`DatabaseBuilder.build` again.
 
-Example:
-    >>> builder = DatabaseBuilder(BuilderConfig(), surfels, make_extractor(XFeatConfig()))
-    >>> db = builder.build(read_sequence(root, "mapping"), show_progress=False)  # doctest: +SKIP
+Usage (needs a surfel map and posed images; ``tests/test_database_builder.py`` runs it on
+the tiny scene, ``notebooks/pipeline_tiny_scene.ipynb`` shows it)::
+
+    builder = DatabaseBuilder(BuilderConfig(), surfels, make_extractor(XFeatConfig()))
+    db = builder.build(read_sequence(root, "mapping"), show_progress=False)
 """
 
 from __future__ import annotations
@@ -155,10 +157,10 @@ class DatabaseBuilder:
         database: an existing database to update, or ``None`` to start an empty one (created
             at the first image with the extractor's descriptor size and dtype).
 
-    Example:
-        >>> builder = DatabaseBuilder(BuilderConfig(), surfels, extractor)  # doctest: +SKIP
-        >>> builder.add_image(image, T_wc, camera)  # doctest: +SKIP
-        0
+    Usage (the first image becomes keyframe 0)::
+
+        builder = DatabaseBuilder(BuilderConfig(), surfels, extractor)
+        builder.add_image(image, T_wc, camera)
     """
 
     def __init__(

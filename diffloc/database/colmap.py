@@ -21,9 +21,20 @@ Conventions:
   float64 from the database's poses and intrinsics.
 - Numbers are written with Python's shortest round-trip ``repr``.
 
-Example:
-    >>> write_colmap_text(db, "export/sparse/0")  # doctest: +SKIP
+Example (one keyframe observing one map point):
+    >>> import torch
+    >>> from diffloc.geometry.camera import PinholeCamera
+    >>> db = VisualDatabase(descriptor_dim=2)
+    >>> cam = PinholeCamera.from_fov(64, 48, 1.0)  # principal point (31.5, 23.5)
+    >>> k = db.add_keyframe(torch.eye(4), cam, torch.tensor([[31.5, 23.5]]), torch.ones(1, 2),
+    ...                     torch.ones(1))
+    >>> X = torch.tensor([[0.0, 0.0, 2.0]])  # 2 m ahead, seen at the image centre
+    >>> ids = db.add_points(X, torch.ones(1, 2), torch.tensor([-1]))
+    >>> db.add_observations(k, torch.tensor([0]), ids)
+    >>> write_colmap_text(db, "export/sparse/0")
     PosixPath('export/sparse/0')
+    >>> open("export/sparse/0/points3D.txt").read().splitlines()[-1]  # id xyz rgb error track
+    '1 0.0 0.0 2.0 128 128 128 0.0 1 0'
 """
 
 from __future__ import annotations
@@ -59,8 +70,16 @@ def reprojection_errors(db: VisualDatabase) -> torch.Tensor:
         its map point, in the order of :meth:`VisualDatabase.observations`.
 
     Example:
-        >>> reprojection_errors(db).mean()  # doctest: +SKIP
-        tensor(0.4211, dtype=torch.float64)
+        >>> from diffloc.geometry.camera import PinholeCamera
+        >>> db = VisualDatabase(descriptor_dim=2)
+        >>> cam = PinholeCamera.from_fov(64, 48, 1.0)  # principal point (31.5, 23.5)
+        >>> k = db.add_keyframe(torch.eye(4), cam, torch.tensor([[31.5, 23.5]]), torch.ones(1, 2),
+        ...                     torch.ones(1))
+        >>> X = torch.tensor([[0.0, 0.0, 2.0]])  # 2 m ahead, seen at the image centre
+        >>> ids = db.add_points(X, torch.ones(1, 2), torch.tensor([-1]))
+        >>> db.add_observations(k, torch.tensor([0]), ids)
+        >>> reprojection_errors(db)
+        tensor([0.], dtype=torch.float64)
     """
     observations = db.observations()
     keyframes, keypoints, points = observations.unbind(dim=1)
@@ -172,8 +191,7 @@ def write_colmap_text(
         ValueError: wrong counts of names or colours, names with whitespace, non-finite poses,
             intrinsics or points, or a map point behind a camera that observes it.
 
-    Example:
-        >>> write_colmap_text(db, tmp_path / "sparse")  # doctest: +SKIP
+    Example: see the module docstring.
     """
     folder = Path(folder)
     _check_folder(folder, overwrite)

@@ -288,8 +288,13 @@ class VisualDatabase:
             increasing order.
 
         Example:
-            >>> db.keyframe_rows(torch.tensor([2, 0]))  # doctest: +SKIP
-            tensor([5, 6, 0, 1, 2])
+            >>> db = VisualDatabase(descriptor_dim=2)
+            >>> cam = PinholeCamera.from_fov(64, 48, 1.0)
+            >>> for n in (2, 1, 3):  # keyframes of 2, 1 and 3 keypoints
+            ...     _ = db.add_keyframe(torch.eye(4), cam, torch.full((n, 2), 20.0),
+            ...                         torch.ones(n, 2), torch.ones(n))
+            >>> db.keyframe_rows(torch.tensor([2, 0]))
+            tensor([3, 4, 5, 0, 1])
         """
         starts = self.keypoint_offsets[keyframes]
         counts = self.keypoint_offsets[keyframes + 1] - starts
@@ -582,7 +587,18 @@ class VisualDatabase:
             (K, K) sparse COO int64 tensor (coalesced), zero diagonal.
 
         Example:
-            >>> db.covisibility().to_dense()  # doctest: +SKIP
+            >>> db = VisualDatabase(descriptor_dim=2)
+            >>> cam = PinholeCamera.from_fov(64, 48, 1.0)
+            >>> for n in (2, 1, 3):
+            ...     _ = db.add_keyframe(torch.eye(4), cam, torch.full((n, 2), 20.0),
+            ...                         torch.ones(n, 2), torch.ones(n))
+            >>> ids = db.add_points(torch.zeros(1, 3), torch.ones(1, 2), torch.tensor([-1]))
+            >>> db.add_observations(0, torch.tensor([1]), ids)
+            >>> db.add_observations(2, torch.tensor([0]), ids)  # keyframes 0 and 2 share it
+            >>> db.covisibility().to_dense()
+            tensor([[0, 0, 1],
+                    [0, 0, 0],
+                    [1, 0, 0]])
         """
         obs = self.observations().numpy()
         ones = np.ones(len(obs), dtype=np.int64)

@@ -27,10 +27,11 @@ position:
 A wrong match that happens to lie on one keyframe's epipolar line is unlikely to lie on the
 line of another keyframe with a different baseline, hence "every" rather than "any".
 
-Example:
-    >>> g = torch.Generator().manual_seed(0)
-    >>> config = EpipolarMatchingConfig()
-    >>> kp, pts = match_epipolar(db, covisible, features, camera, config, g)  # doctest: +SKIP
+Usage (inside :class:`diffloc.database.builder.DatabaseBuilder`, with a database under
+construction)::
+
+    g = torch.Generator().manual_seed(0)
+    kp, pts = match_epipolar(db, covisible, features, camera, EpipolarMatchingConfig(), g)
 """
 
 from __future__ import annotations

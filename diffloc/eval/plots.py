@@ -5,8 +5,9 @@ figure state and no display is needed) and written atomically. Every function ta
 an output path and returns the path; the image is ``figsize * dpi`` pixels.
 
 Example:
-    >>> plot_error_cdf({"found": np.array([0.01, 0.05, 0.4, np.nan])}, tmp_path / "errors.png")
-    PosixPath('.../errors.png')
+    >>> import numpy as np
+    >>> plot_error_cdf({"found": np.array([0.01, 0.05, 0.4, np.nan])}, "errors.png", dpi=20)
+    PosixPath('errors.png')
 """
 
 from __future__ import annotations
@@ -89,9 +90,9 @@ def plot_precision_recall(
     Example:
         >>> curve = PrecisionRecallCurve(np.array([1.0, 2.0]), np.array([0.8, 1.0]),
         ...                              np.array([0.6, 0.3]))
-        >>> plot_precision_recall({"found": curve}, tmp_path / "pr.png",
+        >>> plot_precision_recall({"found": curve}, "pr.png", dpi=20,
         ...                       operating_points={"validated": (0.5, 1.0)})
-        PosixPath('.../pr.png')
+        PosixPath('pr.png')
     """
     if not curves:
         raise ValueError("plot_precision_recall needs at least one curve")

@@ -312,7 +312,10 @@ class LocalFeatureExtractor(abc.ABC):
             ValueError: NaN, float values outside [0, 1], or an unsupported dtype.
 
         Example:
-            >>> features = make_extractor(OrbConfig()).extract(torch.rand(3, 480, 640))
+            >>> g = torch.Generator().manual_seed(0)
+            >>> features = make_extractor(OrbConfig()).extract(torch.rand(3, 240, 320, generator=g))
+            >>> features.keypoints.shape[1], features.descriptors.shape  # 32-byte descriptors
+            (2, torch.Size([..., 32]))
         """
         images, batched = as_image_batch(image)
         features = self._extract_batch(images)
@@ -417,6 +420,8 @@ class XFeatExtractor(LocalFeatureExtractor):
     Example:
         >>> extractor = XFeatExtractor(XFeatConfig(max_keypoints=1024))
         >>> features = extractor.extract(torch.rand(3, 240, 320))
+        >>> features.keypoints.shape, features.descriptors.shape  # 64-d float descriptors
+        (torch.Size([1024, 2]), torch.Size([1024, 64]))
     """
 
     def __init__(self, config: XFeatConfig) -> None:
@@ -667,6 +672,8 @@ class OpenCVExtractor(LocalFeatureExtractor):
 
     Example:
         >>> features = OpenCVExtractor(SiftConfig(max_keypoints=500)).extract(torch.rand(240, 320))
+        >>> len(features) <= 500, features.descriptors.shape[1]  # 128-d SIFT descriptors
+        (True, 128)
     """
 
     def __init__(self, config: OrbConfig | SiftConfig | AkazeConfig) -> None:
@@ -715,7 +722,9 @@ def make_extractor(config: LocalFeatureConfig) -> LocalFeatureExtractor:
 
     Example:
         >>> extractor = make_extractor(XFeatConfig(max_keypoints=2048))
-        >>> features = extractor.extract(torch.rand(2, 3, 240, 320))  # list of 2 Features
+        >>> features = extractor.extract(torch.rand(2, 3, 240, 320))  # a batch of two images
+        >>> type(features).__name__, len(features), type(features[0]).__name__
+        ('list', 2, 'Features')
     """
     if isinstance(config, XFeatConfig):
         return XFeatExtractor(config)

@@ -5,10 +5,15 @@ Descriptor metrics: ``"l2"`` (Euclidean) and ``"cosine"`` (``1 - cos``) for floa
 uint8 and ``"l2"`` otherwise. Every matcher returns :class:`Matches`; for descriptor matchers a
 match's score is minus its descriptor distance, so higher is better everywhere.
 
-Example:
-    >>> matches = match_descriptors(features0.descriptors, features1.descriptors, ratio=0.8)
-    >>> points0 = features0.keypoints[matches.indices[:, 0]]
-    >>> points1 = features1.keypoints[matches.indices[:, 1]]
+Example (the second set holds the first in reverse order):
+    >>> g = torch.Generator().manual_seed(0)
+    >>> desc0 = F.normalize(torch.randn(5, 8, generator=g), dim=1)
+    >>> matches = match_descriptors(desc0, desc0.flip(0), ratio=0.8)
+    >>> matches.indices.tolist()  # (index in desc0, index in desc1) pairs
+    [[0, 4], [1, 3], [2, 2], [3, 1], [4, 0]]
+
+With :class:`~diffloc.features.local.Features`, ``features0.keypoints[matches.indices[:, 0]]``
+and ``features1.keypoints[matches.indices[:, 1]]`` are the matched pixel pairs.
 """
 
 from __future__ import annotations
@@ -575,9 +580,13 @@ class LighterGlueMatcher:
     """LighterGlue matcher for XFeat features; the model is built on first use and kept.
 
     Example:
-        >>> features = make_extractor(XFeatConfig(max_keypoints=512)).extract(image)  # (3, H, W)
+        >>> from diffloc.features.local import XFeatConfig, make_extractor
+        >>> image = torch.rand(3, 96, 128, generator=torch.Generator().manual_seed(0))
+        >>> features = make_extractor(XFeatConfig(max_keypoints=128)).extract(image)
         >>> matcher = LighterGlueMatcher(LighterGlueConfig())
         >>> matches = matcher.match(features, features, image.shape[-2:], image.shape[-2:])
+        >>> len(matches) > 100, bool((matches.indices[:, 0] == matches.indices[:, 1]).all())
+        (True, True)
     """
 
     def __init__(self, config: LighterGlueConfig) -> None:

@@ -52,8 +52,11 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb", encoding: str = "utf-
         The open file object.
 
     Example:
-        >>> with atomic_open(tmp_path / "a.txt", "w") as f:
+        >>> with atomic_open("a.txt", "w") as f:
         ...     f.write("hello")
+        5
+        >>> Path("a.txt").read_text()
+        'hello'
     """
     if mode not in ("wb", "w"):
         raise ValueError(f"atomic_open mode must be 'wb' or 'w', got {mode!r}")
@@ -119,8 +122,13 @@ def atomic_directory(final_dir: str | os.PathLike, overwrite: bool = False) -> I
             block runs, and again if it appeared while the block ran).
 
     Example:
-        >>> with atomic_directory(tmp_path / "dataset") as tmp:
+        >>> with atomic_directory("dataset") as tmp:
         ...     (tmp / "a.txt").write_text("x")
+        ...     Path("dataset").exists()  # not yet: renamed into place on success
+        1
+        False
+        >>> sorted(p.name for p in Path("dataset").iterdir())
+        ['a.txt']
     """
     final_dir = Path(final_dir)
     if final_dir.exists() and not overwrite:

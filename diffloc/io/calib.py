@@ -309,7 +309,10 @@ def write_calib(path: str | os.PathLike, calib: Calibration) -> None:
         ValueError: a batched camera, or ``lidar`` holding values YAML cannot represent.
 
     Example:
-        >>> write_calib(seq_dir / "calib.yaml", Calibration(camera, depth_scale=1000.0))
+        >>> camera = PinholeCamera(fx=200.0, fy=200.0, cx=79.5, cy=59.5, width=160, height=120)
+        >>> write_calib("calib.yaml", Calibration(camera, depth_scale=1000.0))
+        >>> read_calib("calib.yaml").camera.width
+        160
     """
     try:
         text = yaml.dump(
@@ -341,8 +344,11 @@ def read_calib(path: str | os.PathLike) -> Calibration:
             message names the file and the key.
 
     Example:
-        >>> calib = read_calib(seq_dir / "calib.yaml")
-        >>> calib.camera.width
+        >>> camera = PinholeCamera(fx=200.0, fy=200.0, cx=79.5, cy=59.5, width=160, height=120)
+        >>> write_calib("calib.yaml", Calibration(camera))
+        >>> calib = read_calib("calib.yaml")
+        >>> calib.camera.width, calib.depth_scale, calib.T_body_camera
+        (160, 1000.0, None)
     """
     path = Path(path)
     if not path.is_file():

@@ -92,9 +92,15 @@ class SequenceWriter:
         FileExistsError: ``seq_dir`` exists and is not empty.
 
     Example:
-        >>> with SequenceWriter(root / "seq0", calib) as writer:
-        ...     writer.add_frame(0.0, T_wc, rgb, depth)
-        ...     writer.add_sweep(0.0, T_wl, points_lidar)
+        >>> from diffloc.geometry.camera import PinholeCamera
+        >>> camera = PinholeCamera(fx=40.0, fy=40.0, cx=15.5, cy=11.5, width=32, height=24)
+        >>> with SequenceWriter("seq0", Calibration(camera)) as writer:
+        ...     writer.add_frame(0.0, torch.eye(4), torch.zeros(3, 24, 32), torch.ones(24, 32))
+        ...     writer.add_sweep(0.0, torch.eye(4), torch.rand(100, 3))
+        0
+        0
+        >>> sorted(p.name for p in Path("seq0").iterdir())
+        ['calib.yaml', 'depth', 'lidar', 'poses.txt', 'rgb']
     """
 
     def __init__(self, seq_dir: str | os.PathLike, calib: Calibration) -> None:
@@ -386,8 +392,15 @@ def read_sequence(root: str | os.PathLike, name: str) -> SequenceData:
         ValueError: ``name`` not listed, malformed files, count mismatches.
 
     Example:
-        >>> seq = read_sequence(root, "mapping")
-        >>> rgb = seq.load_rgb(0)
+        >>> from diffloc.geometry.camera import PinholeCamera
+        >>> camera = PinholeCamera(fx=40.0, fy=40.0, cx=15.5, cy=11.5, width=32, height=24)
+        >>> with SequenceWriter("data/mapping", Calibration(camera)) as writer:
+        ...     for i in range(3):
+        ...         _ = writer.add_frame(0.5 * i, torch.eye(4), torch.zeros(3, 24, 32))
+        >>> _ = write_dataset_info("data", ["mapping"])
+        >>> seq = read_sequence("data", "mapping")
+        >>> len(seq), seq.load_rgb(2).shape
+        (3, torch.Size([3, 24, 32]))
     """
     info = read_dataset_info(root)
     if name not in info["sequences"]:

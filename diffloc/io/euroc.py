@@ -249,8 +249,7 @@ def read_euroc(
             inside the ground-truth time range.
 
     Example:
-        >>> seq = read_euroc("MH_01_easy/mav0")
-        >>> seq.info["dropped_images"]
+        See :func:`write_euroc` (a round trip through a written ``mav0`` folder).
     """
     mav0 = _resolve_mav0(mav0_dir)
     cam_dir = mav0 / camera_name
@@ -382,8 +381,14 @@ def write_euroc(
         ValueError: mismatched lengths, non-increasing timestamps, non-rigid poses.
 
     Example:
-        >>> write_euroc(tmp / "mav0", times, T_wc, camera, images)
-        >>> seq = read_euroc(tmp / "mav0")
+        >>> camera = PinholeCamera(fx=40.0, fy=40.0, cx=15.5, cy=11.5, width=32, height=24)
+        >>> T_wc = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+        >>> T_wc[:, 0, 3] = torch.tensor([0.0, 0.1, 0.2])
+        >>> images = [torch.zeros(3, 24, 32)] * 3
+        >>> _ = write_euroc("MH_tiny/mav0", [0.0, 0.05, 0.1], T_wc, camera, images)
+        >>> seq = read_euroc("MH_tiny/mav0")
+        >>> seq.name, len(seq), seq.T_wc[:, 0, 3]
+        ('MH_tiny', 3, tensor([0.0000, 0.1000, 0.2000], dtype=torch.float64))
     """
     mav0 = Path(mav0_dir)
     if (mav0 / "cam0").exists():

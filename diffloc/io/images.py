@@ -70,7 +70,9 @@ def write_rgb(path: str | os.PathLike, image: np.ndarray | torch.Tensor) -> None
         ValueError: NaN values, or a suffix other than ``.png``.
 
     Example:
-        >>> write_rgb("frame.png", torch.rand(3, 120, 160))
+        >>> write_rgb("frame.png", torch.full((3, 120, 160), 0.5))
+        >>> read_rgb("frame.png")[:, 0, 0]  # round(255 * 0.5) / 255
+        tensor([0.5020, 0.5020, 0.5020])
     """
     path = Path(path)
     array = _to_numpy(image)
@@ -107,7 +109,10 @@ def read_rgb(path: str | os.PathLike) -> torch.Tensor:
         ValueError: the file cannot be decoded.
 
     Example:
+        >>> write_rgb("frame.png", torch.zeros(3, 120, 160))
         >>> rgb = read_rgb("frame.png")
+        >>> rgb.shape, rgb.dtype
+        (torch.Size([3, 120, 160]), torch.float32)
     """
     path, image = _decode(path)
     if image.dtype == np.uint8:
@@ -155,7 +160,9 @@ def write_depth(
         ValueError: NaN or negative depths, a non-positive scale.
 
     Example:
-        >>> write_depth("depth.png", torch.full((120, 160), 2.5))
+        >>> write_depth("depth.png", torch.full((120, 160), 2.5))  # stored as 2500 mm
+        >>> float(read_depth("depth.png").max())
+        2.5
     """
     path = Path(path)
     scale = _check_scale(scale)
@@ -190,7 +197,9 @@ def read_depth(path: str | os.PathLike, scale: float = 1000.0) -> torch.Tensor:
         ValueError: the file cannot be decoded or is not a single-channel 16-bit image.
 
     Example:
-        >>> depth = read_depth("depth.png", scale=1000.0)
+        >>> write_depth("depth.png", torch.tensor([[0.0, 1.2345]]))
+        >>> read_depth("depth.png", scale=1000.0)  # (1, H, W) metres; 0 = no measurement
+        tensor([[[0.0000, 1.2350]]])
     """
     scale = _check_scale(scale)
     path, image = _decode(path)

@@ -81,7 +81,21 @@ def write_textured_mesh_obj(path: str | os.PathLike, mesh: TexturedMesh) -> Path
         ValueError: a bad or repeated material name, a path not ending in ``.obj``.
 
     Example:
-        >>> write_textured_mesh_obj(root / "map" / "mesh" / "scene.obj", mesh)
+        >>> mesh = TexturedMesh(
+        ...     vertices=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32),
+        ...     triangles=np.array([[0, 1, 2]], dtype=np.int32),
+        ...     corner_uvs=np.array([[[0, 1], [1, 1], [0, 0]]], dtype=np.float32),
+        ...     material_ids=np.zeros(1, dtype=np.int32),
+        ...     object_ids=np.zeros(1, dtype=np.int32),
+        ...     textures=[np.full((4, 4, 3), 0.5, dtype=np.float32)],
+        ...     material_names=["grey"],
+        ... )
+        >>> write_textured_mesh_obj("mesh/scene.obj", mesh)
+        PosixPath('mesh/scene.obj')
+        >>> sorted(str(p) for p in Path("mesh").rglob("*"))
+        ['mesh/scene.mtl', 'mesh/scene.obj', 'mesh/textures', 'mesh/textures/grey.png']
+        >>> read_textured_mesh_obj("mesh/scene.obj").num_faces
+        1
     """
     path = Path(path)
     if path.suffix.lower() != ".obj":
@@ -218,8 +232,7 @@ def read_textured_mesh_obj(path: str | os.PathLike) -> TexturedMesh:
             out of range), several ``mtllib`` statements, undefined materials, lost faces or
             texture coordinates, non-finite values; the message names the file.
 
-    Example:
-        >>> mesh = read_textured_mesh_obj(root / "map" / "mesh" / "scene.obj")  # doctest: +SKIP
+    Example: see :func:`write_textured_mesh_obj` (a round trip).
     """
     path = Path(path)
     if not path.is_file():

@@ -127,8 +127,11 @@ def read_ply(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], np.ndarray
             the file.
 
     Example:
-        >>> vertex, faces = read_ply("cloud.ply")  # doctest: +SKIP
-        >>> points = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1)  # doctest: +SKIP
+        >>> write_ply("cloud.ply", {"x": np.zeros(2), "y": np.ones(2), "z": np.arange(2.0)})
+        >>> vertex, faces = read_ply("cloud.ply")
+        >>> np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1), faces
+        (array([[0., 1., 0.],
+               [0., 1., 1.]]), None)
     """
     path = Path(path)
     if not path.is_file():
@@ -179,7 +182,11 @@ def write_ply(
             faces out of range.
 
     Example:
-        >>> write_ply("cloud.ply", {"x": x, "y": y, "z": z, "radius": r})
+        >>> x = np.array([0.0, 1.0], dtype=np.float32)
+        >>> write_ply("cloud.ply", {"x": x, "y": x, "z": x, "radius": np.full(2, 0.02)})
+        >>> vertex, _ = read_ply("cloud.ply")
+        >>> list(vertex), vertex["radius"].dtype
+        (['x', 'y', 'z', 'radius'], dtype('float64'))
     """
     path = Path(path)
     if not vertex:
@@ -347,9 +354,10 @@ def read_point_cloud(path: str | os.PathLike) -> PointCloudData:
             normals or float colours; the message names the file.
 
     Example:
-        >>> cloud = read_point_cloud("map/lidar_map.ply")  # doctest: +SKIP
-        >>> cloud.points.shape  # doctest: +SKIP
-        (120000, 3)
+        >>> write_ply("map.ply", {a: np.arange(3.0) for a in ("x", "y", "z", "intensity")})
+        >>> cloud = read_point_cloud("map.ply")
+        >>> cloud.points.shape, cloud.normals, list(cloud.extra)
+        ((3, 3), None, ['intensity'])
     """
     vertex, _ = read_ply(path)
     points = np.stack([vertex[a] for a in "xyz"], axis=1).astype(np.float32)

@@ -84,6 +84,9 @@ def write_tum(
 
     Example:
         >>> write_tum("poses.txt", np.array([0.0, 0.1]), torch.eye(4).expand(2, 4, 4))
+        >>> row = open("poses.txt").read().splitlines()[-1].split()  # t tx ty tz qx qy qz qw
+        >>> row[0], row[1], row[7]
+        ('0.100000000', '0.000000000000', '1.000000000000000')
     """
     times = _as_timestamps(timestamps, "timestamps")
     T = _as_tensor64(T_wc)
@@ -119,7 +122,10 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, torch.Tensor]:
             the file and the line number.
 
     Example:
+        >>> _ = Path("poses.txt").write_text("0.5 1 2 3 0 0 0 1")  # t tx ty tz qx qy qz qw
         >>> timestamps, T_wc = read_tum("poses.txt")
+        >>> timestamps, T_wc[0, :3, 3]
+        (array([0.5]), tensor([1., 2., 3.], dtype=torch.float64))
     """
     path = Path(path)
     if not path.is_file():
@@ -200,7 +206,10 @@ def interpolate_poses(
         ValueError: empty source, non-increasing source times, queries out of range.
 
     Example:
-        >>> T = interpolate_poses(np.array([0.0, 1.0]), T_src, np.array([0.5]))
+        >>> T_src = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+        >>> T_src[1, 0, 3] = 2.0  # 2 m along x in one second
+        >>> interpolate_poses(np.array([0.0, 1.0]), T_src, np.array([0.5]))[0, :3, 3]
+        tensor([1., 0., 0.], dtype=torch.float64)
     """
     times = _as_timestamps(timestamps_src, "timestamps_src")
     query = _as_timestamps(timestamps_query, "timestamps_query")

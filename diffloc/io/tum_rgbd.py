@@ -123,8 +123,8 @@ def read_tum_rgbd(
         ValueError: malformed lists (with line numbers), no RGB-depth pairs inside the ground
             truth.
 
-    Example:
-        >>> seq = read_tum_rgbd("rgbd_dataset_freiburg1_xyz")
+    Usage: ``read_tum_rgbd("rgbd_dataset_freiburg1_xyz")`` on a downloaded TUM sequence
+    (``tests/test_io_tum_rgbd.py`` writes and reads small ones).
     """
     root = Path(root)
     if not root.is_dir():

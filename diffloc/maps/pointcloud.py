@@ -173,7 +173,14 @@ class PointMap(PerPointFields):
             ValueError: NaN/inf inputs, images outside [0, 1], negative depths.
 
         Example:
-            >>> cloud, seen = PointMap.colorize(points, images, T_wc, camera, depths)
+            >>> from diffloc.geometry.camera import PinholeCamera
+            >>> camera = PinholeCamera.from_fov(16, 12, 1.2)
+            >>> points = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 3.0], [0.0, 0.0, -2.0]])
+            >>> images = torch.tensor([0.2, 0.4, 0.6]).view(1, 3, 1, 1).expand(1, 3, 12, 16)
+            >>> depths = torch.full((1, 1, 12, 16), 2.0)  # one view of a wall 2 m ahead
+            >>> cloud, seen = PointMap.colorize(points, images, torch.eye(4)[None], camera, depths)
+            >>> seen, cloud.colors  # the point behind the wall and the one behind the camera
+            (tensor([ True, False, False]), tensor([[0.2000, 0.4000, 0.6000]]))
         """
         config = ColorizeConfig() if config is None else config
         points = as_float32(points, "N,3", "points")

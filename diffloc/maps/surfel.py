@@ -197,7 +197,11 @@ class SurfelMap(PerPointFields):
                 downsampled points than the neighbourhood sizes need, or no surfel left.
 
         Example:
-            >>> surfels = SurfelMap.from_points(lidar_points, lidar_origin, SurfelMapConfig())
+            >>> xy = np.stack(np.meshgrid(np.arange(0, 1, 0.02), np.arange(0, 1, 0.02)), -1)
+            >>> floor = np.c_[xy.reshape(-1, 2), np.zeros(2500)]  # 1 x 1 m floor, 2 cm grid
+            >>> surfels = SurfelMap.from_points(floor, [0.5, 0.5, 1.5], SurfelMapConfig())
+            >>> len(surfels) > 100, bool((surfels.normals[:, 2] > 0.99).all())  # face the sensor
+            (True, True)
         """
         config = SurfelMapConfig() if config is None else config
         points_np, origins, attributes = _checked_inputs(points, sensor_origins, colors)

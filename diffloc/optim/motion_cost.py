@@ -35,6 +35,7 @@ inlier set and kernel held fixed) in the right-perturbation tangent
 ``T_wc = T* @ se3_exp(theta)``. This assumes the last round converged.
 
 Example:
+    >>> from diffloc.testing import random_points  # (N, 3) points in front of the camera
     >>> cam = PinholeCamera.from_fov(640, 480, 1.2, dtype=torch.float64)
     >>> g = torch.Generator().manual_seed(0)
     >>> points = random_points((50,), generator=g)
@@ -605,6 +606,7 @@ def refine_pose(
             non-positive sigmas.
 
     Example:
+        >>> from diffloc.testing import random_points
         >>> cam = PinholeCamera.from_fov(64, 48, 1.2, dtype=torch.float64)
         >>> X = random_points((20,), generator=torch.Generator().manual_seed(1))
         >>> out = refine_pose(cam, torch.eye(4, dtype=torch.float64), X, cam.project(X)[0])

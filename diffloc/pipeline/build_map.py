@@ -128,13 +128,11 @@ def _id_colors(ids: torch.Tensor) -> torch.Tensor:
 def _write_preview(
     path: Path, images: torch.Tensor, ids: torch.Tensor, depth: torch.Tensor, title: str
 ) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # object API: the caller's backend is left alone
 
     rows = len(images)
-    fig, axes = plt.subplots(rows, 3, figsize=(12, 3.2 * rows), squeeze=False)
+    fig = Figure(figsize=(12, 3.2 * rows))
+    axes = fig.subplots(rows, 3, squeeze=False)
     for r in range(rows):
         panels = (
             (images[r].permute(1, 2, 0).numpy(), "image", None),
@@ -151,7 +149,6 @@ def _write_preview(
     fig.tight_layout()
     tmp = path.with_name(f".{path.name}.tmp.png")
     fig.savefig(tmp, dpi=80)
-    plt.close(fig)
     tmp.replace(path)
 
 

@@ -9,9 +9,9 @@ select) and writes it with :func:`~diffloc.database.colmap.write_colmap_text`:
 - map point colours are those of their anchor surfels when ``<dataset>/map/surfel_map.ply``
   has colours and holds every anchor id, else grey.
 
-Example:
-    >>> export_colmap("data/indoor_seed0", DatabaseConfig(), ExportColmapTaskConfig())
-    ... # doctest: +SKIP
+Usage (on a dataset whose database is built; ``diffloc task=export_colmap`` does this)::
+
+    export_colmap("data/indoor_seed0", DatabaseConfig(), ExportColmapTaskConfig())
 """
 
 from __future__ import annotations

@@ -12,12 +12,10 @@ The database stages write into :func:`~diffloc.pipeline.database_stage.database_
 folder, the record that identifies it (a cached retriever is valid only if newer), where
 retrievers of it are cached and the images of its keyframes.
 
-Example:
-    >>> selected = select_database("data/indoor_seed0", DatabaseConfig(), "updated_query_lane")
-    ... # doctest: +SKIP
-    >>> VisualDatabase.load(selected.path).num_keyframes == len(selected.keyframe_sources)
-    ... # doctest: +SKIP
-    True
+Usage (on a dataset with an updated database)::
+
+    selected = select_database("data/indoor_seed0", DatabaseConfig(), "updated_query_lane")
+    VisualDatabase.load(selected.path).num_keyframes == len(selected.keyframe_sources)  # True
 """
 
 from __future__ import annotations

@@ -16,8 +16,9 @@ verdicts, ``estimates.tum`` (the accepted poses, taken from the source run, whos
 ``groundtruth.tum``; and the source's ``.hydra`` folder, so held-out reports group the job
 as before. Plots are not redrawn.
 
-Example:
-    >>> revalidate_run("runs/heldout/0", "runs/heldout_v2/0", ValidationConfig())  # doctest: +SKIP
+Usage (on the folder of a finished run)::
+
+    revalidate_run("runs/heldout/0", "runs/heldout_v2/0", ValidationConfig())
 """
 
 from __future__ import annotations

@@ -23,9 +23,11 @@ the previous inlier pose) lives in :mod:`diffloc.reloc.validation`. ``points = "
 seed 1's baseline: keypoints of the best retrieved keyframe tied directly to the centres of
 their surfels, no covisibility, no essential check, no projection search.
 
-Example:
-    >>> reloc = HierarchicalRelocalizer(db, retriever, RelocConfig())  # doctest: +SKIP
-    >>> result = reloc.relocalize(image, features, camera)  # doctest: +SKIP
+Usage (needs a database and a retriever; ``notebooks/pipeline_tiny_scene.ipynb`` runs it on
+the tiny scene)::
+
+    reloc = HierarchicalRelocalizer(db, retriever, RelocConfig())
+    result = reloc.relocalize(image, features, camera)
 """
 
 from __future__ import annotations

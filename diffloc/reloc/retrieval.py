@@ -8,10 +8,11 @@ training needed) and searches the keyframes' descriptors by cosine similarity.
 index (the "BoBW" baseline of seed 1 Table II). Both save and load from a folder (``.npz``
 arrays + JSON metadata, no pickle).
 
-Example:
-    >>> retriever = NetVLADRetriever.fit(keyframe_images, NetVLADConfig())  # doctest: +SKIP
-    >>> query = retriever.describe(image, features)  # doctest: +SKIP
-    >>> scores, keyframes = retriever.search(query, k=30)  # doctest: +SKIP
+Usage (needs the keyframe images of a database)::
+
+    retriever = NetVLADRetriever.fit(keyframe_images, NetVLADConfig())
+    query = retriever.describe(image, features)
+    scores, keyframes = retriever.search(query, k=30)
 """
 
 from __future__ import annotations

@@ -258,8 +258,15 @@ def simulate_sweep(
         :func:`spinning_lidar_directions`).
 
     Example:
-        >>> points = simulate_sweep(MeshRaycaster(mesh), np.eye(4), SpinningLidarConfig(),
+        >>> from diffloc.sim.primitives import MeshBuilder
+        >>> builder = MeshBuilder(["concrete"])
+        >>> builder.add_box([-5, -5, -5], [5, 5, 5], "concrete", object_id=0)  # a 10 m room
+        >>> mesh = builder.build([np.full((4, 4, 3), 0.5, dtype=np.float32)])
+        >>> config = SpinningLidarConfig(beams=4, azimuth_steps=64)
+        >>> points = simulate_sweep(MeshRaycaster(mesh), np.eye(4), config,
         ...                         np.random.default_rng(0))
+        >>> points.shape[1], bool(np.abs(points).max() < 5.1)  # hits on the walls (lidar frame)
+        (3, True)
     """
     directions_lidar = spinning_lidar_directions(cfg)
     pose = _as_numpy64(T_wl)
@@ -297,8 +304,15 @@ def simulate_station_scan(
         (P, 3) float32 points in the world frame (returns within the range limits only).
 
     Example:
+        >>> from diffloc.sim.primitives import MeshBuilder
+        >>> builder = MeshBuilder(["concrete"])
+        >>> builder.add_box([-5, -5, -5], [5, 5, 5], "concrete", object_id=0)  # a 10 m room
+        >>> mesh = builder.build([np.full((4, 4, 3), 0.5, dtype=np.float32)])
+        >>> config = TerrestrialScannerConfig(elevation_steps=8, azimuth_steps=16)
         >>> points = simulate_station_scan(MeshRaycaster(mesh), np.array([1.0, 2.0, 1.5]),
-        ...                                TerrestrialScannerConfig(), np.random.default_rng(0))
+        ...                                config, np.random.default_rng(0))
+        >>> points.shape[1], bool(np.abs(points).max() < 5.1)  # world frame, inside the room
+        (3, True)
     """
     directions = scanner_directions(cfg)
     origin = _as_numpy64(position_world)
@@ -419,7 +433,12 @@ def accumulate_map(
             non-positive sizes.
 
     Example:
-        >>> points, normals = accumulate_map([scan_a, scan_b], [origin_a, origin_b], 0.05, 0.15)
+        >>> xy = np.stack(np.meshgrid(np.arange(0, 1, 0.02), np.arange(0, 1, 0.02)), -1)
+        >>> floor = np.c_[xy.reshape(-1, 2), np.zeros(2500)]  # two scans of a 1 m floor patch
+        >>> points, normals = accumulate_map([floor, floor + [0.01, 0, 0]],
+        ...                                  [[0.5, 0.5, 1.0], [0.5, 0.5, 2.0]], 0.05, 0.15)
+        >>> points.shape, bool(np.abs(normals - [0, 0, 1]).max() < 1e-5)  # facing the sensors
+        ((400, 3), True)
     """
     _check_number(voxel_size_m, "voxel_size_m", low=0.0, strict=True)
     _check_number(normal_radius_m, "normal_radius_m", low=0.0, strict=True)

@@ -4,12 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
+from matplotlib.figure import Figure
 
 
 def write_preview(
@@ -29,7 +26,9 @@ def write_preview(
         title: figure title.
     """
     frames = frames[:4]
-    fig = plt.figure(figsize=(16, 7.5), dpi=80)
+    # matplotlib's object API: no pyplot state, and the caller's backend (e.g. a notebook's
+    # inline one) is left alone.
+    fig = Figure(figsize=(16, 7.5), dpi=80)
     grid = fig.add_gridspec(2, 4, width_ratios=[1, 1, 1.35, 1.35])
     for k, (caption, image) in enumerate(frames):
         ax = fig.add_subplot(grid[k // 2, k % 2])
@@ -53,4 +52,3 @@ def write_preview(
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, metadata={"Software": None})
-    plt.close(fig)

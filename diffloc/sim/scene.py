@@ -62,10 +62,10 @@ def generate_world(
         ValueError: unknown kind, a seed that is not a non-negative integer, a layout of the wrong
             type or with invalid values.
 
-    Example:
-        >>> world = generate_world("indoor", 0)
-        >>> world.route.shape[1]
-        3
+    Usage (a few seconds: no doctest)::
+
+        world = generate_world("indoor", 0)
+        world.route.shape[1]  # 3
     """
     if kind not in WORLD_KINDS:
         raise ValueError(f"unknown world kind {kind!r}; valid kinds are {list(WORLD_KINDS)}")

@@ -66,6 +66,7 @@ Layout
     :mod:`~diffloc.optim.lm.result`.
 
 Example:
+    >>> import torch
     >>> targets = torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64)
     >>> def residual_fn(T_a, T_b, extra):  # pose translation minus a target
     ...     return T_a[..., :3, 3] - targets
