@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import doctest
 import math
 
 import pytest
@@ -10,7 +9,6 @@ import torch
 import torch.nn.functional as F
 
 from diffloc.checks import ShapeError
-from diffloc.features import dense, global_
 from diffloc.features.dense import DenseXFeat
 from diffloc.features.global_ import BagOfWords, NetVLAD, kmeans, nearest_centroids
 from diffloc.features.netvlad_training import (
@@ -54,11 +52,6 @@ def reference_vlad(x: torch.Tensor, centroids: torch.Tensor, alpha: float) -> to
         vlad[c] /= torch.linalg.vector_norm(vlad[c])
     flat = vlad.flatten()
     return flat / torch.linalg.vector_norm(flat)
-
-
-def test_doctests() -> None:
-    for module in (global_, dense):
-        assert doctest.testmod(module, extraglobs={"torch": torch}).failed == 0
 
 
 # --- DenseXFeat -------------------------------------------------------------------------

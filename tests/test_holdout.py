@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import doctest
-
 import pytest
 import torch
 
-from diffloc.optim import holdout
 from diffloc.optim.holdout import (
     HoldoutCheckConfig,
     checked_optimize_keyframe_poses,
@@ -172,7 +169,3 @@ def test_bad_prior_raises(scene: Scene):
             checked_optimize_keyframe_poses(
                 db, scene.centers, scene.normals, OPTIM, HoldoutCheckConfig(), prior
             )
-
-
-def test_doctests() -> None:
-    assert doctest.testmod(holdout, extraglobs={"torch": torch}).failed == 0

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import doctest
-import importlib
 import math
-import pkgutil
 from dataclasses import dataclass
 from types import SimpleNamespace
 
@@ -15,7 +12,6 @@ import torch
 from diffloc.checks import ShapeError
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, se3_log, transform_points
-from diffloc.optim import lm
 from diffloc.optim.lm import (
     BlockLinearization,
     LMConfig,
@@ -554,15 +550,3 @@ def test_non_finite_initial_residuals_raise() -> None:
 def test_bad_config_raises(kwargs: dict) -> None:
     with pytest.raises(ValueError):
         LMConfig(**kwargs)
-
-
-@pytest.mark.parametrize(
-    "name",
-    [
-        "diffloc.optim.lm",
-        *(f"diffloc.optim.lm.{m.name}" for m in pkgutil.iter_modules(lm.__path__)),
-    ],
-)
-def test_doctests(name: str) -> None:
-    module = importlib.import_module(name)
-    assert doctest.testmod(module, extraglobs={"torch": torch}).failed == 0

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import doctest
 import math
 from dataclasses import dataclass
 
@@ -323,8 +322,3 @@ def test_zero_points_and_bad_sigmas_raise() -> None:
 def test_bad_config_raises(kwargs: dict) -> None:
     with pytest.raises(ValueError):
         MotionRefineConfig(**kwargs)
-
-
-def test_doctests() -> None:
-    globs = {"torch": torch, "random_points": random_points}
-    assert doctest.testmod(motion_cost, extraglobs=globs).failed == 0

@@ -3,14 +3,12 @@ brute-force scans of every pixel."""
 
 from __future__ import annotations
 
-import doctest
 import math
 
 import pytest
 import torch
 
 from diffloc.checks import ShapeError
-from diffloc.database import neighbours
 from diffloc.database.neighbours import keypoint_disk_mask, neighbour_surfels
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.render.surfel_render import render_surfel_index
@@ -144,7 +142,3 @@ def test_surfel_index_to_neighbours_round_trip():
     keypoints = torch.tensor([[u_left, 23.5], [31.5, 23.5]])
     sets = neighbour_surfels(out.ids[0], keypoints, torch.tensor([2.0, 6.0]))
     assert sets.tolist() == [[0, -1], [0, 1]]
-
-
-def test_doctests() -> None:
-    assert doctest.testmod(neighbours, extraglobs={"torch": torch}).failed == 0

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import doctest
 import json
 import math
 from pathlib import Path
@@ -12,8 +11,6 @@ import pytest
 import torch
 
 from diffloc.checks import ShapeError
-from diffloc.features import index as index_module
-from diffloc.features import retrieval_eval
 from diffloc.features.index import RetrievalIndex
 from diffloc.features.retrieval_eval import pairwise_pose_distances, retrieval_recall
 from diffloc.testing import assert_close
@@ -31,11 +28,6 @@ def poses_at(x: list[float], yaw_deg: list[float] | None = None) -> torch.Tensor
         c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
         T[i, :2, :2] = torch.tensor([[c, -s], [s, c]], dtype=torch.float64)
     return T
-
-
-def test_doctests() -> None:
-    for module in (index_module, retrieval_eval):
-        assert doctest.testmod(module, extraglobs={"torch": torch}).failed == 0
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import doctest
 import math
 from dataclasses import dataclass
 
@@ -14,7 +13,6 @@ from diffloc.database.database import VisualDatabase
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.rig import SensorRig
 from diffloc.geometry.se3 import invert, se3_exp, se3_log, vee
-from diffloc.optim import rig_calibration
 from diffloc.optim.lm import LMConfig
 from diffloc.optim.rig_calibration import (
     RigCalibrationConfig,
@@ -428,8 +426,3 @@ def test_rig_cost_bad_inputs_raise() -> None:
         RigCalibrationCost(rig.cost, rig.alpha, rig.beta, rig.T_wc, rig.twists[:3])
     with pytest.raises(ValueError, match="keyframe indices"):
         RigCalibrationCost(rig.cost, rig.alpha + 5, rig.beta, rig.T_wc, rig.twists)
-
-
-def test_doctests() -> None:
-    result = doctest.testmod(rig_calibration)
-    assert result.failed == 0 and result.attempted > 0

@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import doctest
-
 import pytest
 import torch
 
-from diffloc.optim import robust
 from diffloc.optim.robust import RobustKernel, cauchy, huber, make_robust_kernel, trivial
 from diffloc.testing import assert_close, gradcheck
 
@@ -58,7 +55,3 @@ def test_kernels_down_weight_large_residuals() -> None:
 def test_bad_config_raises(name: str, scale: float) -> None:
     with pytest.raises(ValueError, match="kernel"):
         RobustKernel(name, scale)
-
-
-def test_doctests() -> None:
-    assert doctest.testmod(robust, extraglobs={"torch": torch}).failed == 0

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import doctest
 import math
 
 import pytest
@@ -11,7 +10,6 @@ from pytorch_kinematics import transforms as pk_tf
 from scipy.spatial.transform import Rotation
 
 from diffloc.checks import ShapeError
-from diffloc.geometry import se3
 from diffloc.geometry.se3 import (
     adjoint,
     cayley_rotation,
@@ -58,11 +56,6 @@ def _twists(shape: tuple[int, ...], angle: float, g: torch.Generator) -> torch.T
     w = _unit(shape, g) * angle
     v = torch.randn(*shape, 3, generator=g, dtype=F64)
     return torch.cat((v, w), dim=-1)
-
-
-def test_docstring_examples() -> None:
-    result = doctest.testmod(se3, extraglobs={"torch": torch})
-    assert result.attempted > 5 and result.failed == 0
 
 
 def test_hat_is_cross_product_and_vee_inverts_it() -> None:

@@ -7,7 +7,6 @@ every surfel, and a per-point loop that paints squares into a z-buffer.
 
 from __future__ import annotations
 
-import doctest
 import math
 
 import pytest
@@ -17,7 +16,6 @@ from diffloc.checks import ShapeError
 from diffloc.database.neighbours import keypoint_disk_mask
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, transform_points
-from diffloc.render import point_render, point_sizes, surfel_render
 from diffloc.render._reference import reference_points, reference_surfels
 from diffloc.render.pixel_mask import _summed_area
 from diffloc.render.point_render import render_points, see_through_fraction
@@ -737,8 +735,3 @@ def test_point_sizes_passes():
     sizes = PointSizes.multi_pass(1.0, 10.0, (1, 4, 10))  # midpoints 2.5 and 7
     z = torch.tensor([0.5, 1.0, 1.25, 2.0, 4.0, 5.0, 100.0])  # rho = 10, 10, 8, 5, 2.5, 2, 1
     assert sizes.level_index(z).tolist() == [2, 2, 2, 1, 1, 0, 0]
-
-
-@pytest.mark.parametrize("module", [surfel_render, point_sizes, point_render])
-def test_doctests(module) -> None:
-    assert doctest.testmod(module, extraglobs={"torch": torch}).failed == 0

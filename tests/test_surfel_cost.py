@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import doctest
 import math
 from dataclasses import dataclass
 
@@ -13,7 +12,6 @@ from diffloc.checks import ShapeError
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, se3_log
-from diffloc.optim import surfel_cost
 from diffloc.optim.lm import autodiff_linearize, levenberg_marquardt
 from diffloc.optim.surfel_cost import (
     SurfelOptimConfig,
@@ -550,7 +548,3 @@ def test_optimize_analytic_matches_autodiff_lm(scene: Scene) -> None:
     )
     assert_close(T_wc, reference.T_wc, atol=1e-9, rtol=0)
     assert_close(result.cost_history[:5], reference.cost_history[:5], rtol=1e-9, atol=1e-12)
-
-
-def test_doctests() -> None:
-    assert doctest.testmod(surfel_cost, extraglobs={"torch": torch}).failed == 0
