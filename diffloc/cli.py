@@ -29,7 +29,6 @@ import sys
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import asdict
 from pathlib import Path
 
 import hydra
@@ -41,7 +40,7 @@ from diffloc.config import CONF_DIR, check_known_keys, register_configs
 from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.colmap_stage import export_colmap
-from diffloc.pipeline.database_stage import build_database, database_dir, optimize_database
+from diffloc.pipeline.database_stage import build_database, optimize_database
 from diffloc.pipeline.hints import Command, CommandHint, MissingStageError, override_key
 from diffloc.pipeline.reloc_stage import relocalize_dataset
 from diffloc.pipeline.rig_stage import calibrate_database_rig
@@ -178,15 +177,6 @@ def run_relocalize(cfg: DictConfig) -> dict:
     return results
 
 
-def _stage_done(summary: Path, config: dict, inputs: list[Path]) -> bool:
-    """A stage summary exists, holds the same configuration and is newer than its inputs."""
-    if not summary.is_file():
-        return False
-    if any(p.stat().st_mtime > summary.stat().st_mtime for p in inputs):
-        return False
-    return json.loads(summary.read_text()).get("config") == config
-
-
 def run_main(cfg: DictConfig) -> dict:
     """``task=main``: simulate if needed, map, database, optimisation, relocalisation."""
     start = time.perf_counter()
@@ -201,13 +191,8 @@ def run_main(cfg: DictConfig) -> dict:
         show_progress=cfg.progress,
     )
     db_cfg = OmegaConf.to_object(cfg.db)
-    folder = database_dir(dataset, db_cfg)
-    db_config = json.loads(json.dumps(asdict(db_cfg)))
-    surfel_map = dataset / "map" / "surfel_map.ply"
-    if not _stage_done(folder / "build_db.json", db_config, [surfel_map]):
-        run_build_db(cfg)
-    built = [surfel_map, folder / "build_db.json"]
-    if cfg.task.optimize and not _stage_done(folder / "optimize_db.json", db_config, built):
+    run_build_db(cfg)  # each stage is reused while its config and inputs are unchanged
+    if cfg.task.optimize:
         run_optimize_db(cfg)
     reloc = OmegaConf.to_object(cfg.reloc)
     reloc.database = "optimized" if cfg.task.optimize else "database"

@@ -13,7 +13,6 @@ import torch
 from omegaconf import OmegaConf
 from torch.testing import assert_close
 
-from diffloc.cli import _stage_done
 from diffloc.database.builder import BuilderConfig
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.rig import SensorRig
@@ -101,9 +100,12 @@ def test_stage_reuse_needs_the_same_pose_prior(mapped: Path):
     cfg = DatabaseConfig(noise_sigma=0.05, pose_prior_sigma_m=0.1)
     summary = database_dir(mapped, cfg) / "build_db.json"
     assert built["pose_prior_sigma_m"] == 0.1
-    assert _stage_done(summary, json.loads(json.dumps(asdict(cfg))), [])
+    assert built["stage"]["key"]["config"] == json.loads(json.dumps(asdict(cfg)))
+    before = summary.stat().st_mtime_ns
+    assert _run("build_db", mapped, *overrides) == built
+    assert summary.stat().st_mtime_ns == before
     other = replace(cfg, pose_prior_sigma_m=0.2)
-    assert not _stage_done(summary, json.loads(json.dumps(asdict(other))), [])
+    assert database_dir(mapped, other) != database_dir(mapped, cfg)
 
 
 def test_build_then_optimize_with_noisy_poses(mapped: Path):
