@@ -45,7 +45,7 @@ from diffloc.pipeline.hints import Command, CommandHint, MissingStageError, over
 from diffloc.pipeline.reloc_stage import relocalize_dataset
 from diffloc.pipeline.rig_stage import calibrate_database_rig
 from diffloc.pipeline.update_stage import update_database
-from diffloc.sim.dataset import simulate_dataset
+from diffloc.sim.dataset import simulate_dataset, validate_scene_config
 
 
 def run_simulate(cfg: DictConfig) -> Path:
@@ -223,11 +223,35 @@ MAKE_DATASET = ("simulate", "main")
 """Tasks that write the dataset folder; every other task reads an existing one."""
 
 
+VALUE_NODES = ("surfel", "db", "reloc", "task")
+"""Config nodes whose schemas check their ranges and names when built (``__post_init__``)."""
+
+
+def check_values(cfg: DictConfig) -> None:
+    """Check every range and name of the config before any work starts.
+
+    Builds each typed node once (its dataclass checks run: ``reloc.max_trans_m``,
+    ``task.render_batch``, ``task.clouds`` names, ...) and, for the tasks that simulate, the
+    scene (``scene.map.voxel_size_m``, every sequence's trajectory), so a bad value fails in
+    seconds instead of after the stages before it.
+
+    Raises:
+        ValueError: the first bad value; the message names its key.
+    """
+    for key in VALUE_NODES:
+        if key in cfg:
+            OmegaConf.to_object(cfg[key])
+    if cfg.task.name in MAKE_DATASET:
+        validate_scene_config(OmegaConf.to_object(cfg.scene))
+
+
 def run(cfg: DictConfig) -> object:
     """Run the task named by ``cfg.task.name`` on a composed config.
 
     Raises:
         UnknownKeyError: the config holds a key no schema declares (``+scene.max_frames=5``).
+        ValueError: a value out of range or an unknown name (:func:`check_values`), before any
+            work.
         MissingStageError: a task that reads ``dataset`` finds no ``dataset.json`` there; the
             message names the ``task=simulate`` command that writes it.
         ValueError: an unknown task name.
@@ -236,6 +260,7 @@ def run(cfg: DictConfig) -> object:
     name = cfg.task.name
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; choose one of {sorted(TASKS)}")
+    check_values(cfg)
     description = Path(cfg.dataset) / "dataset.json"
     if name not in MAKE_DATASET and not description.is_file():
         raise MissingStageError(description, Command("simulate", (), (f"out_dir={cfg.dataset}",)))

@@ -91,6 +91,9 @@ class BuildMapConfig:
     overwrite: bool = False
     colorize: ColorizeConfig = field(default_factory=ColorizeConfig)
 
+    def __post_init__(self) -> None:
+        check_build_map_config(self)
+
 
 def render_views(
     surfels: SurfelMap,
