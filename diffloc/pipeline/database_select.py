@@ -9,7 +9,8 @@ The database stages write into :func:`~diffloc.pipeline.database_stage.database_
   of every keyframe (the database's own and the added sequence's).
 
 :func:`select_database` resolves a name (the ``reloc.database`` setting) to the database
-folder, the record that identifies it (a cached retriever is valid only if newer), where
+folder, the verified record that identifies it (:mod:`diffloc.pipeline.stage`: its outputs
+still match, and an optimised or updated database derives from the current build), where
 retrievers of it are cached and the images of its keyframes.
 
 Example:
