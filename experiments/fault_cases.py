@@ -282,7 +282,8 @@ def unknown_sequence(root: Path) -> None:
 
 def _kills(stage: str, trials: int) -> Callable[[Path], None]:
     def case(root: Path) -> None:
-        reference = root.with_name(root.name + "_reference")
+        # Same dataset folder name: the preview's title holds it.
+        reference = root.parent.with_name(root.parent.name + "_reference") / root.name
         shutil.copytree(root, reference)
         _, work_s = killed_run(stage, reference, None)
         expected = stage_outputs(stage, reference)
