@@ -319,12 +319,14 @@ def read_built_record(dataset: str | Path, cfg: DatabaseConfig) -> dict:
     return verified_record(out, BUILD_STAGE, Command(BUILD_STAGE, db_overrides(dataset, cfg)))
 
 
-def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True) -> dict:
+def build_database(
+    dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True, *, rebuild: bool = False
+) -> dict:
     """Build the visual database of ``dataset`` with ``cfg`` (module docstring).
 
     Needs ``<dataset>/map/surfel_map.ply`` (``diffloc task=build_map``). The stage commits as a
     whole (:mod:`diffloc.pipeline.stage`) and is reused while its configuration, the surfel map
-    and the sequence folder are unchanged.
+    and the sequence folder are unchanged (``rebuild=True`` builds anyway, e.g. to time it).
 
     Returns:
         The record written to ``<database_dir>/build_db.json``: statistics, the frame index
@@ -348,7 +350,7 @@ def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool
         }
         key = stage_key(asdict(cfg), inputs)
         previous = stage.reusable(key)
-        if previous is not None:
+        if previous is not None and not rebuild:
             return previous
         seq.T_wc = database_poses(seq.T_wc, cfg)
         builder = database_builder(cfg, surfels)
@@ -416,7 +418,9 @@ def _warn_if_unchecked(summary: dict, folder: Path) -> None:
     warnings.warn(message, OptimisationRejectedWarning, stacklevel=3)
 
 
-def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True) -> dict:
+def optimize_database(
+    dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True, *, rebuild: bool = False
+) -> dict:
     """Optimise the database built with ``cfg`` by surfel reprojection, checked on held-out
     tracks (:mod:`diffloc.optim.holdout`).
 
@@ -429,7 +433,8 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
     truth before, after (of the kept poses) and of the optimised poses whether kept or not
     (``kf_pos_rmse_optimized_m``). Ground truth is read after the decision and never by it.
     The stage commits as a whole and is reused while its configuration, the built database and
-    the surfel map are unchanged (:mod:`diffloc.pipeline.stage`).
+    the surfel map are unchanged (:mod:`diffloc.pipeline.stage`); ``rebuild=True`` optimises
+    anyway (e.g. to time it).
 
     Raises:
         MissingStageError: the database or surfel map is missing (the message names the
@@ -449,7 +454,7 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
             "surfel_map": output_identity(map_record, "surfel_map.ply"),
         }
         key = stage_key(asdict(cfg), inputs)
-        record = stage.reusable(key)
+        record = None if rebuild else stage.reusable(key)
         if record is None:
             summary = _optimize(root, cfg, built, surfels, stage.workdir())
             record = stage.commit(key, summary, ["optimized"])

@@ -102,6 +102,8 @@ def update_database(
     db_cfg: DatabaseConfig,
     cfg: UpdateTaskConfig,
     show_progress: bool = True,
+    *,
+    rebuild: bool = False,
 ) -> dict:
     """Update the built database of ``dataset`` with the frames of ``cfg.sequence``.
 
@@ -110,6 +112,7 @@ def update_database(
         db_cfg: the database settings; the same as for ``task=build_db``.
         cfg: the stage settings.
         show_progress: show a progress bar.
+        rebuild: update even if a complete result of the same config and inputs exists.
 
     Returns:
         The summary written to ``<database_dir>/updated_<sequence>/update_db.json`` (module
@@ -135,7 +138,7 @@ def update_database(
         }
         key = stage_key({"db": asdict(db_cfg), "task": asdict(cfg)}, inputs)
         previous = stage.reusable(key)
-        if previous is not None:
+        if previous is not None and not rebuild:
             return previous
         db = VisualDatabase.load(base.path)
         if db.num_keyframes != len(base.keyframe_sources):
