@@ -78,7 +78,6 @@ def test_dataset_json_records_the_frame_rate_each_sequence_was_simulated_at(
 @pytest.mark.parametrize(
     ("setting", "message"),
     [
-        ("scene.sequences.1.frame_rate_hz=-1", r"scene\.sequences\.1\.frame_rate_hz"),
         ("scene.map.voxel_size_m=-0.1", r"scene\.map\.voxel_size_m"),
         ("scene.map.normal_radius_m=0", r"scene\.map\.normal_radius_m"),
         ("scene.sequences.0.speed_variation_mps=5", r"scene\.sequences\.0 .*speed_variation"),

@@ -17,7 +17,7 @@ import pytest
 from diffloc.database.database import VisualDatabase
 from diffloc.io.ply import read_point_cloud, write_point_cloud
 from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
-from diffloc.reloc.retrieval import BowConfig, BowRetriever, load_retriever
+from diffloc.reloc.retrieval import BowRetriever, load_retriever
 from tests.conftest import copy_dataset, run_task
 from tests.test_database import make_database
 
@@ -44,14 +44,16 @@ def test_a_database_with_nan_values_is_refused_naming_the_file_and_field(
 
 
 def test_a_retriever_cache_of_another_size_is_not_trusted(built: Path):
-    """Finding 4: a cached retriever that ranks fewer keyframes than the database holds (here
-    written newer than the database, as a stale cache would be) used to be loaded and used."""
+    """Finding 4: a cached retriever with the configured settings that ranks fewer keyframes
+    than the database holds (written newer than the database, as a stale cache would be) used
+    to be loaded and used."""
     settings = ("reloc.retriever=bow", "reloc.database=database", "reloc.sequences=[query_same]")
     run_task("relocalize", built, *settings, f"task.out_dir={built / 'reloc_a'}")
     folder = database_dir(built, DatabaseConfig())
     db = VisualDatabase.load(folder / "database")
     slices = [db.keyframe_slice(k) for k in range(db.num_keyframes - 1)]
-    fewer = BowRetriever.fit([db.descriptors[s] for s in slices], BowConfig(words=8))
+    config = load_retriever(folder / "retriever_bow").config  # the settings of the cache
+    fewer = BowRetriever.fit([db.descriptors[s] for s in slices], config)
     fewer.save(folder / "retriever_bow")
     assert load_retriever(folder / "retriever_bow").bow.num_images == db.num_keyframes - 1
     run_task("relocalize", built, *settings, f"task.out_dir={built / 'reloc_b'}")
