@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from diffloc.io.identity import identity
+from diffloc.pipeline import stage as stage_module
 from diffloc.pipeline.hints import Command, MissingStageError, StaleStageError
 from diffloc.pipeline.stage import open_stage, stage_key, verified_record
 
@@ -73,3 +74,30 @@ def test_outputs_the_new_run_does_not_make_are_removed(tmp_path: Path):
         "a.txt",
         "demo.json",
     ]
+
+
+def test_a_commit_cut_short_is_completed_by_the_next_run(tmp_path: Path, monkeypatch):
+    """A kill between the renames of a commit (here: an interrupt after the first output
+    moved) leaves no record that could be trusted; the next run on the folder completes the
+    commit from its journal."""
+    _commit(tmp_path, stage_key({"run": 1}, {}), {"a.txt": "old", "b.txt": "old"})
+    moved = []
+
+    def cut_short(source: Path, target: Path) -> None:
+        if moved:
+            raise KeyboardInterrupt
+        moved.append(target)
+        replace(source, target)
+
+    replace = stage_module._replace
+    monkeypatch.setattr(stage_module, "_replace", cut_short)
+    new_key = stage_key({"run": 2}, {})
+    with pytest.raises(KeyboardInterrupt):
+        _commit(tmp_path, new_key, {"a.txt": "new", "b.txt": "new"})
+    monkeypatch.undo()
+    with pytest.raises(MissingStageError):
+        verified_record(tmp_path, "demo", COMMAND)
+    with open_stage(tmp_path, "demo", COMMAND) as stage:
+        assert stage.reusable(new_key) is not None
+    assert [(tmp_path / n).read_text() for n in ("a.txt", "b.txt")] == ["new", "new"]
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".tmp")] == []

@@ -10,12 +10,13 @@ in a record ``<folder>/<name>.json``: the stage's summary (counts, timings, ...)
 
 :func:`open_stage` holds the folder's lock for the whole run (a second run on the folder waits)
 and removes temporaries of killed runs. The stage computes into a fresh hidden work folder
-(:meth:`StageRun.workdir`) and :meth:`StageRun.commit` moves the outputs into place and writes
-the record last, so a run that fails or is killed while computing leaves the previous result
-and its record untouched. A record is trusted only if every output it lists still has its
-recorded identity (:func:`verified_record`): a run killed while moving outputs into place (a
-window of a few renames), a hand-edited or truncated file, all read as "not made" and are made
-again, never reused.
+(:meth:`StageRun.workdir`) and :meth:`StageRun.commit` writes a journal (the new record) into
+it, moves the outputs into place and writes the record last, so a run that fails or is killed
+while computing leaves the previous result and its record untouched, and a commit cut short (a
+kill between its renames) is completed by the next run on the folder from its journal. A
+record is trusted only if every output it lists still has its recorded identity
+(:func:`verified_record`): a hand-edited, truncated or half-moved output reads as "not made"
+and is made again, never reused.
 
 A result is reused only when its record verifies and holds the same key
 (:meth:`StageRun.reusable`). A stage that reads another stage's output takes it from the
@@ -63,6 +64,10 @@ __all__ = [
 
 STAGE_FORMAT_VERSION = 1
 """Version of the ``"stage"`` entry of a record."""
+
+JOURNAL = "commit.json"
+"""The journal of a commit in progress, inside the work folder: the record (its file name and
+content) to write and the stale outputs to remove."""
 
 
 def record_path(folder: str | os.PathLike, name: str) -> Path:
@@ -231,6 +236,10 @@ class StageRun:
     ) -> dict:
         """Move the outputs from :meth:`workdir` into place and write the record last.
 
+        The new record and the stale outputs are journaled in the work folder first; a kill
+        between the renames leaves the folder without a record, and the next
+        :func:`open_stage` on it completes the commit from the journal.
+
         Args:
             key: the run's :func:`stage_key`.
             summary: the stage's summary (JSON types), stored at the top level of the record.
@@ -245,21 +254,42 @@ class StageRun:
         outputs = list(outputs)
         work = self.workdir()
         manifest = {rel: identity(work / rel) for rel in outputs}
-        previous = self._previous_outputs()
-        self.record_path.unlink(missing_ok=True)
-        for rel in outputs:
-            _replace(work / rel, self.folder / rel)
-        for rel in (previous | set(owned)) - set(outputs):
-            _remove(self.folder / rel)
         entry = {"format_version": STAGE_FORMAT_VERSION, "key": key, "outputs": manifest}
         record = {**summary, "stage": entry}
-        atomic_write_text(self.record_path, json.dumps(record, indent=2) + "\n")
+        stale = sorted((self._previous_outputs() | set(owned)) - set(outputs))
+        journal = {"record_name": self.record_path.name, "record": record, "stale": stale}
+        atomic_write_text(work / JOURNAL, json.dumps(journal, indent=2) + "\n")
+        _finish_commit(self.folder, work)
         return record
 
     def close(self) -> None:
-        """Remove the work folder (whatever was not committed)."""
-        if self._workdir is not None:
+        """Remove the work folder, unless it holds the journal of a commit that did not finish
+        (the next run on the folder completes that commit)."""
+        if self._workdir is not None and not (self._workdir / JOURNAL).is_file():
             _remove(self._workdir)
+
+
+def _finish_commit(folder: Path, work: Path) -> None:
+    """Carry out (or complete) the commit journaled in ``work``: move every output still in
+    ``work`` into place, remove stale outputs, write the record, remove ``work``. Running it
+    again after a kill at any point ends in the same state."""
+    journal = json.loads((work / JOURNAL).read_text(encoding="utf-8"))
+    record = folder / journal["record_name"]
+    record.unlink(missing_ok=True)
+    for rel in journal["record"]["stage"]["outputs"]:
+        if (work / rel).exists():
+            _replace(work / rel, folder / rel)
+    for rel in journal["stale"]:
+        _remove(folder / rel)
+    atomic_write_text(record, json.dumps(journal["record"], indent=2) + "\n")
+    _remove(work)
+
+
+def _complete_commits(folder: Path) -> None:
+    """Complete the commits that killed runs of any stage left journaled in ``folder``."""
+    for work in sorted(folder.glob(".tmp-*")):
+        if (work / JOURNAL).is_file():
+            _finish_commit(folder, work)
 
 
 def _remove(path: Path) -> None:
@@ -284,7 +314,8 @@ def _replace(source: Path, target: Path) -> None:
 
 @contextlib.contextmanager
 def open_stage(folder: str | os.PathLike, name: str, command: Command) -> Iterator[StageRun]:
-    """Run stage ``name`` into ``folder``: lock it, clear killed runs' temporaries, clean up.
+    """Run stage ``name`` into ``folder``: lock it, complete a commit a killed run left
+    journaled, clear killed runs' temporaries, clean up.
 
     Args:
         folder: the output folder (created if missing).
@@ -296,6 +327,7 @@ def open_stage(folder: str | os.PathLike, name: str, command: Command) -> Iterat
     """
     folder = Path(folder)
     with folder_lock(folder):
+        _complete_commits(folder)
         remove_temporaries(folder)
         run = StageRun(folder, name, command)
         try:
