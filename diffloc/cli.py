@@ -29,7 +29,6 @@ import sys
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import asdict
 from pathlib import Path
 
 import hydra
@@ -41,12 +40,12 @@ from diffloc.config import CONF_DIR, check_known_keys, register_configs
 from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.colmap_stage import export_colmap
-from diffloc.pipeline.database_stage import build_database, database_dir, optimize_database
+from diffloc.pipeline.database_stage import build_database, optimize_database
 from diffloc.pipeline.hints import Command, CommandHint, MissingStageError, override_key
 from diffloc.pipeline.reloc_stage import relocalize_dataset
 from diffloc.pipeline.rig_stage import calibrate_database_rig
 from diffloc.pipeline.update_stage import update_database
-from diffloc.sim.dataset import simulate_dataset
+from diffloc.sim.dataset import simulate_dataset, validate_scene_config
 
 
 def run_simulate(cfg: DictConfig) -> Path:
@@ -178,15 +177,6 @@ def run_relocalize(cfg: DictConfig) -> dict:
     return results
 
 
-def _stage_done(summary: Path, config: dict, inputs: list[Path]) -> bool:
-    """A stage summary exists, holds the same configuration and is newer than its inputs."""
-    if not summary.is_file():
-        return False
-    if any(p.stat().st_mtime > summary.stat().st_mtime for p in inputs):
-        return False
-    return json.loads(summary.read_text()).get("config") == config
-
-
 def run_main(cfg: DictConfig) -> dict:
     """``task=main``: simulate if needed, map, database, optimisation, relocalisation."""
     start = time.perf_counter()
@@ -201,13 +191,8 @@ def run_main(cfg: DictConfig) -> dict:
         show_progress=cfg.progress,
     )
     db_cfg = OmegaConf.to_object(cfg.db)
-    folder = database_dir(dataset, db_cfg)
-    db_config = json.loads(json.dumps(asdict(db_cfg)))
-    surfel_map = dataset / "map" / "surfel_map.ply"
-    if not _stage_done(folder / "build_db.json", db_config, [surfel_map]):
-        run_build_db(cfg)
-    built = [surfel_map, folder / "build_db.json"]
-    if cfg.task.optimize and not _stage_done(folder / "optimize_db.json", db_config, built):
+    run_build_db(cfg)  # each stage is reused while its config and inputs are unchanged
+    if cfg.task.optimize:
         run_optimize_db(cfg)
     reloc = OmegaConf.to_object(cfg.reloc)
     reloc.database = "optimized" if cfg.task.optimize else "database"
@@ -238,11 +223,35 @@ MAKE_DATASET = ("simulate", "main")
 """Tasks that write the dataset folder; every other task reads an existing one."""
 
 
+VALUE_NODES = ("surfel", "db", "reloc", "task")
+"""Config nodes whose schemas check their ranges and names when built (``__post_init__``)."""
+
+
+def check_values(cfg: DictConfig) -> None:
+    """Check every range and name of the config before any work starts.
+
+    Builds each typed node once (its dataclass checks run: ``reloc.max_trans_m``,
+    ``task.render_batch``, ``task.clouds`` names, ...) and, for the tasks that simulate, the
+    scene (``scene.map.voxel_size_m``, every sequence's trajectory), so a bad value fails in
+    seconds instead of after the stages before it.
+
+    Raises:
+        ValueError: the first bad value; the message names its key.
+    """
+    for key in VALUE_NODES:
+        if key in cfg:
+            OmegaConf.to_object(cfg[key])
+    if cfg.task.name in MAKE_DATASET:
+        validate_scene_config(OmegaConf.to_object(cfg.scene))
+
+
 def run(cfg: DictConfig) -> object:
     """Run the task named by ``cfg.task.name`` on a composed config.
 
     Raises:
         UnknownKeyError: the config holds a key no schema declares (``+scene.max_frames=5``).
+        ValueError: a value out of range or an unknown name (:func:`check_values`), before any
+            work.
         MissingStageError: a task that reads ``dataset`` finds no ``dataset.json`` there; the
             message names the ``task=simulate`` command that writes it.
         ValueError: an unknown task name.
@@ -251,6 +260,7 @@ def run(cfg: DictConfig) -> object:
     name = cfg.task.name
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; choose one of {sorted(TASKS)}")
+    check_values(cfg)
     description = Path(cfg.dataset) / "dataset.json"
     if name not in MAKE_DATASET and not description.is_file():
         raise MissingStageError(description, Command("simulate", (), (f"out_dir={cfg.dataset}",)))

@@ -88,8 +88,8 @@ def main() -> None:
             pose_prior_sigma_m=sigma if args.prior is None else args.prior,
             builder=BuilderConfig(association=args.association),
         )
-        built = build_database(args.data, cfg, show_progress=True)
-        optimized = optimize_database(args.data, cfg, show_progress=True)
+        built = build_database(args.data, cfg, show_progress=True, rebuild=True)
+        optimized = optimize_database(args.data, cfg, show_progress=True, rebuild=True)
         build_ms.append(built["build_ms_per_image"])
         optimize_ms.append(optimized["optimize_ms_per_image"])
         before, after = optimized["kf_pos_rmse_before_m"], optimized["kf_pos_rmse_after_m"]

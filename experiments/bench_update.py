@@ -166,8 +166,8 @@ def main() -> None:
         "noise_sigma": args.noise_sigma,
         "culling": OmegaConf.to_container(cfg.db.builder.culling),
     }
-    built = build_database(data, db_cfg)
-    updated = update_database(data, db_cfg, OmegaConf.to_object(cfg.task))
+    built = build_database(data, db_cfg, rebuild=True)
+    updated = update_database(data, db_cfg, OmegaConf.to_object(cfg.task), rebuild=True)
     result["build_ms_per_image"] = built["build_ms_per_image"]
     result["update"] = {
         key: updated[key]

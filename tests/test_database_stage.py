@@ -12,7 +12,6 @@ import torch
 from omegaconf import OmegaConf
 from torch.testing import assert_close
 
-from diffloc.cli import _stage_done
 from diffloc.database.builder import BuilderConfig
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.rig import SensorRig
@@ -31,6 +30,8 @@ from diffloc.pipeline.database_stage import (
     keyframe_position_rmse,
     perturb_positions,
 )
+from diffloc.pipeline.hints import Command
+from diffloc.pipeline.stage import open_stage
 from diffloc.sim.dataset import simulate_dataset
 from tests.conftest import FINE_SURFELS, TINY, compose_config, copy_dataset, scene_config
 from tests.conftest import run_task as _run
@@ -99,9 +100,12 @@ def test_stage_reuse_needs_the_same_pose_prior(mapped: Path):
     cfg = DatabaseConfig(noise_sigma=0.05, pose_prior_sigma_m=0.1)
     summary = database_dir(mapped, cfg) / "build_db.json"
     assert built["pose_prior_sigma_m"] == 0.1
-    assert _stage_done(summary, json.loads(json.dumps(asdict(cfg))), [])
+    assert built["stage"]["key"]["config"] == json.loads(json.dumps(asdict(cfg)))
+    before = summary.stat().st_mtime_ns
+    assert _run("build_db", mapped, *overrides) == built
+    assert summary.stat().st_mtime_ns == before
     other = replace(cfg, pose_prior_sigma_m=0.2)
-    assert not _stage_done(summary, json.loads(json.dumps(asdict(other))), [])
+    assert database_dir(mapped, other) != database_dir(mapped, cfg)
 
 
 def test_build_then_optimize_with_noisy_poses(mapped: Path):
@@ -234,6 +238,16 @@ def test_unknown_local_features_are_refused():
         DatabaseConfig(local_features="superpoint")
 
 
+def _commit_built_database(folder: Path, db: VisualDatabase) -> None:
+    """Replace the built database of ``folder`` by ``db`` through the stage commit, as if
+    ``build_db`` had made it (a stage trusts no database its record does not describe)."""
+    record = json.loads((folder / "build_db.json").read_text())
+    summary = {k: v for k, v in record.items() if k != "stage"}
+    with open_stage(folder, "build_db", Command("build_db")) as stage:
+        db.save(stage.workdir() / "database")
+        stage.commit(record["stage"]["key"], summary, ["database"])
+
+
 def test_calibrate_rig_stage_runs_the_calibration_and_writes_the_rig(mapped: Path):
     """The stage calibrates the database against the sequence's body poses and writes the
     summary and the corrected URDF. (Accuracy is tested on model data in
@@ -244,7 +258,7 @@ def test_calibrate_rig_stage_runs_the_calibration_and_writes_the_rig(mapped: Pat
     db = VisualDatabase.load(folder / "database")
     E = se3_exp(torch.tensor([0.03, -0.02, 0.01, 0.005, -0.01, 0.008], dtype=torch.float64))
     db.T_wc = db.T_wc @ E  # a wrong camera extrinsic
-    db.save(folder / "database")
+    _commit_built_database(folder, db)
     summary = _run("calibrate_rig", mapped, association)
     assert summary["cost"] < summary["initial_cost"] and summary["num_pairs"] > 0
     assert json.loads((folder / "rig_calibration.json").read_text()) == summary

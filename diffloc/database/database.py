@@ -38,6 +38,7 @@ import torch
 from diffloc.checks import check_finite, check_shape
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.io.atomic import atomic_directory
+from diffloc.io.npz import write_npz
 
 __all__ = ["FORMAT_VERSION", "KIND", "VisualDatabase"]
 
@@ -702,7 +703,7 @@ class VisualDatabase:
         with atomic_directory(path, overwrite=True) as tmp:
             arrays = {name: t.numpy() for name, t in self._arrays().items()}
             with open(tmp / _NPZ_NAME, "wb") as handle:
-                np.savez(handle, **arrays)
+                write_npz(handle, arrays)
             (tmp / _JSON_NAME).write_text(json.dumps(meta, indent=2))
 
     @classmethod
@@ -718,7 +719,8 @@ class VisualDatabase:
         Raises:
             FileNotFoundError: the folder or one of its files is missing.
             ValueError: a corrupt, truncated or foreign file, another format version, missing
-                arrays or inconsistent shapes; the message names the file.
+                arrays, inconsistent shapes, or NaN/infinite poses, positions or descriptors;
+                the message names the file and the field.
         """
         path = Path(path)
         meta_path, npz_path = path / _JSON_NAME, path / _NPZ_NAME
@@ -739,6 +741,7 @@ class VisualDatabase:
             db._check_consistent()
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{npz_path}: inconsistent visual database ({exc})") from exc
+        _check_finite_fields(db, npz_path)
         return db
 
     def _check_consistent(self) -> None:
@@ -780,6 +783,33 @@ _ARRAY_SPECS: dict[str, tuple[str, str]] = {
     "point_surfels": ("int64", "P"),
 }
 """Array name -> (dtype, shape spec) of the saved fields (``descriptor``: the stored dtype)."""
+
+
+_FINITE_FIELDS = (
+    "T_wc",
+    "intrinsics",
+    "keypoints",
+    "descriptors",
+    "sizes",
+    "point_positions",
+    "point_descriptors",
+    "global_descriptors",
+)
+"""Saved float fields that must hold finite values only (poses, positions, descriptors)."""
+
+
+def _check_finite_fields(db: VisualDatabase, path: Path) -> None:
+    """Raise ``ValueError`` naming ``path`` and the field if a float field holds NaN or inf."""
+    for name in _FINITE_FIELDS:
+        values = getattr(db, name)
+        if values is None or not values.is_floating_point():
+            continue
+        bad = int((~torch.isfinite(values)).sum())
+        if bad:
+            raise ValueError(
+                f"{path}: field {name!r} holds {bad} NaN or infinite values; the file is "
+                "corrupt: build the database again (diffloc task=build_db)"
+            )
 
 
 def _read_meta(path: Path) -> dict:

@@ -1,15 +1,21 @@
-"""Reading ``.npz`` archives safely: no pickles, and every failure a ``ValueError``."""
+"""``.npz`` archives: read safely (no pickles, every failure a ``ValueError``), written
+deterministically."""
 
 from __future__ import annotations
 
 import os
 import zipfile
 import zlib
+from collections.abc import Mapping
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
-__all__ = ["read_npz_archive"]
+__all__ = ["read_npz_archive", "write_npz"]
+
+_FIXED_DATE = (1980, 1, 1, 0, 0, 0)
+"""The date of every entry written by :func:`write_npz` (the earliest a zip file can hold)."""
 
 
 def read_npz_archive(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -38,3 +44,22 @@ def read_npz_archive(path: str | os.PathLike) -> dict[str, np.ndarray]:
             return {name: loaded[name] for name in loaded.files}
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
         raise ValueError(f"{path}: corrupt .npz archive ({exc})") from exc
+
+
+def write_npz(handle: IO[bytes], arrays: Mapping[str, np.ndarray]) -> None:
+    """Write arrays as an uncompressed ``.npz`` archive whose bytes depend only on the arrays.
+
+    ``numpy.savez`` stamps every entry with the current time, so saving the same arrays twice
+    gives different files; here every entry carries the same fixed date, so a stage run again
+    writes the same bytes and its output identity (:mod:`diffloc.io.identity`) holds.
+
+    Args:
+        handle: a binary file open for writing.
+        arrays: entry name -> array (no object arrays), written in this order.
+    """
+    with zipfile.ZipFile(handle, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for name, array in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=_FIXED_DATE)
+            info.external_attr = 0o644 << 16
+            with archive.open(info, "w", force_zip64=True) as entry:
+                np.lib.format.write_array(entry, np.asanyarray(array), allow_pickle=False)

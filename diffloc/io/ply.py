@@ -13,7 +13,8 @@ told from a good file.
 On top of trimesh, diffloc checks what a loader must (any failure is a ``ValueError`` naming
 the file): a file trimesh cannot decode (its reason is quoted: a bad header, a binary body of
 the wrong length, text that is not a number), a missing vertex element or ``x, y, z``, fewer
-rows than the header declares (a truncated ASCII file), list properties on the vertex element,
+rows than the header declares (a truncated ASCII file) or more (a header that undercounts),
+list properties on the vertex element,
 faces that index missing vertices, and in :func:`read_point_cloud` non-finite positions,
 normals or colours. Known limits of trimesh's reader: binary faces must all have the same
 corner count, and ASCII integers out of range for their declared type wrap silently.
@@ -53,6 +54,26 @@ def _load_with_trimesh(path: Path) -> tuple[dict, dict]:
             f"{path}: not a PLY file trimesh can read ({type(exc).__name__}: {exc})"
         ) from exc
     return loaded["metadata"]["_ply_raw"], loaded
+
+
+def _check_ascii_rows(path: Path, elements: dict) -> None:
+    """An ASCII body holds no more lines than declared rows (trimesh reads only the declared
+    rows and ignores the rest, so a header that undercounts would silently drop data; fewer
+    rows are reported per element by :func:`_column` and :func:`_faces`)."""
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    header = data[:end]
+    if end < 0 or b"format ascii" not in header:
+        return
+    body = data[data.find(b"\n", end) + 1 :]
+    rows = sum(1 for line in body.splitlines() if line.strip())
+    declared = sum(int(spec["length"]) for spec in elements.values())
+    if rows > declared:
+        counts = ", ".join(f"{int(spec['length'])} {name!r}" for name, spec in elements.items())
+        raise ValueError(
+            f"{path}: the PLY header declares {declared} rows ({counts}) but the ASCII body holds "
+            f"{rows} lines; the header's element counts do not match the file"
+        )
 
 
 def _column(path: Path, element: str, spec: dict, name: str) -> np.ndarray:
@@ -122,7 +143,8 @@ def read_ply(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], np.ndarray
         FileNotFoundError: the file does not exist.
         ValueError: a file trimesh cannot decode (bad header, truncated or overlong binary
             body, non-numbers), no vertex element or no ``x, y, z``, list properties on the
-            vertex element, fewer rows than the header declares, a face element without
+            vertex element, fewer rows than the header declares, an ASCII body with more
+            (trimesh alone drops the surplus rows), a face element without
             ``vertex_indices``/``vertex_index``, out-of-range face indices. The message names
             the file.
 
@@ -137,6 +159,7 @@ def read_ply(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], np.ndarray
     if not path.is_file():
         raise FileNotFoundError(f"PLY file not found: {path}")
     elements, loaded = _load_with_trimesh(path)
+    _check_ascii_rows(path, elements)
     if "vertex" not in elements:
         raise ValueError(f"{path}: PLY file has no 'vertex' element")
     spec = elements["vertex"]

@@ -10,13 +10,15 @@
   against the surfel map rendered into each image, so no ground-truth depth is needed and the
   stage runs the same on real data;
 - ``surfel_preview.png``: a few mapping images beside their rendered surfel index maps;
-- ``build_map.json``: the configuration and counts. A folder whose ``build_map.json`` holds the
-  same configuration is reused, like hloc's cached stages.
+- ``build_map.json``: the configuration, counts, clouds named but absent from the dataset
+  (``skipped_clouds``) and the stage manifest (:mod:`diffloc.pipeline.stage`): the identity
+  of every input read and of every output. A folder whose record verifies and holds the same
+  configuration and inputs is reused, like hloc's cached stages.
 """
 
 from __future__ import annotations
 
-import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -24,20 +26,37 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from diffloc.checks import check_positive_int
 from diffloc.geometry.camera import PinholeCamera
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import map_paths, read_sequence
+from diffloc.io.identity import identity
 from diffloc.io.ply import read_point_cloud
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.lidar_source import lidar_points_with_origins
 from diffloc.maps.pointcloud import ColorizeConfig, PointMap
 from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
+from diffloc.pipeline.hints import Command
+from diffloc.pipeline.stage import open_stage, stage_key
 from diffloc.progress import progress
 from diffloc.render.surfel_render import render_surfel_index
 
-__all__ = ["BUILD_MAP_FORMAT_VERSION", "BuildMapConfig", "build_maps", "render_views"]
+__all__ = [
+    "BUILD_MAP_FORMAT_VERSION",
+    "POINT_CLOUD_MAPS",
+    "STAGE",
+    "BuildMapConfig",
+    "build_maps",
+    "check_build_map_config",
+    "render_views",
+]
 
 BUILD_MAP_FORMAT_VERSION = 1
+
+STAGE = "build_map"
+"""The stage name: its record is ``map/build_map.json``."""
+
+POINT_CLOUD_MAPS = ("lidar_map", "tls_map")
+"""The dataset map clouds (keys of :data:`diffloc.io.dataset.MAP_FILES`) the stage can read."""
 
 
 @dataclass
@@ -47,15 +66,17 @@ class BuildMapConfig:
     Attributes:
         sequence: the dataset sequence whose lidar and images make the maps.
         use_sweeps: build surfels from that sequence's lidar sweeps.
-        clouds: dataset map clouds (keys of ``diffloc.io.dataset.MAP_FILES``, e.g.
-            ``tls_map``) added to the surfel input; missing ones are skipped.
+        clouds: dataset map clouds (:data:`POINT_CLOUD_MAPS`, e.g. ``tls_map``) added to the
+            surfel input; an unknown name is an error, one the dataset lacks is skipped (and
+            listed in the record's ``skipped_clouds``).
         point_maps: dataset map clouds to colour into ``<key without _map>_point_map.ply``
-            (``lidar_map`` -> ``point_map.ply``); missing ones are skipped.
+            (``lidar_map`` -> ``point_map.ply``); names as for ``clouds``. Point maps of
+            clouds no longer listed are removed.
         image_scale: images and the occlusion depth are resized by this factor before
             colouring (0.5 keeps memory near 300 MB for 256 VGA views).
-        render_batch: views rendered per batch.
-        preview_frames: mapping frames shown in ``surfel_preview.png``.
-        overwrite: rebuild even if ``build_map.json`` holds the same configuration.
+        render_batch: views rendered per batch (>= 1).
+        preview_frames: mapping frames shown in ``surfel_preview.png`` (>= 1).
+        overwrite: rebuild even if ``build_map.json`` holds the same configuration and inputs.
         colorize: occlusion tolerance and chunking of the colouring.
     """
 
@@ -69,6 +90,9 @@ class BuildMapConfig:
     preview_frames: int = 3
     overwrite: bool = False
     colorize: ColorizeConfig = field(default_factory=ColorizeConfig)
+
+    def __post_init__(self) -> None:
+        check_build_map_config(self)
 
 
 def render_views(
@@ -179,6 +203,48 @@ def _colour_cloud(
     return point_map, len(cloud.points)
 
 
+def _check_names(names: list[str], setting: str) -> None:
+    """Every name of a list setting is a point-cloud map of :data:`MAP_FILES`."""
+    unknown = [name for name in names if name not in POINT_CLOUD_MAPS]
+    if unknown:
+        raise ValueError(
+            f"task.{setting} names unknown map clouds {unknown}; choose from "
+            f"{list(POINT_CLOUD_MAPS)} (an absent one is skipped and recorded as skipped)"
+        )
+
+
+def check_build_map_config(cfg: BuildMapConfig) -> None:
+    """Reject an unusable map-stage configuration before any work starts.
+
+    Raises:
+        ValueError: an unknown cloud name in ``clouds``/``point_maps``, ``render_batch`` or
+            ``preview_frames`` below 1, ``image_scale`` not in (0, 1], or an empty sequence
+            name; the message names the setting.
+    """
+    _check_names(list(cfg.clouds), "clouds")
+    _check_names(list(cfg.point_maps), "point_maps")
+    check_positive_int(cfg.render_batch, "task.render_batch")
+    check_positive_int(cfg.preview_frames, "task.preview_frames")
+    scale = cfg.image_scale
+    if not (isinstance(scale, int | float) and math.isfinite(scale) and 0 < scale <= 1):
+        raise ValueError(f"task.image_scale must be in (0, 1], got {scale!r}")
+    if not cfg.sequence or "/" in cfg.sequence:
+        raise ValueError(f"task.sequence must be a sequence name, got {cfg.sequence!r}")
+
+
+def _point_map_name(key: str) -> str:
+    """``lidar_map`` -> ``point_map``, ``tls_map`` -> ``tls_point_map``."""
+    return "point_map" if key == "lidar_map" else f"{key.removesuffix('_map')}_point_map"
+
+
+OWNED = (
+    "surfel_map.ply",
+    "surfel_preview.png",
+    *(f"{_point_map_name(k)}.ply" for k in POINT_CLOUD_MAPS),
+)
+"""Every file the map stage may write into ``map/``."""
+
+
 def build_maps(
     dataset: str | Path,
     cfg: BuildMapConfig,
@@ -187,6 +253,11 @@ def build_maps(
 ) -> dict:
     """Build the surfel map and coloured point maps of a dataset folder (module docstring).
 
+    The stage commits as a whole (:mod:`diffloc.pipeline.stage`): outputs are written into a
+    hidden work folder in ``map/`` and moved into place with ``build_map.json`` written last;
+    it is reused only while the configuration and the identity of the sequence folder and of
+    every cloud it read are unchanged.
+
     Args:
         dataset: a diffloc dataset folder (``diffloc task=simulate`` or converted real data).
         cfg: the stage configuration.
@@ -194,33 +265,59 @@ def build_maps(
         show_progress: progress bars.
 
     Returns:
-        The summary written to ``map/build_map.json``: paths, counts and the configuration.
+        The record written to ``map/build_map.json``: paths, counts, the configuration and the
+        stage manifest.
 
     Raises:
         FileNotFoundError: no such dataset or sequence, or no lidar data in it.
-        ValueError: a corrupt dataset or an unusable configuration.
+        ValueError: a corrupt dataset or an unusable configuration (checked before any work).
     """
+    check_build_map_config(cfg)
     root = Path(dataset)
     out = root / "map"
-    summary_path = out / "build_map.json"
     config = {
         "format_version": BUILD_MAP_FORMAT_VERSION,
         **asdict(cfg),
         "surfel": asdict(surfel_cfg),
     }
     config.pop("overwrite")
-    if summary_path.is_file() and not cfg.overwrite:
-        previous = json.loads(summary_path.read_text())
-        if previous.get("config") == config:
-            return previous
     seq = read_sequence(root, cfg.sequence)
     existing = map_paths(root)
+    used = [key for key in dict.fromkeys([*cfg.clouds, *cfg.point_maps]) if key in existing]
+    command = Command("build_map", (f"dataset={dataset}",))
+    with open_stage(out, STAGE, command) as stage:
+        inputs = {"sequence": identity(root / cfg.sequence)}
+        inputs.update({key: identity(existing[key]) for key in used})
+        key = stage_key(config, inputs)
+        previous = stage.reusable(key)
+        if previous is not None and not cfg.overwrite:
+            return previous
+        summary, outputs = _build(
+            root, seq, existing, cfg, surfel_cfg, stage.workdir(), show_progress
+        )
+        summary["skipped_clouds"] = [
+            k for k in dict.fromkeys([*cfg.clouds, *cfg.point_maps]) if k not in existing
+        ]
+        return stage.commit(key, {"config": config, **summary}, outputs, OWNED)
+
+
+def _build(
+    root: Path,
+    seq: SequenceData,
+    existing: dict[str, Path],
+    cfg: BuildMapConfig,
+    surfel_cfg: SurfelMapConfig,
+    work: Path,
+    show_progress: bool,
+) -> tuple[dict, list[str]]:
+    """Write the maps and preview into ``work``; their summary and file names."""
+    out = root / "map"
     clouds = [existing[key] for key in cfg.clouds if key in existing]
     points, origins, sources = lidar_points_with_origins(seq, cfg.use_sweeps, clouds, show_progress)
     source = " + ".join(sources)
     surfels = SurfelMap.from_points(points, origins, surfel_cfg)
-    out.mkdir(parents=True, exist_ok=True)
-    surfels.save(out / "surfel_map.ply")
+    surfels.save(work / "surfel_map.ply")
+    outputs = ["surfel_map.ply"]
 
     camera = seq.camera.to(torch.float32)
     small = camera.scaled(cfg.image_scale) if cfg.image_scale != 1.0 else camera
@@ -231,7 +328,6 @@ def build_maps(
     images = _load_images(seq, views, cfg.image_scale, show_progress)
     ids, depth = render_views(surfels, seq.T_wc[views], small, cfg.render_batch, show_progress)
     summary = {
-        "config": config,
         "source": source,
         "lidar_points": len(points),
         "surfels": len(surfels),
@@ -239,23 +335,23 @@ def build_maps(
         "surfel_coverage": float((ids >= 0).float().mean()),
     }
     for key in colour:
-        name = "point_map" if key == "lidar_map" else f"{key.removesuffix('_map')}_point_map"
+        name = _point_map_name(key)
         point_map, total = _colour_cloud(
             existing[key], images, seq.T_wc, small, depth, cfg, show_progress
         )
-        point_map.save(out / f"{name}.ply")
+        point_map.save(work / f"{name}.ply")
+        outputs.append(f"{name}.ply")
         summary[name] = str(out / f"{name}.ply")
         summary[f"{name}_points"] = len(point_map)
         summary[f"{name}_coloured_fraction"] = len(point_map) / max(total, 1)
     shown = np.searchsorted(views, frames)
-    preview = out / "surfel_preview.png"
     _write_preview(
-        preview,
+        work / "surfel_preview.png",
         images[shown],
         ids[shown],
         depth[shown],
         f"{root.name}: {len(surfels)} surfels from {source}",
     )
-    summary["preview"] = str(preview)
-    atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
-    return summary
+    outputs.append("surfel_preview.png")
+    summary["preview"] = str(out / "surfel_preview.png")
+    return summary, outputs

@@ -9,7 +9,8 @@ The database stages write into :func:`~diffloc.pipeline.database_stage.database_
   of every keyframe (the database's own and the added sequence's).
 
 :func:`select_database` resolves a name (the ``reloc.database`` setting) to the database
-folder, the record that identifies it (a cached retriever is valid only if newer), where
+folder, the verified record that identifies it (:mod:`diffloc.pipeline.stage`: its outputs
+still match, and an optimised or updated database derives from the current build), where
 retrievers of it are cached and the images of its keyframes.
 
 Usage (on a dataset with an updated database)::
@@ -20,7 +21,6 @@ Usage (on a dataset with an updated database)::
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,14 +28,23 @@ from pathlib import Path
 import torch
 
 from diffloc.io.dataset import read_sequence
-from diffloc.pipeline.database_stage import DatabaseConfig, database_dir, db_overrides
+from diffloc.pipeline.database_stage import (
+    BUILD_STAGE,
+    OPTIMIZE_STAGE,
+    DatabaseConfig,
+    database_dir,
+    db_overrides,
+    read_built_record,
+)
 from diffloc.pipeline.hints import Command, MissingStageError
+from diffloc.pipeline.stage import check_made_from, output_identity, read_lock, verified_record
 
 __all__ = [
     "BUILT",
     "OPTIMIZED",
     "UPDATED_PREFIX",
     "UPDATE_RECORD",
+    "UPDATE_STAGE",
     "SelectedDatabase",
     "check_database_name",
     "keyframe_images",
@@ -50,7 +59,9 @@ OPTIMIZED = "optimized"
 """The database after ``task=optimize_db``."""
 UPDATED_PREFIX = "updated_"
 """``updated_<sequence>``: the built database updated with ``<sequence>`` (``task=update_db``)."""
-UPDATE_RECORD = "update_db.json"
+UPDATE_STAGE = "update_db"
+"""The update stage's name."""
+UPDATE_RECORD = f"{UPDATE_STAGE}.json"
 """The record of ``task=update_db`` inside its stage folder."""
 
 
@@ -88,10 +99,11 @@ class SelectedDatabase:
     Attributes:
         name: the name it was selected by (:func:`check_database_name`).
         path: the database folder (:meth:`VisualDatabase.load` reads it).
-        record: the stage record written with it; caches derived from the database are
-            valid only if they are newer.
+        record: the stage record written with it (verified).
         retriever_root: the folder its retriever caches live in.
         keyframe_sources: ``(sequence, frame)`` of every keyframe, in keyframe order.
+        identity: the recorded identity of the database folder; caches derived from the
+            database are keyed on it.
     """
 
     name: str
@@ -99,6 +111,7 @@ class SelectedDatabase:
     record: Path
     retriever_root: Path
     keyframe_sources: list[tuple[str, int]]
+    identity: dict
 
 
 def select_database(dataset: str | Path, db_cfg: DatabaseConfig, which: str) -> SelectedDatabase:
@@ -115,39 +128,71 @@ def select_database(dataset: str | Path, db_cfg: DatabaseConfig, which: str) -> 
     Raises:
         ValueError: an unknown name, or an update record without valid keyframe sources.
         MissingStageError: the database was not made; the message names the command to run.
+        StaleStageError: a record that does not describe its files, or an optimised or
+            updated database made from another build than the current one (``build_db`` ran
+            again since); the message names the command that makes it again.
     """
     check_database_name(which)
     folder = database_dir(dataset, db_cfg)
     where = db_overrides(dataset, db_cfg)
-    if which.startswith(UPDATED_PREFIX):
-        sequence = which.removeprefix(UPDATED_PREFIX)
-        stage = updated_dir(dataset, db_cfg, sequence)
-        record, path = stage / UPDATE_RECORD, stage / BUILT
-        if not (record.is_file() and path.is_dir()):
-            settings = (f"task.sequence={sequence}",)
-            raise MissingStageError(stage, Command("update_db", where, settings))
-        sources = _read_sources(record)
-        return SelectedDatabase(which, path, record, stage, sources)
-    record, path = folder / "build_db.json", folder / which
-    if not record.is_file():
-        raise MissingStageError(record, Command("build_db", where))
-    if not path.is_dir():
-        task = "optimize_db" if which == OPTIMIZED else "build_db"
-        raise MissingStageError(path, Command(task, where))
-    built = json.loads(record.read_text())
-    sources = [(db_cfg.sequence, int(frame)) for frame in built["keyframe_frames"]]
-    return SelectedDatabase(which, path, record, folder, sources)
+    build = Command(BUILD_STAGE, where)
+    if not (folder / f"{BUILD_STAGE}.json").is_file():
+        raise MissingStageError(folder / f"{BUILD_STAGE}.json", build)
+    with read_lock(folder):
+        built = read_built_record(dataset, db_cfg)
+        if which.startswith(UPDATED_PREFIX):
+            return _select_updated(dataset, db_cfg, which, built)
+        sources = _sources(
+            [[db_cfg.sequence, frame] for frame in built.get("keyframe_frames", ())],
+            folder / f"{BUILD_STAGE}.json",
+        )
+        if which == BUILT:
+            return SelectedDatabase(
+                which,
+                folder / BUILT,
+                folder / f"{BUILD_STAGE}.json",
+                folder,
+                sources,
+                output_identity(built, BUILT),
+            )
+        command = Command(OPTIMIZE_STAGE, where)
+        if not (folder / f"{OPTIMIZE_STAGE}.json").is_file():
+            raise MissingStageError(folder / which, command)
+        record = verified_record(folder, OPTIMIZE_STAGE, command)
+        path = folder / f"{OPTIMIZE_STAGE}.json"
+        check_made_from(record, path, "database", built, BUILT, command)
+        return SelectedDatabase(
+            which, folder / which, path, folder, sources, output_identity(record, which)
+        )
 
 
-def _read_sources(record: Path) -> list[tuple[str, int]]:
-    """The ``keyframe_sources`` of an update record, validated."""
+def _select_updated(
+    dataset: str | Path, db_cfg: DatabaseConfig, which: str, built: dict
+) -> SelectedDatabase:
+    """The verified ``updated_<sequence>`` database, checked to derive from ``built``."""
+    sequence = which.removeprefix(UPDATED_PREFIX)
+    stage = updated_dir(dataset, db_cfg, sequence)
+    command = Command("update_db", db_overrides(dataset, db_cfg), (f"task.sequence={sequence}",))
+    path = stage / UPDATE_RECORD
+    if not (path.is_file() and (stage / BUILT).is_dir()):
+        raise MissingStageError(stage, command)
+    with read_lock(stage):
+        record = verified_record(stage, UPDATE_STAGE, command)
+    check_made_from(record, path, "database", built, BUILT, command)
+    sources = _sources(record.get("keyframe_sources"), path)
+    return SelectedDatabase(
+        which, stage / BUILT, path, stage, sources, output_identity(record, BUILT)
+    )
+
+
+def _sources(sources: object, record: Path) -> list[tuple[str, int]]:
+    """``(sequence, frame)`` per keyframe from a record's list, validated."""
     try:
-        sources = json.loads(record.read_text())["keyframe_sources"]
         parsed = [(str(name), int(frame)) for name, frame in sources]
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{record}: no valid keyframe_sources ({exc})") from exc
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{record}: no valid keyframe list ({exc}); run the stage again") from exc
     if any(frame < 0 for _, frame in parsed):
-        raise ValueError(f"{record}: negative frame index in keyframe_sources")
+        raise ValueError(f"{record}: negative frame index in its keyframe list")
     return parsed
 
 

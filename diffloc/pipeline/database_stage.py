@@ -20,7 +20,6 @@ optimisation back towards the noise (default scene, sigma 0.2 m: keyframe positi
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import warnings
@@ -32,8 +31,8 @@ import torch
 from diffloc.database.builder import BuilderConfig, DatabaseBuilder
 from diffloc.database.database import VisualDatabase
 from diffloc.features.local import OrbConfig, XFeatConfig, make_extractor
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
+from diffloc.io.identity import identity
 from diffloc.maps.surfel import SurfelMap
 from diffloc.optim.holdout import (
     CheckedOptimisation,
@@ -43,10 +42,19 @@ from diffloc.optim.holdout import (
 from diffloc.optim.robust import RobustKernel
 from diffloc.optim.surfel_cost import SurfelOptimConfig, replace_map_points
 from diffloc.pipeline.hints import Command, MissingStageError
+from diffloc.pipeline.stage import (
+    open_stage,
+    output_identity,
+    read_lock,
+    stage_key,
+    verified_record,
+)
 
 LOCAL_FEATURES = ("xfeat", "orb")
 
 __all__ = [
+    "BUILD_STAGE",
+    "OPTIMIZE_STAGE",
     "DatabaseConfig",
     "OptimisationRejectedWarning",
     "build_database",
@@ -56,8 +64,11 @@ __all__ = [
     "db_overrides",
     "keyframe_frames",
     "keyframe_position_rmse",
+    "map_command",
     "optimize_database",
     "perturb_positions",
+    "read_built_record",
+    "read_surfel_map",
 ]
 
 
@@ -270,51 +281,98 @@ def keyframe_frames(db: VisualDatabase, T_wc_built: torch.Tensor) -> torch.Tenso
     return same.to(torch.int64).argmax(-1)
 
 
-def _write_summary(path: Path, summary: dict) -> None:
-    atomic_write_text(path, json.dumps(summary, indent=2) + "\n")
+BUILD_STAGE = "build_db"
+"""The build stage's name: its record is ``<database_dir>/build_db.json``."""
+OPTIMIZE_STAGE = "optimize_db"
+"""The optimisation stage's name: its record is ``<database_dir>/optimize_db.json``."""
+MAP_STAGE = "build_map"
+"""The map stage whose ``surfel_map.ply`` the database stages read."""
 
 
-def build_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True) -> dict:
+def map_command(dataset: str | Path) -> Command:
+    """The command that makes the surfel map of ``dataset``."""
+    return Command(MAP_STAGE, (f"dataset={dataset}",))
+
+
+def read_surfel_map(dataset: str | Path) -> tuple[dict, SurfelMap]:
+    """The verified ``build_map`` record and the surfel map of ``dataset``, read under the
+    map folder's shared lock (a concurrent ``build_map`` cannot swap it in between).
+
+    Raises:
+        MissingStageError: no map stage record; the message names the command.
+        StaleStageError: a record that does not describe the files beside it.
+    """
+    folder = Path(dataset) / "map"
+    with read_lock(folder):
+        record = verified_record(folder, MAP_STAGE, map_command(dataset))
+        return record, SurfelMap.load(folder / "surfel_map.ply")
+
+
+def read_built_record(dataset: str | Path, cfg: DatabaseConfig) -> dict:
+    """The verified ``build_db`` record of the database of ``cfg``.
+
+    Raises:
+        MissingStageError: the database was not built; the message names the command.
+        StaleStageError: the record does not describe the saved database (the command is named).
+    """
+    out = database_dir(dataset, cfg)
+    return verified_record(out, BUILD_STAGE, Command(BUILD_STAGE, db_overrides(dataset, cfg)))
+
+
+def build_database(
+    dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True, *, rebuild: bool = False
+) -> dict:
     """Build the visual database of ``dataset`` with ``cfg`` (module docstring).
 
-    Needs ``<dataset>/map/surfel_map.ply`` (``diffloc task=build_map``).
+    Needs ``<dataset>/map/surfel_map.ply`` (``diffloc task=build_map``). The stage commits as a
+    whole (:mod:`diffloc.pipeline.stage`) and is reused while its configuration, the surfel map
+    and the sequence folder are unchanged (``rebuild=True`` builds anyway, e.g. to time it).
 
     Returns:
-        The summary written to ``<database_dir>/build_db.json``: statistics, the frame index
-        of each keyframe and the keyframe position RMSE of the (noisy) database.
+        The record written to ``<database_dir>/build_db.json``: statistics, the frame index
+        of each keyframe, the keyframe position RMSE of the (noisy) database and the manifest.
 
     Raises:
         MissingStageError: no surfel map (the message names the command to run).
+        StaleStageError: a surfel map that its record does not describe.
         FileNotFoundError: no dataset or sequence.
     """
     root = Path(dataset)
-    surfel_path = root / "map" / "surfel_map.ply"
-    if not surfel_path.is_file():
-        raise MissingStageError(surfel_path, Command("build_map", (f"dataset={dataset}",)))
+    if not (root / "map" / f"{MAP_STAGE}.json").is_file():
+        raise MissingStageError(root / "map" / f"{MAP_STAGE}.json", map_command(dataset))
     seq = read_sequence(root, cfg.sequence)
-    seq.T_wc = database_poses(seq.T_wc, cfg)
-    builder = database_builder(cfg, SurfelMap.load(surfel_path))
-    db = builder.build(seq, show_progress=show_progress)
-    images = len(seq.rgb_paths)
-    frames = keyframe_frames(db, seq.T_wc)
-    truth = read_sequence(root, cfg.sequence).T_wc[frames]  # scoring only
     out = database_dir(root, cfg)
-    db.save(out / "database")
-    summary = {
-        "config": asdict(cfg),
-        "database": str(out / "database"),
-        **db.stats(),
-        "keyframe_frames": frames.tolist(),
-        "kf_pos_rmse_m": keyframe_position_rmse(db.T_wc, truth),
-        "pose_prior_sigma_m": cfg.pose_prior_sigma_m,
-        "guided_radius_px": builder.config.guided_radius_px,
-        "point_gate_m": builder.config.epipolar.max_point_distance_m,
-        "images": images,
-        "features_ms_per_image": builder.timings_ms["features"] / images,
-        "build_ms_per_image": builder.timings_ms["database"] / images,
-    }
-    _write_summary(out / "build_db.json", summary)
-    return summary
+    with open_stage(out, BUILD_STAGE, Command(BUILD_STAGE, db_overrides(root, cfg))) as stage:
+        map_record, surfels = read_surfel_map(root)
+        inputs = {
+            "surfel_map": output_identity(map_record, "surfel_map.ply"),
+            "sequence": identity(root / cfg.sequence),
+        }
+        key = stage_key(asdict(cfg), inputs)
+        previous = stage.reusable(key)
+        if previous is not None and not rebuild:
+            return previous
+        seq.T_wc = database_poses(seq.T_wc, cfg)
+        builder = database_builder(cfg, surfels)
+        db = builder.build(seq, show_progress=show_progress)
+        images = len(seq.rgb_paths)
+        frames = keyframe_frames(db, seq.T_wc)
+        truth = read_sequence(root, cfg.sequence).T_wc[frames]  # scoring only
+        db.save(stage.workdir() / "database")
+        summary = {
+            "config": asdict(cfg),
+            "database": str(out / "database"),
+            **db.stats(),
+            "keyframe_frames": frames.tolist(),
+            "kf_pos_rmse_m": keyframe_position_rmse(db.T_wc, truth),
+            "pose_prior_sigma_m": cfg.pose_prior_sigma_m,
+            "guided_radius_px": builder.config.guided_radius_px,
+            "point_gate_m": builder.config.epipolar.max_point_distance_m,
+            "images": images,
+            "features_ms_per_image": builder.timings_ms["features"] / images,
+            "build_ms_per_image": builder.timings_ms["database"] / images,
+        }
+        return stage.commit(key, summary, ["database"])
 
 
 class OptimisationRejectedWarning(UserWarning):
@@ -340,26 +398,29 @@ def _check_summary(checked: CheckedOptimisation) -> dict:
     }
 
 
-def _warn_if_unchecked(checked: CheckedOptimisation, folder: Path) -> None:
-    """Warn when the check did not vouch for the optimisation (whether it was kept or not)."""
-    if checked.improved:
+def _warn_if_unchecked(summary: dict, folder: Path) -> None:
+    """Warn when the check did not vouch for the optimisation (whether it was kept or not);
+    ``summary`` is the stage's record, fresh or reused."""
+    if summary["check_improved"]:
         return
-    if checked.accepted:
+    if summary["accepted"]:
         message = (
             f"the surfel optimisation of {folder} did not pass its check "
-            f"({checked.reason}); its poses were kept anyway because "
+            f"({summary['check_reason']}); its poses were kept anyway because "
             "db.optim_check.accept=always"
         )
     else:
         message = (
-            f"the surfel optimisation of {folder} was not accepted ({checked.reason}); "
+            f"the surfel optimisation of {folder} was not accepted ({summary['check_reason']}); "
             f"{folder / 'optimized'} keeps the un-optimised poses. Force the optimised ones "
             "with db.optim_check.accept=always"
         )
     warnings.warn(message, OptimisationRejectedWarning, stacklevel=3)
 
 
-def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True) -> dict:
+def optimize_database(
+    dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True, *, rebuild: bool = False
+) -> dict:
     """Optimise the database built with ``cfg`` by surfel reprojection, checked on held-out
     tracks (:mod:`diffloc.optim.holdout`).
 
@@ -371,19 +432,40 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
     iterations and final cost, and for scoring only the keyframe position RMSE against ground
     truth before, after (of the kept poses) and of the optimised poses whether kept or not
     (``kf_pos_rmse_optimized_m``). Ground truth is read after the decision and never by it.
+    The stage commits as a whole and is reused while its configuration, the built database and
+    the surfel map are unchanged (:mod:`diffloc.pipeline.stage`); ``rebuild=True`` optimises
+    anyway (e.g. to time it).
 
     Raises:
-        MissingStageError: the database is missing (the message names the command to run).
-        FileNotFoundError: the surfel map is missing.
+        MissingStageError: the database or surfel map is missing (the message names the
+            command to run).
+        StaleStageError: a built database or surfel map that its record does not describe.
     """
     root = Path(dataset)
     out = database_dir(root, cfg)
-    built_path = out / "build_db.json"
+    built_path = out / f"{BUILD_STAGE}.json"
     if not built_path.is_file():
-        raise MissingStageError(built_path, Command("build_db", db_overrides(root, cfg)))
-    built = json.loads(built_path.read_text())
+        raise MissingStageError(built_path, Command(BUILD_STAGE, db_overrides(root, cfg)))
+    with open_stage(out, OPTIMIZE_STAGE, Command(OPTIMIZE_STAGE, db_overrides(root, cfg))) as stage:
+        built = read_built_record(root, cfg)
+        map_record, surfels = read_surfel_map(root)
+        inputs = {
+            "database": output_identity(built, "database"),
+            "surfel_map": output_identity(map_record, "surfel_map.ply"),
+        }
+        key = stage_key(asdict(cfg), inputs)
+        record = None if rebuild else stage.reusable(key)
+        if record is None:
+            summary = _optimize(root, cfg, built, surfels, stage.workdir())
+            record = stage.commit(key, summary, ["optimized"])
+    _warn_if_unchecked(record, out)
+    return record
+
+
+def _optimize(root: Path, cfg: DatabaseConfig, built: dict, surfels: SurfelMap, work: Path) -> dict:
+    """Optimise the built database into ``work/optimized``; the summary."""
+    out = database_dir(root, cfg)
     db = VisualDatabase.load(out / "database")
-    surfels = SurfelMap.load(root / "map" / "surfel_map.ply")
     centers, normals = surfels.centers.double(), surfels.normals.double()
     T_wc_built = db.T_wc.clone()
     start = time.perf_counter()
@@ -398,10 +480,10 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
     # ~0.47 to ~0.25 with the centres, and a quarter of query_same fails the ratio test).
     db.point_positions = replace_map_points(db, centers, normals)
     optimize_ms = (time.perf_counter() - start) * 1e3
-    db.save(out / "optimized")
+    db.save(work / "optimized")
     truth = read_sequence(root, cfg.sequence).T_wc[torch.tensor(built["keyframe_frames"])]
     result = checked.result
-    summary = {
+    return {
         "config": asdict(cfg),
         "database": str(out / "optimized"),
         **_check_summary(checked),
@@ -414,6 +496,3 @@ def optimize_database(dataset: str | Path, cfg: DatabaseConfig, show_progress: b
         "optimize_ms": optimize_ms,
         "optimize_ms_per_image": optimize_ms / db.num_keyframes,
     }
-    _write_summary(out / "optimize_db.json", summary)
-    _warn_if_unchecked(checked, out)
-    return summary

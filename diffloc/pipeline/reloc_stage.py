@@ -25,6 +25,7 @@ into ``out``:
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import statistics
@@ -52,6 +53,7 @@ from diffloc.features.local import make_extractor
 from diffloc.geometry.pose_offsets import nearest_pose_offsets, offset_summary
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
+from diffloc.io.identity import identity
 from diffloc.io.trajectory import write_tum
 from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.database_select import (
@@ -62,6 +64,8 @@ from diffloc.pipeline.database_select import (
     select_database,
 )
 from diffloc.pipeline.database_stage import DatabaseConfig
+from diffloc.pipeline.hints import Command, StaleStageError
+from diffloc.pipeline.stage import open_stage, stage_key
 from diffloc.progress import progress
 from diffloc.reloc.hierarchical import (
     Candidate,
@@ -122,6 +126,12 @@ class RelocStageConfig:
             raise ValueError(f"retriever must be 'netvlad' or 'bow', got {self.retriever!r}")
         if self.query_stride < 1:
             raise ValueError(f"query_stride must be >= 1, got {self.query_stride}")
+        for name in ("max_trans_m", "max_rot_deg"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"reloc.{name} must be a finite number > 0, got {value!r}")
+        if not self.sequences or any(not s or "/" in s for s in self.sequences):
+            raise ValueError(f"reloc.sequences must be sequence names, got {self.sequences!r}")
 
 
 def _load_database(
@@ -131,28 +141,50 @@ def _load_database(
     return VisualDatabase.load(selected.path), selected
 
 
+def _retriever_inputs(
+    dataset: Path, cfg: RelocStageConfig, db: VisualDatabase, selected: SelectedDatabase
+) -> dict:
+    """What a retriever is fitted on: the keyframe images' sequences (NetVLAD) or the
+    keyframes' local descriptors (bag of words)."""
+    if cfg.retriever == "bow":
+        digest = hashlib.sha256(db.keypoint_offsets.numpy().tobytes())
+        digest.update(db.descriptors.contiguous().numpy().tobytes())
+        return {"descriptors": {"kind": "arrays", "sha256": digest.hexdigest()}}
+    names = dict.fromkeys(name for name, _ in selected.keyframe_sources)
+    return {f"sequence:{name}": identity(dataset / name) for name in names}
+
+
 def _retriever(
     dataset: Path,
     cfg: RelocStageConfig,
     db: VisualDatabase,
     selected: SelectedDatabase,
 ) -> NetVLADRetriever | BowRetriever:
-    """Load the cached retriever of this database (same settings, newer than the database),
-    or fit and cache it."""
-    folder = selected.retriever_root / f"retriever_{cfg.retriever}"
+    """Load the cached retriever of this database's keyframes (same settings, same images or
+    descriptors: :mod:`diffloc.pipeline.stage`), or fit and cache it."""
+    name = f"retriever_{cfg.retriever}"
     settings = asdict(cfg.netvlad if cfg.retriever == "netvlad" else cfg.bow)
-    saved = folder / "retriever.json"
-    if saved.is_file() and saved.stat().st_mtime >= selected.record.stat().st_mtime:
-        retriever = load_retriever(folder)
-        if asdict(retriever.config) == settings:
-            return retriever
-    if cfg.retriever == "bow":
-        slices = [db.keyframe_slice(k) for k in range(db.num_keyframes)]
-        retriever = BowRetriever.fit([db.descriptors[s] for s in slices], cfg.bow)
-    else:
-        images = keyframe_images(dataset, selected.keyframe_sources)
-        retriever = NetVLADRetriever.fit(images, cfg.netvlad)
-    retriever.save(folder)
+    config = {"settings": settings, "keyframe_sources": selected.keyframe_sources}
+    command = Command("relocalize", (f"dataset={dataset}",))
+    with open_stage(selected.retriever_root, name, command) as stage:
+        key = stage_key(config, _retriever_inputs(dataset, cfg, db, selected))
+        if stage.reusable(key) is not None:
+            retriever = load_retriever(selected.retriever_root / name)
+        else:
+            if cfg.retriever == "bow":
+                slices = [db.keyframe_slice(k) for k in range(db.num_keyframes)]
+                retriever = BowRetriever.fit([db.descriptors[s] for s in slices], cfg.bow)
+            else:
+                images = keyframe_images(dataset, selected.keyframe_sources)
+                retriever = NetVLADRetriever.fit(images, cfg.netvlad)
+            retriever.save(stage.workdir() / name)
+            stage.commit(key, {"config": config}, [name])
+    if retriever.num_keyframes != db.num_keyframes:
+        raise StaleStageError(
+            f"{selected.retriever_root / name} ranks {retriever.num_keyframes} keyframes but "
+            f"{selected.path} has {db.num_keyframes}",
+            command,
+        )
     return retriever
 
 
@@ -409,6 +441,12 @@ def relocalize_dataset(
         FileNotFoundError: a missing database, surfel map or sequence.
     """
     dataset, out = Path(dataset), Path(out)
+    missing = [name for name in cfg.sequences if not (dataset / name).is_dir()]
+    if missing:
+        raise FileNotFoundError(
+            f"reloc.sequences names {missing}, which {dataset} does not hold; its sequences are "
+            f"{sorted(p.name for p in dataset.iterdir() if (p / 'calib.yaml').is_file())}"
+        )
     db, selected = _load_database(dataset, db_cfg, cfg.database)
     retriever = _retriever(dataset, cfg, db, selected)
     centers = None

@@ -30,7 +30,6 @@ poorly determined, and the extrinsic-only mode is likely the better choice.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict
@@ -44,16 +43,25 @@ from diffloc.geometry.se3 import invert, se3_log
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.calib import read_calib
 from diffloc.io.dataset import read_sequence
+from diffloc.io.identity import identity
+from diffloc.io.sequence import SequenceData
 from diffloc.maps.surfel import SurfelMap
 from diffloc.optim.rig_calibration import RigCalibrationConfig, calibrate_rig, corrected_rig
 from diffloc.pipeline.database_stage import (
+    BUILD_STAGE,
     DatabaseConfig,
     database_dir,
     database_poses,
     db_overrides,
     keyframe_position_rmse,
+    read_built_record,
+    read_surfel_map,
 )
 from diffloc.pipeline.hints import Command, MissingStageError
+from diffloc.pipeline.stage import open_stage, output_identity, stage_key
+
+STAGE = "rig_calibration"
+"""The stage name: its record is ``<database_dir>/rig_calibration.json``."""
 
 __all__ = ["calibrate_database_rig"]
 
@@ -91,16 +99,40 @@ def calibrate_database_rig(
             "calibration corrects that extrinsic, so the sequence must state it"
         )
     out = database_dir(root, db_cfg)
-    built_path = out / "build_db.json"
+    built_path = out / f"{BUILD_STAGE}.json"
     if not built_path.is_file():
-        raise MissingStageError(built_path, Command("build_db", db_overrides(root, db_cfg)))
-    surfel_path = root / "map" / "surfel_map.ply"
-    if not surfel_path.is_file():
-        raise MissingStageError(surfel_path, Command("build_map", (f"dataset={root}",)))
-    built = json.loads(built_path.read_text())
+        raise MissingStageError(built_path, Command(BUILD_STAGE, db_overrides(root, db_cfg)))
+    command = Command("calibrate_rig", db_overrides(root, db_cfg))
+    with open_stage(out, STAGE, command) as stage:
+        built = read_built_record(root, db_cfg)
+        map_record, surfels = read_surfel_map(root)
+        inputs = {
+            "database": output_identity(built, "database"),
+            "surfel_map": output_identity(map_record, "surfel_map.ply"),
+            "sequence": identity(root / db_cfg.sequence),
+        }
+        key = stage_key(asdict(config), inputs)
+        previous = stage.reusable(key)
+        if previous is not None:
+            return previous
+        summary = _calibrate(root, db_cfg, config, built, surfels, seq, stage.workdir())
+        outputs = ["rig_calibrated.urdf"] if "urdf" in summary else []
+        return stage.commit(key, summary, outputs, ["rig_calibrated.urdf"])
+
+
+def _calibrate(
+    root: Path,
+    db_cfg: DatabaseConfig,
+    config: RigCalibrationConfig,
+    built: dict,
+    surfels: SurfelMap,
+    seq: SequenceData,
+    work: Path,
+) -> dict:
+    """Run the calibration; write the corrected URDF (if any) into ``work``; the summary."""
+    out = database_dir(root, db_cfg)
     frames = torch.tensor(built["keyframe_frames"], dtype=torch.int64)
     db = VisualDatabase.load(out / "database")
-    surfels = SurfelMap.load(surfel_path)
     T_bc = seq.T_body_camera.to(F64)
     # The body trajectory of the poses the database was built from (noise included).
     T_wb = database_poses(seq.T_wc, db_cfg).to(F64) @ invert(T_bc)
@@ -136,6 +168,5 @@ def calibrate_database_rig(
     if urdf is not None:
         rig = corrected_rig(SensorRig.from_urdf(urdf), fit.T_correction)
         summary["urdf"] = str(out / "rig_calibrated.urdf")
-        atomic_write_text(out / "rig_calibrated.urdf", rig.to_urdf())
-    atomic_write_text(out / "rig_calibration.json", json.dumps(summary, indent=2) + "\n")
+        atomic_write_text(work / "rig_calibrated.urdf", rig.to_urdf())
     return summary

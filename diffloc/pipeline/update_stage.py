@@ -3,7 +3,9 @@
 ``update_database`` loads the database ``task=build_db`` made (``<database_dir>/database``), adds
 the frames of another sequence of the dataset at that sequence's poses with the same builder
 (covisible matching, descriptor fusion, new map points, both culling rules), and writes the
-stage folder ``<database_dir>/updated_<sequence>/`` as a whole (atomically):
+stage folder ``<database_dir>/updated_<sequence>/`` as a whole (:mod:`diffloc.pipeline.stage`;
+reused while its configuration, the built database, the surfel map and the sequence are
+unchanged):
 
 - ``database/``: the updated :class:`~diffloc.database.database.VisualDatabase`;
 - ``update_db.json``: the counts before the update, after adding (every added image and every
@@ -23,7 +25,6 @@ Relocalise against the result with ``reloc.database=updated_<sequence>``.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -34,12 +35,14 @@ from diffloc.database.builder import DatabaseBuilder
 from diffloc.database.culling import redundancy
 from diffloc.database.database import VisualDatabase
 from diffloc.features.local import make_extractor
-from diffloc.io.atomic import atomic_directory
 from diffloc.io.dataset import read_sequence
+from diffloc.io.identity import identity
+from diffloc.io.sequence import SequenceData
 from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.database_select import (
     BUILT,
-    UPDATE_RECORD,
+    UPDATE_STAGE,
+    SelectedDatabase,
     select_database,
     updated_dir,
 )
@@ -48,8 +51,10 @@ from diffloc.pipeline.database_stage import (
     db_overrides,
     keyframe_position_rmse,
     perturb_positions,
+    read_surfel_map,
 )
-from diffloc.pipeline.hints import Command, MissingStageError, StaleStageError
+from diffloc.pipeline.hints import Command, StaleStageError
+from diffloc.pipeline.stage import open_stage, output_identity, stage_key
 
 __all__ = ["UpdateTaskConfig", "update_database"]
 
@@ -97,6 +102,8 @@ def update_database(
     db_cfg: DatabaseConfig,
     cfg: UpdateTaskConfig,
     show_progress: bool = True,
+    *,
+    rebuild: bool = False,
 ) -> dict:
     """Update the built database of ``dataset`` with the frames of ``cfg.sequence``.
 
@@ -105,6 +112,7 @@ def update_database(
         db_cfg: the database settings; the same as for ``task=build_db``.
         cfg: the stage settings.
         show_progress: show a progress bar.
+        rebuild: update even if a complete result of the same config and inputs exists.
 
     Returns:
         The summary written to ``<database_dir>/updated_<sequence>/update_db.json`` (module
@@ -118,30 +126,55 @@ def update_database(
     start = time.perf_counter()
     root = Path(dataset)
     base = select_database(root, db_cfg, BUILT)
-    surfel_path = root / "map" / "surfel_map.ply"
-    if not surfel_path.is_file():
-        raise MissingStageError(surfel_path, Command("build_map", (f"dataset={root}",)))
-    db = VisualDatabase.load(base.path)
-    if db.num_keyframes != len(base.keyframe_sources):
-        raise StaleStageError(
-            f"{base.record} lists {len(base.keyframe_sources)} keyframes but {base.path} has "
-            f"{db.num_keyframes}",
-            Command("build_db", db_overrides(root, db_cfg)),
-        )
+    stage_dir = updated_dir(root, db_cfg, cfg.sequence)
+    command = Command(UPDATE_STAGE, db_overrides(root, db_cfg), (f"task.sequence={cfg.sequence}",))
     sequence = read_sequence(root, cfg.sequence)
+    with open_stage(stage_dir, UPDATE_STAGE, command) as stage:
+        map_record, surfels = read_surfel_map(root)
+        inputs = {
+            "database": base.identity,
+            "surfel_map": output_identity(map_record, "surfel_map.ply"),
+            "sequence": identity(root / cfg.sequence),
+        }
+        key = stage_key({"db": asdict(db_cfg), "task": asdict(cfg)}, inputs)
+        previous = stage.reusable(key)
+        if previous is not None and not rebuild:
+            return previous
+        db = VisualDatabase.load(base.path)
+        if db.num_keyframes != len(base.keyframe_sources):
+            raise StaleStageError(
+                f"{base.record} lists {len(base.keyframe_sources)} keyframes but {base.path} "
+                f"has {db.num_keyframes}",
+                Command("build_db", db_overrides(root, db_cfg)),
+            )
+        summary = _update(root, db_cfg, cfg, base, db, sequence, surfels, start, show_progress)
+        saving = time.perf_counter()
+        db.save(stage.workdir() / BUILT)
+        summary["timings_ms"]["save"] = (time.perf_counter() - saving) * 1e3
+        return stage.commit(key, summary, [BUILT])
+
+
+def _update(
+    root: Path,
+    db_cfg: DatabaseConfig,
+    cfg: UpdateTaskConfig,
+    base: SelectedDatabase,
+    db: VisualDatabase,
+    sequence: SequenceData,
+    surfels: SurfelMap,
+    start: float,
+    show_progress: bool,
+) -> dict:
+    """Add ``sequence`` to ``db`` in place; the summary (without the save time)."""
     truth = sequence.T_wc.clone()
     generator = torch.Generator().manual_seed(cfg.noise_seed)
     sequence.T_wc = perturb_positions(sequence.T_wc, db_cfg.noise_sigma, generator)
     builder = DatabaseBuilder(
-        db_cfg.builder_config(),
-        SurfelMap.load(surfel_path),
-        make_extractor(db_cfg.extractor_config()),
-        database=db,
+        db_cfg.builder_config(), surfels, make_extractor(db_cfg.extractor_config()), database=db
     )
     before = _counts(db.num_keyframes, db.num_points)
     loaded = time.perf_counter()
     builder.build(sequence, show_progress=show_progress)
-    built = time.perf_counter()
     counts = builder.counts
     sources = list(base.keyframe_sources) + [(cfg.sequence, i) for i in range(len(sequence))]
     kept = [sources[i] for i in builder.keyframe_ids.tolist()]
@@ -150,7 +183,7 @@ def update_database(
     base_kept = int((builder.keyframe_ids < before["keyframes"]).sum())
     images = len(sequence)
     stage = updated_dir(root, db_cfg, cfg.sequence)
-    summary = {
+    return {
         "config": {"db": asdict(db_cfg), "task": asdict(cfg)},
         "base_database": str(base.path),
         "database": str(stage / BUILT),
@@ -180,8 +213,3 @@ def update_database(
         "features_ms_per_image": builder.timings_ms["features"] / images,
         "update_ms_per_image": builder.timings_ms["database"] / images,
     }
-    with atomic_directory(stage, overwrite=True) as tmp:
-        db.save(tmp / BUILT)
-        summary["timings_ms"]["save"] = (time.perf_counter() - built) * 1e3
-        (tmp / UPDATE_RECORD).write_text(json.dumps(summary, indent=2) + "\n")
-    return summary

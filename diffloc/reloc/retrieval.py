@@ -33,7 +33,7 @@ from diffloc.features.global_ import BagOfWords, NetVLAD
 from diffloc.features.index import RetrievalIndex
 from diffloc.features.local import Features
 from diffloc.io.atomic import atomic_open, atomic_write_text
-from diffloc.io.npz import read_npz_archive
+from diffloc.io.npz import read_npz_archive, write_npz
 
 __all__ = [
     "BowConfig",
@@ -59,6 +59,10 @@ class KeyframeRetriever(Protocol):
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write the retriever to the folder ``path``."""
+
+    @property
+    def num_keyframes(self) -> int:
+        """How many keyframes it ranks (must equal the database's)."""
 
 
 @dataclass
@@ -100,7 +104,7 @@ class BowConfig:
 def _write_folder(path: Path, meta: dict, arrays: dict[str, torch.Tensor]) -> Path:
     path.mkdir(parents=True, exist_ok=True)
     with atomic_open(path / "arrays.npz", "wb") as handle:
-        np.savez(handle, **{k: v.detach().cpu().numpy() for k, v in arrays.items()})
+        write_npz(handle, {k: v.detach().cpu().numpy() for k, v in arrays.items()})
     atomic_write_text(path / "retriever.json", json.dumps(meta, indent=2) + "\n")
     return path
 
@@ -117,6 +121,12 @@ def _read_folder(path: Path) -> tuple[dict, dict[str, torch.Tensor]]:
     if not isinstance(meta, dict) or meta.get("format_version") != FORMAT_VERSION:
         raise ValueError(f"{meta_path}: not a diffloc retriever (format {FORMAT_VERSION})")
     arrays = read_npz_archive(array_path)
+    for name, array in arrays.items():
+        if array.dtype.kind == "f" and not np.isfinite(array).all():
+            raise ValueError(
+                f"{array_path}: array {name!r} holds NaN or infinite values; the retriever is "
+                "corrupt: delete its folder and relocalise again to refit it"
+            )
     return meta, {k: torch.from_numpy(v) for k, v in arrays.items()}
 
 
@@ -188,6 +198,11 @@ class NetVLADRetriever:
             return self.netvlad(features.dense[None])[0]
         return self.netvlad(self.dense(image[None]))[0]
 
+    @property
+    def num_keyframes(self) -> int:
+        """How many keyframes it ranks."""
+        return len(self.index)
+
     def search(self, query: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Top-``k`` keyframes by cosine similarity: ``(scores (k',), keyframes (k',))``."""
         scores, indices = self.index.search(query[None], k)
@@ -240,6 +255,11 @@ class BowRetriever:
     def describe(self, image: torch.Tensor, features: Features) -> torch.Tensor:
         """(N, D) float local descriptors of the query (the image is not used)."""
         return features.descriptors.float()
+
+    @property
+    def num_keyframes(self) -> int:
+        """How many keyframes it ranks."""
+        return self.bow.num_images
 
     def search(self, query: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Top-``k`` keyframes by tf-idf score: ``(scores (k',), keyframes (k',))``."""

@@ -35,7 +35,12 @@ from diffloc.sim.lidar import accumulate_map, simulate_station_scan, simulate_sw
 from diffloc.sim.placement import check_free_space
 from diffloc.sim.preview import write_preview
 from diffloc.sim.scene import generate_world
-from diffloc.sim.trajectory import interpolate_pose, make_trajectory
+from diffloc.sim.trajectory import (
+    TrajectoryConfig,
+    interpolate_pose,
+    make_trajectory,
+    validate_trajectory_config,
+)
 from diffloc.sim.world import World
 
 DATASET_FORMAT_VERSION = 1
@@ -66,6 +71,20 @@ def rig_from_config(cfg: RigConfig) -> SensorRig:
     )
 
 
+def sequence_trajectory(cfg: SceneConfig, seq: SequenceConfig) -> TrajectoryConfig:
+    """The trajectory settings a sequence is simulated with: ``scene.trajectory`` with the
+    sequence's own frame rate, speed and speed variation where it sets them (what
+    ``dataset.json`` records under ``sequence_trajectories``)."""
+    trajectory = cfg.trajectory
+    if seq.frame_rate_hz > 0:
+        trajectory = replace(trajectory, frame_rate_hz=seq.frame_rate_hz)
+    if seq.speed_mps > 0:
+        trajectory = replace(trajectory, speed_mps=seq.speed_mps)
+    if seq.speed_variation_mps is not None:
+        trajectory = replace(trajectory, speed_variation_mps=seq.speed_variation_mps)
+    return trajectory
+
+
 def validate_scene_config(cfg: SceneConfig) -> None:
     """Reject configurations that cannot be simulated, naming the offending key."""
     if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int):
@@ -81,6 +100,10 @@ def validate_scene_config(cfg: SceneConfig) -> None:
     if cfg.map.lidar_sequence not in names:
         raise ValueError(f"scene.map.lidar_sequence {cfg.map.lidar_sequence!r} is not in {names}")
     check_positive_int(cfg.sensor.motion_blur_samples, "scene.sensor.motion_blur_samples")
+    for key in ("voxel_size_m", "normal_radius_m"):
+        value = getattr(cfg.map, key)
+        if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            raise ValueError(f"scene.map.{key} must be a finite number > 0, got {value!r}")
     for index, seq in enumerate(cfg.sequences):
         for key in ("frame_rate_hz", "speed_mps", "start_offset_m"):
             value = getattr(seq, key)
@@ -88,6 +111,10 @@ def validate_scene_config(cfg: SceneConfig) -> None:
                 raise ValueError(
                     f"scene.sequences.{index}.{key} must be finite and >= 0, got {value}"
                 )
+        try:
+            validate_trajectory_config(sequence_trajectory(cfg, seq))
+        except ValueError as exc:
+            raise ValueError(f"scene.sequences.{index} ({seq.name}): {exc}") from exc
 
 
 class DatasetSimulator:
@@ -130,16 +157,9 @@ class DatasetSimulator:
 
     def body_trajectory(self, seq: SequenceConfig) -> tuple[np.ndarray, torch.Tensor]:
         """Timestamps (N,) and body poses T_wb (N, 4, 4) of a sequence."""
-        trajectory = self.cfg.trajectory
-        if seq.frame_rate_hz > 0:
-            trajectory = replace(trajectory, frame_rate_hz=seq.frame_rate_hz)
-        if seq.speed_mps > 0:
-            trajectory = replace(trajectory, speed_mps=seq.speed_mps)
-        if seq.speed_variation_mps is not None:
-            trajectory = replace(trajectory, speed_variation_mps=seq.speed_variation_mps)
         return make_trajectory(
             self.world.route,
-            trajectory,
+            sequence_trajectory(self.cfg, seq),
             lateral_offset_m=seq.lateral_offset_m,
             reverse=seq.reverse,
             phase=seq.sway_phase,
@@ -267,6 +287,13 @@ class DatasetSimulator:
             "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
             "world": self.world.metadata(),
             "nearest_mapping_pose": self.nearest_mapping_pose(results),
+            "sequence_trajectories": {
+                seq.name: {
+                    key: getattr(sequence_trajectory(self.cfg, seq), key)
+                    for key in ("frame_rate_hz", "speed_mps", "speed_variation_mps")
+                }
+                for seq in self.cfg.sequences
+            },
         }
         atomic_write_text(root / "dataset.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
 

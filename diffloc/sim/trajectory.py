@@ -36,6 +36,7 @@ __all__ = [
     "interpolate_pose",
     "make_trajectory",
     "smooth_route",
+    "validate_trajectory_config",
 ]
 
 # The pitch sway runs at this multiple of the yaw sway frequency, so the two never fall into step.
@@ -88,7 +89,7 @@ class TrajectoryConfig:
     start_time_s: float = 0.0
 
 
-def _validate_config(cfg: TrajectoryConfig) -> None:
+def validate_trajectory_config(cfg: TrajectoryConfig) -> None:
     """Raise ``ValueError`` naming the first unusable field of ``cfg``."""
     positive = ("speed_mps", "frame_rate_hz", "sway_period_s", "bob_wavelength_m", "speed_period_s")
     for name in positive:
@@ -426,7 +427,7 @@ def make_trajectory(
         >>> T_wb.shape
         torch.Size([5, 4, 4])
     """
-    _validate_config(cfg)
+    validate_trajectory_config(cfg)
     if not (math.isfinite(lateral_offset_m) and math.isfinite(phase)):
         raise ValueError(
             f"lateral_offset_m and phase must be finite, got {lateral_offset_m}, {phase}"

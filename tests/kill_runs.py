@@ -1,0 +1,94 @@
+"""Stage runs killed at random points (SIGKILL), for the kill test and ``experiments/``.
+
+:func:`killed_run` forks a child that runs one stage on a dataset folder and kills it after a
+given delay (if it has not finished) with SIGKILL, the way the OOM killer or a lost machine
+would: no ``finally`` block, no ``atexit`` handler runs.
+:func:`stage_outputs` reads back every output a stage's record lists, byte for byte.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.pipeline.database_stage import DatabaseConfig, build_database, database_dir
+from tests.conftest import FINE_SURFELS
+
+STAGE_CONFIGS = {
+    "build_map": BuildMapConfig(point_maps=["tls_map"], preview_frames=1),
+    "build_db": DatabaseConfig(noise_sigma=0.05),
+}
+"""The stage runs that are killed: a map with a coloured point map, a noisy database."""
+
+
+def run_stage(stage: str, root: Path) -> dict:
+    """Run ``stage`` (a key of :data:`STAGE_CONFIGS`) on ``root``; its record."""
+    if stage == "build_map":
+        return build_maps(root, STAGE_CONFIGS[stage], FINE_SURFELS, show_progress=False)
+    return build_database(root, STAGE_CONFIGS[stage], show_progress=False)
+
+
+def stage_folder(stage: str, root: Path) -> Path:
+    """The folder ``stage`` writes into."""
+    if stage == "build_map":
+        return root / "map"
+    return database_dir(root, STAGE_CONFIGS[stage])
+
+
+def killed_run(stage: str, root: Path, delay_s: float | None) -> tuple[bool, float]:
+    """Run ``stage`` on ``root`` in a forked child, SIGKILLed after ``delay_s`` seconds.
+
+    The child is a fork of this process (everything is imported already, so the delay falls
+    on the stage's own work); it runs the stage and exits with ``os._exit`` (status 1 and the
+    error on stderr if the stage raised).
+
+    Args:
+        stage: a key of :data:`STAGE_CONFIGS`.
+        root: the dataset folder.
+        delay_s: seconds to let it run before the kill; ``None``: let it finish.
+
+    Returns:
+        ``(killed, seconds until it exited or was killed)``.
+
+    Raises:
+        RuntimeError: the child failed on its own.
+    """
+    start = time.perf_counter()
+    pid = os.fork()
+    if pid == 0:  # the child
+        status = 0
+        try:
+            run_stage(stage, root)
+        except BaseException as exc:  # noqa: BLE001 - reported to the parent by the status
+            print(f"{stage} failed: {exc!r}", file=sys.stderr, flush=True)
+            status = 1
+        os._exit(status)
+    deadline = None if delay_s is None else start + delay_s
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            if os.waitstatus_to_exitcode(status) != 0:
+                raise RuntimeError(f"{stage} on {root} failed in the child (see stderr)")
+            return False, time.perf_counter() - start
+        if deadline is not None and time.perf_counter() >= deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            return True, time.perf_counter() - start
+        time.sleep(0.01)
+
+
+def stage_outputs(stage: str, root: Path) -> dict[str, bytes]:
+    """The bytes of every file of every output listed in the stage's record, by path."""
+    folder = stage_folder(stage, root)
+    record = json.loads((folder / f"{stage}.json").read_text())
+    files = {}
+    for rel in record["stage"]["outputs"]:
+        path = folder / rel
+        paths = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+        files.update({p.relative_to(folder).as_posix(): p.read_bytes() for p in paths})
+    return files
