@@ -7,7 +7,9 @@ entries such as ``.tmp-*`` and lock files excluded), so two folders with the sam
 the same identity wherever they live.
 
 Example:
-    >>> identity(tmp_path / "a.txt")  # doctest: +SKIP
+    >>> from pathlib import Path
+    >>> _ = Path("a.txt").write_text("hello")
+    >>> identity("a.txt")  # doctest: +ELLIPSIS
     {'kind': 'file', 'size': 5, 'sha256': '2cf24dba...'}
 """
 

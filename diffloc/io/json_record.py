@@ -1,8 +1,14 @@
 """Reading a JSON record (a stage summary, a metadata file) with errors that name the file.
 
 Example:
-    >>> read_json_record(tmp_path / "build_map.json")  # doctest: +SKIP
-    {'config': {...}, ...}
+    >>> from pathlib import Path
+    >>> _ = Path("build_map.json").write_text('{"config": {"voxel_size_m": 0.02}}')
+    >>> read_json_record("build_map.json")
+    {'config': {'voxel_size_m': 0.02}}
+    >>> _ = Path("build_map.json").write_text("{")
+    >>> read_json_record("build_map.json", "delete it")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ValueError: build_map.json: not valid JSON (...); delete it
 """
 
 from __future__ import annotations

@@ -12,8 +12,11 @@ hidden temporary files and folders there (``.tmp-*``, ``.<name>.tmp-*``, ``.<nam
 :func:`remove_temporaries` deletes them.
 
 Example:
-    >>> with folder_lock(tmp_path / "map"):
-    ...     remove_temporaries(tmp_path / "map")
+    >>> from pathlib import Path
+    >>> _ = (Path("map") / ".tmp-build_map-1").mkdir(parents=True)
+    >>> with folder_lock("map"):
+    ...     [p.name for p in remove_temporaries("map")]
+    ['.tmp-build_map-1']
 """
 
 from __future__ import annotations

@@ -26,12 +26,22 @@ upstream output (:func:`check_made_from`), e.g. that ``optimized/`` belongs to t
 ``build_db`` database.
 
 Example:
-    >>> with open_stage(root / "map", "build_map", Command("build_map")) as stage:
-    ...     key = stage_key(config, {"sequence": identity(root / "mapping")})
-    ...     if (record := stage.reusable(key)) is not None:
-    ...         return record
-    ...     write_outputs(stage.workdir())
-    ...     return stage.commit(key, summary, ["surfel_map.ply"])  # doctest: +SKIP
+    A stage that writes one note: the second run with the same text reuses the first one's
+    result, another text makes it again.
+
+    >>> from pathlib import Path
+    >>> def write_note(folder, text):
+    ...     with open_stage(folder, "note", Command("note")) as stage:
+    ...         key = stage_key({"text": text}, {})
+    ...         if (record := stage.reusable(key)) is not None:
+    ...             return "reused"
+    ...         (stage.workdir() / "note.txt").write_text(text)
+    ...         return stage.commit(key, {"chars": len(text)}, ["note.txt"])["chars"]
+    >>> _ = Path("notes").mkdir()
+    >>> write_note("notes", "hello"), write_note("notes", "hello"), write_note("notes", "hi")
+    (5, 'reused', 2)
+    >>> Path("notes/note.txt").read_text()
+    'hi'
 """
 
 from __future__ import annotations
