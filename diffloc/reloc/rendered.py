@@ -5,8 +5,10 @@ For one query image:
 1. **Retrieval.** The query's NetVLAD descriptor (the database's layer on the query's dense
    XFeat map, from the same network pass as its keypoints) against the database's by cosine
    similarity, or bag of words (tf-idf over XFeat descriptors, vocabulary trained on the
-   database). The top-1 image is the reference R; with ``top_k > 1`` the next ones are tried in
-   order when R does not localise (a fallback beyond seed 2).
+   database). The top-1 image is the reference R. With ``top_k > 1`` (beyond seed 2) either
+   the next ones are tried in order while R does not localise (``select="first"``, a
+   fallback), or all ``top_k`` are tried and the pose with the most PnP inliers wins
+   (``select="most_inliers"``, a geometric re-ranking of the retrieval).
 2. **Matching.** XFeat (1024 keypoints) + LighterGlue between query and reference; matches
    with confidence > ``min_confidence`` (0, as Algorithm 1) are kept.
 3. **Lifting.** Each matched reference keypoint ``(r_u, r_v)`` takes the reference depth ``z``
@@ -56,6 +58,7 @@ __all__ = [
 ]
 
 RETRIEVERS = ("netvlad", "bow")
+SELECTIONS = ("first", "most_inliers")
 
 
 @dataclass
@@ -64,7 +67,9 @@ class RenderedLocalizerConfig:
 
     Attributes:
         retriever: ``"netvlad"`` or ``"bow"``.
-        top_k: retrieved images tried in rank order until one localises (1 = Algorithm 1).
+        top_k: retrieved images tried (1 = Algorithm 1).
+        select: with ``top_k > 1``, ``"first"`` (the first in rank order that localises) or
+            ``"most_inliers"`` (all are tried; the pose with the most inliers wins).
         max_keypoints: XFeat keypoints of the query (1024).
         min_confidence: LighterGlue matches need a confidence above this (0 = Algorithm 1).
         min_points: fewest lifted 3D points to attempt PnP (6).
@@ -75,6 +80,7 @@ class RenderedLocalizerConfig:
 
     retriever: str = "netvlad"
     top_k: int = 1
+    select: str = "first"
     max_keypoints: int = 1024
     min_confidence: float = 0.0
     min_points: int = 6
@@ -85,6 +91,8 @@ class RenderedLocalizerConfig:
     def __post_init__(self) -> None:
         if self.retriever not in RETRIEVERS:
             raise ValueError(f"retriever must be one of {RETRIEVERS}, got {self.retriever!r}")
+        if self.select not in SELECTIONS:
+            raise ValueError(f"select must be one of {SELECTIONS}, got {self.select!r}")
         for name in ("top_k", "max_keypoints", "min_points"):
             check_positive_int(getattr(self, name), name)
         if self.min_points < 4:
@@ -100,8 +108,8 @@ class RenderedLocalization:
     Attributes:
         T_wc: (4, 4) float64 query camera-to-world pose (identity unless ``success``).
         success: a pose was found.
-        reference: database image the pose came from (the last one tried when not localised;
-            -1 if none was retrieved).
+        reference: database image the pose came from; when not localised, the last one tried
+            (``select="first"``) or the one with the most inliers; -1 if none was retrieved.
         retrieved: (k,) int64 database images in retrieval order.
         num_matches: LighterGlue matches with the reference.
         num_points: of those, matches whose reference keypoint has depth.
@@ -214,9 +222,13 @@ class RenderedDatabaseLocalizer:
         generator = torch.Generator().manual_seed(self.config.seed)
         attempt = _Attempt.none()
         for reference in retrieved.tolist():
-            attempt = self._try_reference(query, camera, int(reference), generator)
-            if attempt.success:
-                break
+            candidate = self._try_reference(query, camera, int(reference), generator)
+            if self.config.select == "first":
+                attempt = candidate
+                if attempt.success:
+                    break
+            elif _better(candidate, attempt):
+                attempt = candidate
         return RenderedLocalization(
             T_wc=attempt.T_wc,
             success=attempt.success,
@@ -261,6 +273,13 @@ class RenderedDatabaseLocalizer:
             num_points=len(points_ref),
             num_inliers=result.num_inliers,
         )
+
+
+def _better(candidate: _Attempt, best: _Attempt) -> bool:
+    """A success beats a failure; then more inliers win (ties: the earlier rank)."""
+    if candidate.success != best.success:
+        return candidate.success
+    return candidate.num_inliers > best.num_inliers or best.reference < 0
 
 
 @dataclass(frozen=True)
