@@ -79,6 +79,7 @@ def _parse() -> argparse.Namespace:
     parser.add_argument("--levels", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--every", type=int, default=1, help="localise every n-th query frame")
     parser.add_argument("--top-k", type=int, default=1)
+    parser.add_argument("--select", choices=["first", "most_inliers"], default="first")
     return parser.parse_args()
 
 
@@ -180,7 +181,8 @@ def _markdown(report: dict) -> str:
     lines = [
         f"# Rendered-database localisation (seed 2 Algorithm 1), {report['tag']}",
         "",
-        f"Images {report['image_size']}; {report['command']}",
+        f"Images {report['image_size']}, retrieval top-{report['retrieval']['top_k']} "
+        f"({report['retrieval']['select']}); `{report['command']}`",
         f"Machine: {report['machine']}",
         "",
         "| " + " | ".join(head) + " |",
@@ -255,7 +257,9 @@ def main() -> None:
                 db.save(path)
             build_s = time.perf_counter() - start
             for retriever in args.retrievers:
-                config = RenderedLocalizerConfig(retriever=retriever, top_k=args.top_k)
+                config = RenderedLocalizerConfig(
+                    retriever=retriever, top_k=args.top_k, select=args.select
+                )
                 localizer = RenderedDatabaseLocalizer(db, config, extractor, matcher)
                 for seq_name, seq in sequences.items():
                     indices = list(range(0, len(seq), step))
@@ -279,6 +283,7 @@ def main() -> None:
         "image_size": f"{camera.width}x{camera.height}",
         "machine": f"{platform.node()} {os.cpu_count()} cores, load {os.getloadavg()}",
         "point_sizes": {"rho_min": args.rho_min, "rho_max": args.rho_max, "levels": args.levels},
+        "retrieval": {"top_k": args.top_k, "select": args.select},
         "queries": {name: len(range(0, len(seq), step)) for name, seq in sequences.items()},
         "rows": rows,
     }

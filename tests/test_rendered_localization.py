@@ -15,8 +15,13 @@ import numpy as np
 import pytest
 import torch
 
-from diffloc.crossmodal.database import DatabaseConfig, RenderedDatabase, render_database
-from diffloc.crossmodal.synthesize import MeshMap, PointCloudMap, render_views
+from diffloc.crossmodal.database import (
+    DatabaseConfig,
+    RenderedDatabase,
+    build_database,
+    render_database,
+)
+from diffloc.crossmodal.synthesize import RGBD, MeshMap, PointCloudMap, render_views
 from diffloc.eval.metrics import pose_errors, recall
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import se3_exp
@@ -173,6 +178,24 @@ def test_end_to_end_simulated_queries_in_the_mesh_database(tiny_indoor_dataset, 
     assert errors.localized[:2].all()
     assert (errors.translation_m[:2] < 0.1).all() and (errors.rotation_deg[:2] < 1.0).all()
     assert recall(errors, 0.25, 2.0) >= 0.4
+
+
+def test_real_image_database_uses_the_same_localizer(tiny_indoor_dataset, scene):
+    """The mapping frames with their depth images as the database (no rendering)."""
+    _, mapping = scene
+    frames = range(len(mapping))
+    views = RGBD(
+        torch.stack([mapping.load_rgb(i) for i in frames]),
+        torch.stack([mapping.load_depth(i) for i in frames]),
+    )
+    db = build_database(views, mapping.T_wc, mapping.camera, SMALL_DB, "mapping frames")
+    queries = read_sequence(tiny_indoor_dataset, "query_same")
+    result = RenderedDatabaseLocalizer(db, RenderedLocalizerConfig()).localize(
+        queries.load_rgb(1), queries.camera
+    )
+    assert result.success
+    translation_m, rotation_deg = _errors(result.T_wc, queries.T_wc[1])
+    assert translation_m < 0.1 and rotation_deg < 1.0
 
 
 def test_image_of_the_wrong_size_is_rejected(scene, localizer):
