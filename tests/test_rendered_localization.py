@@ -131,6 +131,17 @@ def test_most_inliers_selection_is_at_least_as_supported_as_top_1(scene, mesh_da
     assert _errors(best.T_wc, T_query)[0] < 0.05
 
 
+def test_given_references_replace_the_retrieval(scene, localizer):
+    mesh_map, mapping = scene
+    T_query = mapping.T_wc[4] @ se3_exp(OFFSET)
+    image = mesh_map.render(T_query[None], mapping.camera).rgb[0]
+    result = localizer.localize(image, mapping.camera, references=torch.tensor([4]))
+    assert result.retrieved.tolist() == [4] and result.reference == 4 and result.success
+    assert _errors(result.T_wc, T_query)[0] < 0.05
+    with pytest.raises(IndexError, match="references"):
+        localizer.localize(image, mapping.camera, references=torch.tensor([5]))
+
+
 def test_a_query_without_texture_is_not_localized(scene, localizer):
     _, mapping = scene
     image = torch.full((3, mapping.camera.height, mapping.camera.width), 0.5)

@@ -199,26 +199,41 @@ class RenderedDatabaseLocalizer:
         settings = NetVLADConfig(clusters=db.netvlad.num_clusters)
         return NetVLADRetriever(db.netvlad, db.global_descriptors, settings)
 
-    def localize(self, image: torch.Tensor, camera: PinholeCamera) -> RenderedLocalization:
+    def localize(
+        self,
+        image: torch.Tensor,
+        camera: PinholeCamera,
+        references: torch.Tensor | None = None,
+    ) -> RenderedLocalization:
         """Localise one query image.
 
         Args:
             image: (3, H, W) float RGB in [0, 1].
             camera: the query camera (unbatched), size W x H; it may differ from the
                 database camera.
+            references: optional (k,) int64 database images to try in place of the
+                retrieval (e.g. an oracle for diagnostics); ``None`` retrieves ``top_k``.
 
         Returns:
             The :class:`RenderedLocalization` (``success`` false when it could not localise).
 
         Raises:
-            ShapeError: an image not (3, H, W) or not the camera's size.
+            ShapeError: an image not (3, H, W) or not the camera's size, or ``references``
+                not a vector.
+            IndexError: a reference outside the database.
         """
         check_shape(image, f"3,{camera.height},{camera.width}", "image")
+        if references is not None:
+            check_shape(references, "k", "references")
+            if bool(((references < 0) | (references >= self.database.num_images)).any()):
+                raise IndexError(f"references must lie in [0, {self.database.num_images})")
         start = time.perf_counter()
         query = self.extractor.extract(image)
-        with torch.no_grad():
-            descriptor = self.retriever.describe(image, query)
-            _, retrieved = self.retriever.search(descriptor, self.config.top_k)
+        retrieved = references
+        if retrieved is None:
+            with torch.no_grad():
+                descriptor = self.retriever.describe(image, query)
+                _, retrieved = self.retriever.search(descriptor, self.config.top_k)
         generator = torch.Generator().manual_seed(self.config.seed)
         attempt = _Attempt.none()
         for reference in retrieved.tolist():
