@@ -170,7 +170,7 @@ class RenderedDatabaseLocalizer:
             threshold is ``config.min_confidence``).
 
     Raises:
-        ValueError: a bad config (an empty database cannot be constructed).
+        TypeError: ``database`` is not a :class:`RenderedDatabase` (which is never empty).
     """
 
     def __init__(
