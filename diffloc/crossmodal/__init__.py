@@ -1,1 +1,1 @@
-"""Cross-modal localization pieces of seed 2: render-pose selection in 3D maps."""
+"""Cross-modal localization pieces of seed 2: render-pose selection, RGB-D maps, databases."""

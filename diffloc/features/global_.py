@@ -27,7 +27,7 @@ from torch import nn
 
 from diffloc.checks import check_finite, check_positive_int, check_shape
 
-__all__ = ["BagOfWords", "NetVLAD", "kmeans", "nearest_centroids"]
+__all__ = ["BagOfWords", "NetVLAD", "kmeans", "nearest_centroids", "netvlad_from_dense_maps"]
 
 _CHUNK_ROWS = 32768
 """Rows of descriptors per distance-matrix block (bounds memory to chunk x K floats)."""
@@ -315,6 +315,54 @@ class NetVLAD(nn.Module):
         self.pca_projection.copy_(projection)
         self.whitening_fitted.fill_(True)
         return variance
+
+
+def netvlad_from_dense_maps(
+    maps: torch.Tensor,
+    num_clusters: int,
+    samples_per_image: int,
+    generator: torch.Generator,
+    num_iters: int = 30,
+) -> NetVLAD:
+    """A NetVLAD layer initialised by k-means on descriptors sampled from dense maps.
+
+    ``samples_per_image`` locations are drawn uniformly (with replacement) from every map and
+    the layer is set by :meth:`NetVLAD.init_from_kmeans` on them: VLAD-like, no training.
+
+    Args:
+        maps: (M, D, h, w) dense descriptor maps of the database images (any float dtype).
+        num_clusters: K.
+        samples_per_image: locations drawn per map.
+        generator: CPU generator of the sampling and the k-means seeding.
+        num_iters: most k-means iterations.
+
+    Returns:
+        The initialised :class:`NetVLAD` (no whitening).
+
+    Raises:
+        ShapeError: ``maps`` not (M, D, h, w).
+        ValueError: no maps, or fewer samples than clusters.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> netvlad_from_dense_maps(torch.randn(4, 64, 6, 8), 8, 50, g).output_dim
+        512
+    """
+    check_shape(maps, "M,D,h,w", "maps")
+    if maps.shape[0] == 0:
+        raise ValueError("netvlad_from_dense_maps needs at least one map")
+    check_positive_int(samples_per_image, "samples_per_image")
+    flat = maps.flatten(2)
+    picks = torch.randint(flat.shape[2], (len(maps), samples_per_image), generator=generator)
+    samples = torch.gather(flat, 2, picks[:, None].expand(-1, flat.shape[1], -1).to(flat.device))
+    samples = samples.transpose(1, 2).reshape(-1, flat.shape[1]).float()
+    if len(samples) < num_clusters:
+        raise ValueError(
+            f"{len(samples)} sampled descriptors cannot seed {num_clusters} NetVLAD clusters"
+        )
+    netvlad = NetVLAD(num_clusters, flat.shape[1])
+    netvlad.init_from_kmeans(samples, generator, num_iters=num_iters)
+    return netvlad
 
 
 class BagOfWords:

@@ -29,7 +29,7 @@ import torch
 
 from diffloc.checks import check_positive_int, check_shape
 from diffloc.features.dense import DenseXFeat
-from diffloc.features.global_ import BagOfWords, NetVLAD
+from diffloc.features.global_ import BagOfWords, NetVLAD, netvlad_from_dense_maps
 from diffloc.features.index import RetrievalIndex
 from diffloc.features.local import Features
 from diffloc.io.atomic import atomic_open, atomic_write_text
@@ -179,14 +179,9 @@ class NetVLADRetriever:
             raise ValueError("NetVLADRetriever.fit needs at least one keyframe image")
         maps = torch.cat(maps)
         generator = torch.Generator().manual_seed(config.seed)
-        flat = maps.flatten(2)
-        picks = torch.randint(
-            flat.shape[2], (len(maps), config.samples_per_image), generator=generator
+        netvlad = netvlad_from_dense_maps(
+            maps, config.clusters, config.samples_per_image, generator, config.kmeans_iterations
         )
-        samples = torch.gather(flat, 2, picks[:, None].expand(-1, flat.shape[1], -1))
-        samples = samples.transpose(1, 2).reshape(-1, flat.shape[1]).float()
-        netvlad = NetVLAD(config.clusters, flat.shape[1])
-        netvlad.init_from_kmeans(samples, generator, num_iters=config.kmeans_iterations)
         descriptors = torch.cat([netvlad(m.float()) for m in maps.split(config.batch_size)])
         return cls(netvlad, descriptors, config, dense)
 

@@ -1,0 +1,317 @@
+"""Localising a camera image in an RGB-D image database (seed 2 Sec. III-E, Algorithm 1).
+
+For one query image:
+
+1. **Retrieval.** The query's NetVLAD descriptor (the database's layer on the query's dense
+   XFeat map, from the same network pass as its keypoints) against the database's by cosine
+   similarity, or bag of words (tf-idf over XFeat descriptors, vocabulary trained on the
+   database). The top-1 image is the reference R. With ``top_k > 1`` (beyond seed 2) either
+   the next ones are tried in order while R does not localise (``select="first"``, a
+   fallback), or all ``top_k`` are tried and the pose with the most PnP inliers wins
+   (``select="most_inliers"``, a geometric re-ranking of the retrieval).
+2. **Matching.** XFeat (1024 keypoints) + LighterGlue between query and reference; matches
+   with confidence > ``min_confidence`` (0, as Algorithm 1) are kept.
+3. **Lifting.** Each matched reference keypoint ``(r_u, r_v)`` takes the reference depth ``z``
+   at its nearest pixel, ``P = ((r_u - c_x) z / f_x, (r_v - c_y) z / f_y, z)`` in R's camera
+   frame; no depth (a hole), no point.
+4. **Pose.** With at least ``min_points`` (6) points, PnP RANSAC + Gauss-Newton refinement
+   (:func:`~diffloc.reloc.pnp.solve_pnp_ransac`) on the points in R's frame and the query
+   keypoints gives the query camera in R's frame, ``T_RQ = T_QR^-1``, and so
+   ``T_WQ = T_WR T_QR^-1``.
+
+"Could not localise" (no reference with enough points and a PnP pose of at least
+``pnp.min_inliers`` inliers) is a normal result: :attr:`RenderedLocalization.success` is false.
+
+Example:
+    >>> localizer = RenderedDatabaseLocalizer(db, RenderedLocalizerConfig())  # doctest: +SKIP
+    >>> result = localizer.localize(image, camera)  # doctest: +SKIP
+    >>> result.success, result.T_wc.shape  # doctest: +SKIP
+    (True, torch.Size([4, 4]))
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from diffloc.checks import check_positive_int, check_shape
+from diffloc.crossmodal.database import RenderedDatabase
+from diffloc.features.local import Features, XFeatConfig, XFeatExtractor
+from diffloc.features.matching import LighterGlueConfig, LighterGlueMatcher
+from diffloc.geometry.camera import PinholeCamera
+from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
+from diffloc.reloc.retrieval import (
+    BowConfig,
+    BowRetriever,
+    KeyframeRetriever,
+    NetVLADConfig,
+    NetVLADRetriever,
+)
+
+__all__ = [
+    "RenderedDatabaseLocalizer",
+    "RenderedLocalization",
+    "RenderedLocalizerConfig",
+    "lift_keypoints",
+]
+
+RETRIEVERS = ("netvlad", "bow")
+SELECTIONS = ("first", "most_inliers")
+
+
+@dataclass
+class RenderedLocalizerConfig:
+    """Settings of :class:`RenderedDatabaseLocalizer` (seed 2 defaults).
+
+    Attributes:
+        retriever: ``"netvlad"`` or ``"bow"``.
+        top_k: retrieved images tried (1 = Algorithm 1).
+        select: with ``top_k > 1``, ``"first"`` (the first in rank order that localises) or
+            ``"most_inliers"`` (all are tried; the pose with the most inliers wins).
+        max_keypoints: XFeat keypoints of the query (1024).
+        min_confidence: LighterGlue matches need a confidence above this (0 = Algorithm 1).
+        min_points: fewest lifted 3D points to attempt PnP (6).
+        pnp: PnP RANSAC settings; ``min_inliers`` decides success.
+        bow: bag-of-words settings (vocabulary trained on the database's descriptors).
+        seed: seed of the per-query RANSAC generator.
+    """
+
+    retriever: str = "netvlad"
+    top_k: int = 1
+    select: str = "first"
+    max_keypoints: int = 1024
+    min_confidence: float = 0.0
+    min_points: int = 6
+    pnp: PnPRansacConfig = field(default_factory=lambda: PnPRansacConfig(min_inliers=6))
+    bow: BowConfig = field(default_factory=BowConfig)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.retriever not in RETRIEVERS:
+            raise ValueError(f"retriever must be one of {RETRIEVERS}, got {self.retriever!r}")
+        if self.select not in SELECTIONS:
+            raise ValueError(f"select must be one of {SELECTIONS}, got {self.select!r}")
+        for name in ("top_k", "max_keypoints", "min_points"):
+            check_positive_int(getattr(self, name), name)
+        if self.min_points < 4:
+            raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
+        if not 0.0 <= self.min_confidence < 1.0:
+            raise ValueError(f"min_confidence must be in [0, 1), got {self.min_confidence!r}")
+
+
+@dataclass(frozen=True)
+class RenderedLocalization:
+    """The answer for one query.
+
+    Attributes:
+        T_wc: (4, 4) float64 query camera-to-world pose (identity unless ``success``).
+        success: a pose was found.
+        reference: database image the pose came from; when not localised, the last one tried
+            (``select="first"``) or the one with the most inliers; -1 if none was retrieved.
+        retrieved: (k,) int64 database images in retrieval order.
+        num_matches: LighterGlue matches with the reference.
+        num_points: of those, matches whose reference keypoint has depth.
+        num_inliers: PnP inliers (0 without a PnP attempt).
+        time_ms: wall time of the query (features, retrieval, matching, PnP), milliseconds.
+    """
+
+    T_wc: torch.Tensor
+    success: bool
+    reference: int
+    retrieved: torch.Tensor
+    num_matches: int
+    num_points: int
+    num_inliers: int
+    time_ms: float
+
+
+def lift_keypoints(
+    keypoints: torch.Tensor, depth: torch.Tensor, camera: PinholeCamera
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Back-project keypoints with the depth at their nearest pixel (Algorithm 1, lines 4-6).
+
+    Args:
+        keypoints: (N, 2) pixel coordinates ``(u, v)`` of the image.
+        depth: (1, H, W) z-depth of the image, 0 = no depth.
+        camera: the image's camera (unbatched, size W x H).
+
+    Returns:
+        ``(points_cam, valid)``: (N, 3) float64 camera-frame points and (N,) bool, true where
+        the depth is positive (rows of invalid keypoints are zero).
+
+    Raises:
+        ShapeError: wrong shapes or a depth image of another size than the camera.
+
+    Example:
+        >>> cam = PinholeCamera(fx=2.0, fy=2.0, cx=1.0, cy=1.0, width=3, height=3)
+        >>> lift_keypoints(torch.tensor([[2.0, 1.0]]), torch.full((1, 3, 3), 4.0), cam)[0]
+        tensor([[2., 0., 4.]], dtype=torch.float64)
+    """
+    check_shape(keypoints, "N,2", "keypoints")
+    check_shape(depth, f"1,{camera.height},{camera.width}", "depth")
+    col = keypoints[:, 0].round().long().clamp(0, camera.width - 1)
+    row = keypoints[:, 1].round().long().clamp(0, camera.height - 1)
+    z = depth[0, row, col].to(torch.float64)
+    valid = z > 0
+    points = camera.to(torch.float64).unproject(keypoints.to(torch.float64), z)
+    return points * valid[:, None], valid
+
+
+class RenderedDatabaseLocalizer:
+    """Algorithm 1 of seed 2 over a :class:`RenderedDatabase` (rendered or real images).
+
+    Args:
+        database: the RGB-D database.
+        config: settings.
+        extractor: XFeat extractor to share (one is made when ``None``).
+        matcher: LighterGlue matcher to share (one is made when ``None``; its confidence
+            threshold is ``config.min_confidence``).
+
+    Raises:
+        TypeError: ``database`` is not a :class:`RenderedDatabase` (which is never empty).
+    """
+
+    def __init__(
+        self,
+        database: RenderedDatabase,
+        config: RenderedLocalizerConfig,
+        extractor: XFeatExtractor | None = None,
+        matcher: LighterGlueMatcher | None = None,
+    ) -> None:
+        if not isinstance(database, RenderedDatabase):
+            raise TypeError(f"database must be a RenderedDatabase, got {type(database).__name__}")
+        self.database = database
+        self.config = config
+        self.extractor = extractor or XFeatExtractor(
+            XFeatConfig(max_keypoints=config.max_keypoints)
+        )
+        self.matcher = matcher or LighterGlueMatcher(
+            LighterGlueConfig(min_confidence=config.min_confidence)
+        )
+        self.retriever = self._retriever()
+
+    def _retriever(self) -> KeyframeRetriever:
+        db = self.database
+        if self.config.retriever == "bow":
+            return BowRetriever.fit([f.descriptors for f in db.features], self.config.bow)
+        settings = NetVLADConfig(clusters=db.netvlad.num_clusters)
+        return NetVLADRetriever(db.netvlad, db.global_descriptors, settings)
+
+    def localize(
+        self,
+        image: torch.Tensor,
+        camera: PinholeCamera,
+        references: torch.Tensor | None = None,
+    ) -> RenderedLocalization:
+        """Localise one query image.
+
+        Args:
+            image: (3, H, W) float RGB in [0, 1].
+            camera: the query camera (unbatched), size W x H; it may differ from the
+                database camera.
+            references: optional (k,) int64 database images to try in place of the
+                retrieval (e.g. an oracle for diagnostics); ``None`` retrieves ``top_k``.
+
+        Returns:
+            The :class:`RenderedLocalization` (``success`` false when it could not localise).
+
+        Raises:
+            ShapeError: an image not (3, H, W) or not the camera's size, or ``references``
+                not a vector.
+            IndexError: a reference outside the database.
+        """
+        check_shape(image, f"3,{camera.height},{camera.width}", "image")
+        if references is not None:
+            check_shape(references, "k", "references")
+            if bool(((references < 0) | (references >= self.database.num_images)).any()):
+                raise IndexError(f"references must lie in [0, {self.database.num_images})")
+        start = time.perf_counter()
+        query = self.extractor.extract(image)
+        retrieved = references
+        if retrieved is None:
+            with torch.no_grad():
+                descriptor = self.retriever.describe(image, query)
+                _, retrieved = self.retriever.search(descriptor, self.config.top_k)
+        generator = torch.Generator().manual_seed(self.config.seed)
+        attempt = _Attempt.none()
+        for reference in retrieved.tolist():
+            candidate = self._try_reference(query, camera, int(reference), generator)
+            if self.config.select == "first":
+                attempt = candidate
+                if attempt.success:
+                    break
+            elif _better(candidate, attempt):
+                attempt = candidate
+        return RenderedLocalization(
+            T_wc=attempt.T_wc,
+            success=attempt.success,
+            reference=attempt.reference,
+            retrieved=retrieved,
+            num_matches=attempt.num_matches,
+            num_points=attempt.num_points,
+            num_inliers=attempt.num_inliers,
+            time_ms=1000.0 * (time.perf_counter() - start),
+        )
+
+    def _try_reference(
+        self,
+        query: Features,
+        camera: PinholeCamera,
+        reference: int,
+        generator: torch.Generator,
+    ) -> _Attempt:
+        db = self.database
+        ref = db.features[reference]
+        matches = self.matcher.match(
+            query, ref, (camera.height, camera.width), (db.camera.height, db.camera.width)
+        )
+        keep = matches.scores > self.config.min_confidence
+        pairs = matches.indices[keep]
+        points_ref, valid = lift_keypoints(
+            ref.keypoints[pairs[:, 1]], db.depth[reference], db.camera
+        )
+        points_ref, query_px = points_ref[valid], query.keypoints[pairs[valid, 0]]
+        attempt = _Attempt.none(reference, len(pairs), len(points_ref))
+        if len(points_ref) < self.config.min_points:
+            return attempt
+        result = solve_pnp_ransac(points_ref, query_px, camera, self.config.pnp, generator)
+        if not result.success:
+            return _Attempt.none(reference, len(pairs), len(points_ref), result.num_inliers)
+        T_RQ = result.T_wc  # the query camera in the reference camera's frame
+        return _Attempt(
+            T_wc=db.T_wc[reference] @ T_RQ,
+            success=True,
+            reference=reference,
+            num_matches=len(pairs),
+            num_points=len(points_ref),
+            num_inliers=result.num_inliers,
+        )
+
+
+def _better(candidate: _Attempt, best: _Attempt) -> bool:
+    """A success beats a failure; then more inliers win (ties: the earlier rank)."""
+    if candidate.success != best.success:
+        return candidate.success
+    return candidate.num_inliers > best.num_inliers or best.reference < 0
+
+
+@dataclass(frozen=True)
+class _Attempt:
+    """The outcome of localising against one reference image."""
+
+    T_wc: torch.Tensor
+    success: bool
+    reference: int
+    num_matches: int
+    num_points: int
+    num_inliers: int
+
+    @staticmethod
+    def none(
+        reference: int = -1, num_matches: int = 0, num_points: int = 0, num_inliers: int = 0
+    ) -> _Attempt:
+        """A failed attempt (identity pose)."""
+        eye = torch.eye(4, dtype=torch.float64)
+        return _Attempt(eye, False, reference, num_matches, num_points, num_inliers)
