@@ -14,11 +14,12 @@ Files: a folder with ``database.npz`` (arrays, ``allow_pickle=False``; rgb as ui
 Loading validates values: finite poses with a rigid last row, depth finite and >= 0, and counts
 that agree (images, depths, poses, features, descriptors).
 
-Example:
-    >>> db = render_database(cloud, selection.T_wc, camera, DatabaseConfig(), "tls single")
-    >>> db.save("out/tls_single")
-    >>> RenderedDatabase.load("out/tls_single").num_images == db.num_images
-    True
+Usage (extracts XFeat features of every render; ``tests/test_rendered_database.py`` runs it on
+the tiny scene)::
+
+    db = render_database(cloud, selection.T_wc, camera, DatabaseConfig(), "tls single")
+    db.save("out/tls_single")
+    same = RenderedDatabase.load("out/tls_single")
 """
 
 from __future__ import annotations

@@ -15,10 +15,18 @@ localiser only see this interface, so a radiance field plugs in by implementing 
   (:class:`~diffloc.render.raycast.MeshRenderer`); the colour is the texture albedo.
 
 Example:
-    >>> cloud = PointCloudMap(points, colors, PointSizes.inverse_depth(1.0, 6.0))
-    >>> views = render_views(cloud, T_wc, PinholeCamera.from_fov(320, 240, 1.57))
-    >>> views.rgb.shape, hole_fraction(views.depth).shape
-    (torch.Size([96, 3, 240, 320]), torch.Size([96]))
+    One red point 2 m in front of two cameras, drawn 3 px wide (Eq. 2: 6 px at 1 m):
+
+    >>> import torch
+    >>> from diffloc.geometry.camera import PinholeCamera
+    >>> from diffloc.render.point_sizes import PointSizes
+    >>> cloud = PointCloudMap(
+    ...     torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0.0, 0.0]]),
+    ...     PointSizes.inverse_depth(1.0, 6.0))
+    >>> camera = PinholeCamera(fx=10.0, fy=10.0, cx=4.0, cy=4.0, width=9, height=9)
+    >>> views = render_views(cloud, torch.eye(4).expand(2, 4, 4), camera)
+    >>> views.rgb.shape, float(views.depth.max()), hole_fraction(views.depth)
+    (torch.Size([2, 3, 9, 9]), 2.0, tensor([0.8889, 0.8889]))
 """
 
 from __future__ import annotations

@@ -22,11 +22,13 @@ For one query image:
 "Could not localise" (no reference with enough points and a PnP pose of at least
 ``pnp.min_inliers`` inliers) is a normal result: :attr:`RenderedLocalization.success` is false.
 
-Example:
-    >>> localizer = RenderedDatabaseLocalizer(db, RenderedLocalizerConfig())  # doctest: +SKIP
-    >>> result = localizer.localize(image, camera)  # doctest: +SKIP
-    >>> result.success, result.T_wc.shape  # doctest: +SKIP
-    (True, torch.Size([4, 4]))
+Usage (needs a :class:`~diffloc.crossmodal.database.RenderedDatabase`;
+``tests/test_rendered_localization.py`` runs it on the tiny scene)::
+
+    localizer = RenderedDatabaseLocalizer(db, RenderedLocalizerConfig())
+    result = localizer.localize(image, camera)
+    if result.success:
+        T_wc = result.T_wc  # (4, 4) query camera-to-world
 """
 
 from __future__ import annotations
