@@ -4,7 +4,9 @@ The atlas comes from open3d's ``t.geometry.TriangleMesh.compute_uvatlas`` (Micro
 charts cut so that their stretch stays below ``max_stretch``, packed into one square texture
 with ``gutter`` texels between charts). The mesh is first split into partitions of about
 ``faces_per_partition`` faces that are charted separately: UVAtlas's cost grows faster than
-linearly with the faces (a 20k-face mesh: 79 s in one partition, 3 s in eight). Corner UVs
+linearly with the faces (a 20k-face mesh: 79 s in one partition, 3 s in eight). With several
+partitions the packing order of the charts varies from run to run, so the layout is not
+bitwise reproducible (the surface each chart maps is). Corner UVs
 follow :class:`TexturedMesh`: ``v = 0`` is the top row, texel ``(row, col)`` of an ``S x S``
 texture has its centre at ``((col + 0.5) / S, (row + 0.5) / S)``.
 
