@@ -103,6 +103,22 @@ def exposure_error(estimated: torch.Tensor, recorded: np.ndarray) -> dict:
     }
 
 
+def paired(variants: dict) -> dict:
+    """Per held-out frame PSNR differences (gain fitted) between exposure variants."""
+    frames = {m: np.array(v["psnr_gain_fitted_per_frame_db"]) for m, v in variants.items()}
+    out = {}
+    for a, b in (("estimated", "none"), ("recorded", "estimated")):
+        d = frames[a] - frames[b]
+        out[f"{a}-{b}"] = {
+            "mean": float(d.mean()),
+            "min": float(d.min()),
+            "max": float(d.max()),
+            "positive": int((d > 0).sum()),
+            "frames": len(d),
+        }
+    return out
+
+
 def crop_to_box(points: np.ndarray, normals: np.ndarray, low: np.ndarray, high: np.ndarray):
     keep = ((points >= low) & (points <= high)).all(axis=1)
     return points[keep], normals[keep]
@@ -192,6 +208,7 @@ def main() -> None:
                     "ply": ply.stat().st_size,
                 }
             print(name, mode, json.dumps(variant)[:300], flush=True)
+        entry["paired_gain_fitted_db"] = paired(entry["variants"])
         results["maps"][name] = entry
     results["load_average"] = {"start": load_start, "end": os.getloadavg()}
     results["threads"] = torch.get_num_threads()
@@ -234,6 +251,13 @@ def markdown(results: dict, frame: int) -> str:
                 f"{v['psnr_raw_db']:.2f} | {v['psnr_gain_fitted_db']:.2f} | "
                 f"{v['covered_fraction']:.3f} | {v['textured_texel_fraction']:.3f} | "
                 f"{err_text} | {v['atlas_s']:.1f} | {v['texture_s']:.1f} |"
+            )
+    lines += ["", "Paired per-frame differences of the gain-fitted PSNR (dB):", ""]
+    for name, entry in results["maps"].items():
+        for pair, d in entry["paired_gain_fitted_db"].items():
+            lines.append(
+                f"- {name}, {pair}: mean {d['mean']:+.2f}, range [{d['min']:+.2f}, "
+                f"{d['max']:+.2f}], positive on {d['positive']} of {d['frames']} frames"
             )
     rng = next(iter(results["maps"].values()))["variants"]["estimated"]["exposure_error"]
     lines += [

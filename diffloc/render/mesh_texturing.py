@@ -67,8 +67,9 @@ class TextureBlendConfig:
             camera (rejects grazing and back-facing views).
         border_px: texels projecting closer than this to the image edge are not sampled.
         gamma: camera response, ``linear = image ** gamma``.
-        dark_limit: samples darker than this (encoded) are not used to estimate exposures.
-        bright_limit: samples brighter than this (encoded, clipped) are not used either.
+        dark_limit: samples darker than this (encoded grey) do not estimate exposures.
+        bright_limit: samples with a channel brighter than this (encoded; may be clipped) do
+            not either.
         min_pair_samples: view pairs sharing fewer samples do not constrain exposures.
         views_per_batch: cameras ray cast together for the occlusion depth maps.
     """
@@ -315,7 +316,7 @@ def texture_texels(
         sigma = torch.ones(len(T_wc), dtype=torch.float64)
     elif exposures == "estimated":
         grey = samples.mean(dim=2)
-        usable = (grey > cfg.dark_limit) & (grey < cfg.bright_limit)
+        usable = (grey > cfg.dark_limit) & (samples.amax(dim=2) < cfg.bright_limit)
         intensity = torch.where(usable, grey.clamp_min(1e-6) ** cfg.gamma, 0.0)
         estimate = estimate_exposures(views.view_ids, intensity, len(T_wc), cfg.min_pair_samples)
         sigma = estimate.exposures
