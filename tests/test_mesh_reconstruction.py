@@ -57,6 +57,13 @@ def test_normals_point_out_of_the_surface(sphere_mesh):
     assert (outward > 0).mean() > 0.99
 
 
+def test_a_room_seen_from_inside_keeps_its_normals_towards_the_sensor():
+    points, normals = sphere_points(20_000)
+    mesh = reconstruct_mesh(points, -normals, CFG)  # scanned from the centre: normals inward
+    inward = (mesh.face_normals * mesh.triangles_center).sum(axis=1)
+    assert (inward < 0).mean() > 0.99
+
+
 def test_surface_no_point_supports_is_trimmed():
     mesh = reconstruct_mesh(*half_sphere_points(20_000), CFG)
     assert mesh.vertices[:, 2].min() > -0.1  # Poisson's closing of the lower half is gone

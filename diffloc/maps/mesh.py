@@ -90,8 +90,13 @@ def _poisson(points: np.ndarray, normals: np.ndarray, cfg: MeshReconstructionCon
 
 
 def _clean(vertices: np.ndarray, faces: np.ndarray, min_faces: int) -> trimesh.Trimesh:
-    """trimesh cleaning: merge, drop degenerate / duplicate faces and small components."""
-    mesh = trimesh.Trimesh(vertices, faces, process=True, validate=True)
+    """trimesh cleaning: merge, drop degenerate / duplicate faces and small components.
+
+    Not ``validate=True``: that also runs ``fix_normals``, which turns closed components to a
+    positive volume, i.e. flips a room seen from inside (normals towards the sensor) inside out.
+    """
+    mesh = trimesh.Trimesh(vertices, faces, process=True)
+    mesh.update_faces(mesh.unique_faces() & mesh.nondegenerate_faces())
     labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(mesh.faces))
     sizes = np.bincount(labels)
     mesh.update_faces(sizes[labels] >= min_faces)
