@@ -11,6 +11,8 @@ Layout::
                                      (optional folder)
     <root>/<seq>/lidar/000000.ply    binary PLY, float32 x y z in the lidar frame (optional)
     <root>/<seq>/lidar/poses.txt     TUM trajectory of T_world_lidar at sweep times
+    <root>/<seq>/exposure.txt        per-frame exposure, simulator ground truth (only with
+                                     auto exposure; see diffloc.io.exposure)
     <root>/map/lidar_map.ply         accumulated lidar map (points + normals)
     <root>/map/tls_map.ply           terrestrial laser scanner map
     <root>/map/mesh/scene.obj        textured mesh of the mapped scene

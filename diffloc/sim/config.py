@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 from omegaconf import MISSING
 
-from diffloc.sim.imaging import LightingConfig, SensorConfig
+from diffloc.sim.imaging import AutoExposureConfig, LightingConfig, SensorConfig
 from diffloc.sim.indoor_layout import IndoorLayoutConfig
 from diffloc.sim.lidar import SpinningLidarConfig, TerrestrialScannerConfig
 from diffloc.sim.outdoor_layout import OutdoorLayoutConfig
@@ -60,7 +60,9 @@ class SequenceConfig:
     ``trajectory.speed_variation_mps`` (``None`` keeps it), so queries can be sparser than the
     mapping run and walk at their own speed profile. ``start_offset_m`` is the arc length along
     the (reversed, offset) path where the sequence starts: with its own offset and speed a
-    query does not retrace the mapping run's frame positions.
+    query does not retrace the mapping run's frame positions. ``auto_exposure`` (off by
+    default) lets the exposure follow each frame's brightness; the exposures are then recorded
+    as ground truth in ``<sequence>/exposure.txt``.
     """
 
     name: str = MISSING
@@ -73,6 +75,7 @@ class SequenceConfig:
     changed_scene: bool = False
     sway_phase: float = 0.0
     lighting: LightingConfig = field(default_factory=LightingConfig)
+    auto_exposure: AutoExposureConfig = field(default_factory=AutoExposureConfig)
 
 
 @dataclass

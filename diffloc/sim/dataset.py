@@ -25,12 +25,13 @@ from diffloc.geometry.rig import SensorRig
 from diffloc.io.atomic import atomic_directory, atomic_write_text
 from diffloc.io.calib import Calibration
 from diffloc.io.dataset import SequenceWriter, read_dataset_info
+from diffloc.io.exposure import EXPOSURE_FILE, write_exposures
 from diffloc.io.mesh_obj import write_textured_mesh_obj
 from diffloc.io.ply import write_point_cloud
 from diffloc.progress import progress
 from diffloc.render.raycast import MeshRenderer
 from diffloc.sim.config import CameraConfig, RigConfig, SceneConfig, SequenceConfig
-from diffloc.sim.imaging import expose, shade
+from diffloc.sim.imaging import auto_exposure_scales, expose, metered_luminance, shade
 from diffloc.sim.lidar import accumulate_map, simulate_station_scan, simulate_sweep
 from diffloc.sim.placement import check_free_space
 from diffloc.sim.preview import write_preview
@@ -117,6 +118,20 @@ def validate_scene_config(cfg: SceneConfig) -> None:
             raise ValueError(f"scene.sequences.{index} ({seq.name}): {exc}") from exc
 
 
+def config_record(cfg: SceneConfig) -> dict:
+    """The scene configuration as recorded in ``dataset.json`` and compared for reuse.
+
+    A sequence's ``auto_exposure`` is recorded only when it is enabled: switched off it has no
+    effect, and leaving it out keeps the record (and so every file) of datasets made before the
+    option existed byte-identical, and those datasets reusable.
+    """
+    config = OmegaConf.to_container(OmegaConf.structured(cfg))
+    for sequence in config["sequences"]:
+        if not sequence["auto_exposure"]["enabled"]:
+            del sequence["auto_exposure"]
+    return config
+
+
 class DatasetSimulator:
     """Renders the sequences, lidar sweeps and maps of one simulated world.
 
@@ -166,16 +181,15 @@ class DatasetSimulator:
             start_offset_m=seq.start_offset_m,
         )
 
-    def render_frames(
+    def render_linear(
         self,
         renderer: MeshRenderer,
         seq: SequenceConfig,
         timestamps: np.ndarray,
         T_wb: torch.Tensor,
         frame_ids: np.ndarray,
-        generator: torch.Generator,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """RGB (B, 3, H, W) in [0, 1] and depth (B, 1, H, W) in metres of some frames.
+        """Linear radiance (B, 3, H, W) before exposure and depth (B, 1, H, W) of some frames.
 
         Motion blur averages ``sensor.motion_blur_samples`` renders spread over the exposure
         time ending at each frame's timestamp; depth is that of the frame's own pose.
@@ -190,9 +204,44 @@ class DatasetSimulator:
         render = renderer.render(T_wc_sub, self.camera)
         linear = shade(render, seq.lighting, sensor, renderer.raycaster)
         linear = linear.reshape(len(frame_ids), samples, *linear.shape[1:]).mean(dim=1)
-        rgb = expose(linear, seq.lighting, sensor, generator)
         depth = render.depth.reshape(len(frame_ids), samples, *render.depth.shape[1:])[:, -1]
-        return rgb, depth
+        return linear, depth
+
+    def render_frames(
+        self,
+        renderer: MeshRenderer,
+        seq: SequenceConfig,
+        timestamps: np.ndarray,
+        T_wb: torch.Tensor,
+        frame_ids: np.ndarray,
+        generator: torch.Generator,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """RGB (B, 3, H, W) in [0, 1] at the sequence's fixed exposure and depth (B, 1, H, W)
+        in metres of some frames (see :meth:`render_linear`)."""
+        linear, depth = self.render_linear(renderer, seq, timestamps, T_wb, frame_ids)
+        return expose(linear, seq.lighting, self.cfg.sensor, generator), depth
+
+    def render_auto_exposed(
+        self,
+        renderer: MeshRenderer,
+        seq: SequenceConfig,
+        timestamps: np.ndarray,
+        T_wb: torch.Tensor,
+        frame_ids: np.ndarray,
+        generator: torch.Generator,
+        previous_scale: float,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Like :meth:`render_frames` under the sequence's auto exposure.
+
+        Returns:
+            RGB (B, 3, H, W), depth (B, 1, H, W) and the (B,) auto-exposure multipliers,
+            following on from the previous frame's multiplier ``previous_scale``.
+        """
+        linear, depth = self.render_linear(renderer, seq, timestamps, T_wb, frame_ids)
+        metered = metered_luminance(linear, seq.lighting)
+        scales = auto_exposure_scales(metered, previous_scale, seq.auto_exposure)
+        rgb = expose(linear, seq.lighting, self.cfg.sensor, generator, exposure_scales=scales)
+        return rgb, depth, scales
 
     def simulate_sequence(self, index: int, seq: SequenceConfig, seq_dir: Path) -> dict:
         """Write one sequence folder; return its camera positions and (for mapping) sweeps."""
@@ -207,8 +256,18 @@ class DatasetSimulator:
             np.arange(len(timestamps)), math.ceil(len(timestamps) / FRAMES_PER_BATCH)
         )
         first_frame = None
+        scales: list[torch.Tensor] = []
         for frame_ids in progress(batches, f"{seq.name}: frames", self.show_progress):
-            rgb, depth = self.render_frames(renderer, seq, timestamps, T_wb, frame_ids, generator)
+            if seq.auto_exposure.enabled:
+                previous = float(scales[-1][-1]) if scales else 1.0
+                rgb, depth, batch_scales = self.render_auto_exposed(
+                    renderer, seq, timestamps, T_wb, frame_ids, generator, previous
+                )
+                scales.append(batch_scales)
+            else:
+                rgb, depth = self.render_frames(
+                    renderer, seq, timestamps, T_wb, frame_ids, generator
+                )
             for k, i in enumerate(frame_ids):
                 writer.add_frame(float(timestamps[i]), T_wc[i], rgb[k], depth[k, 0])
             if first_frame is None:
@@ -224,6 +283,9 @@ class DatasetSimulator:
             sweeps_world.append(points @ rotation.T + translation)
             origins.append(translation)
         writer.close()
+        if scales:
+            exposures = seq.lighting.exposure * torch.cat(scales).numpy()
+            write_exposures(seq_dir / EXPOSURE_FILE, timestamps, exposures)
         return {
             "T_wc": T_wc,
             "positions": T_wc[:, :3, 3].numpy(),
@@ -284,7 +346,7 @@ class DatasetSimulator:
             "kind": "diffloc-dataset",
             "generator": f"diffloc {__version__}",
             "sequences": list(results),
-            "config": OmegaConf.to_container(OmegaConf.structured(self.cfg)),
+            "config": config_record(self.cfg),
             "world": self.world.metadata(),
             "nearest_mapping_pose": self.nearest_mapping_pose(results),
             "sequence_trajectories": {
@@ -308,7 +370,7 @@ def simulate_dataset(
         ValueError: the configuration is invalid, or a camera pose leaves the free space.
     """
     out_dir = Path(out_dir)
-    config = OmegaConf.to_container(OmegaConf.structured(cfg))
+    config = config_record(cfg)
     if out_dir.exists():
         try:
             if read_dataset_info(out_dir).get("config") == config:
