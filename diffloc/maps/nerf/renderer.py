@@ -7,12 +7,13 @@ from dataclasses import dataclass
 import torch
 
 from diffloc.checks import check_shape
+from diffloc.geometry.camera import PinholeCamera
 from diffloc.maps.nerf.field import RadianceField
-from diffloc.maps.nerf.rays import ray_box_bounds
+from diffloc.maps.nerf.rays import camera_rays, ray_box_bounds
 from diffloc.maps.nerf.rendering import composite, render_weights
 from diffloc.maps.nerf.sampler import DensityGrid, interval_lengths
 
-__all__ = ["RenderedRays", "render_rays"]
+__all__ = ["RenderedRays", "render_image", "render_rays"]
 
 
 @dataclass
@@ -106,3 +107,53 @@ def render_rays(
         t=t,
         deltas=deltas,
     )
+
+
+@torch.no_grad()
+def render_image(
+    field: RadianceField,
+    grid: DensityGrid,
+    camera: PinholeCamera,
+    T_wc: torch.Tensor,
+    appearance: torch.Tensor,
+    seed: int = 0,
+    chunk: int = 8192,
+    with_normals: bool = False,
+) -> dict[str, torch.Tensor]:
+    """Render an image (RGB, depth, optionally normals) at a pose.
+
+    Args:
+        field: the radiance field.
+        grid: its density grid.
+        camera: unbatched pinhole camera (the output size).
+        T_wc: (4, 4) camera-to-world pose.
+        appearance: (A,) appearance code.
+        seed: seed of the sample jitter.
+        chunk: rays per batch.
+        with_normals: also render world-frame normals.
+
+    Returns:
+        ``rgb`` (3, H, W) in [0, 1], ``depth`` (1, H, W) camera z in metres, ``opacity``
+        (1, H, W), and ``normal`` (3, H, W) when asked for.
+    """
+    uv = camera.pixel_grid(torch.float32).reshape(-1, 2)
+    origins, directions, z_per_metre = camera_rays(camera, T_wc.float(), uv)
+    g = torch.Generator().manual_seed(seed)
+    parts: dict[str, list[torch.Tensor]] = {"rgb": [], "depth": [], "opacity": [], "normal": []}
+    for sl in torch.arange(len(uv)).split(chunk):
+        out = render_rays(
+            field,
+            grid,
+            origins[sl],
+            directions[sl],
+            g,
+            appearance.expand(len(sl), -1),
+            with_normals=with_normals,
+        )
+        parts["rgb"].append(out.rgb)
+        parts["depth"].append((out.range * z_per_metre[sl])[:, None])
+        parts["opacity"].append(out.opacity[:, None])
+        if with_normals:
+            parts["normal"].append(out.normal)
+    h, w = camera.height, camera.width
+    return {k: torch.cat(v).T.reshape(-1, h, w) for k, v in parts.items() if v}
