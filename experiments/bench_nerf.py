@@ -7,9 +7,20 @@ the first submap (<= 80 frames); every 8th mapping frame is held out; images at 
 Training uses the images, mapping poses and lidar sweeps only. A held-out image's appearance
 code is fitted on its left half (field frozen) and PSNR is taken on its right half (NeRF-W).
 Ground-truth depth images are read here for scoring only (depth error, normal error).
-Training time excludes evaluation; it is wall time on a shared machine.
+Training time excludes evaluation; ``train_s`` is wall time on a shared machine,
+``train_cpu_s`` the process CPU time (all threads); the curve holds (wall s, CPU s, step, dB).
 
     PYTHONPATH=. OMP_NUM_THREADS=2 python3 experiments/bench_nerf.py --budget-s 600 \
+        --out experiments/results/bench_nerf.jsonl
+
+or in two processes of one thread each, merged into one line afterwards:
+
+    python3 experiments/bench_nerf.py --threads 1 --encodings triplane,hashgrid --variants full \
+        --budget-s 600 --ablation-budget-s 300 --out /tmp/nerf_a.jsonl --work /tmp/nerf_a &
+    python3 experiments/bench_nerf.py --threads 1 --encodings triplane \
+        --variants rgb_only,rgb_depth --ablation-budget-s 300 --out /tmp/nerf_b.jsonl \
+        --work /tmp/nerf_b &
+    wait; python3 experiments/bench_nerf.py --merge /tmp/nerf_a.jsonl /tmp/nerf_b.jsonl \
         --out experiments/results/bench_nerf.jsonl
 """
 
@@ -36,7 +47,7 @@ from diffloc.maps.nerf.data import SubmapDataConfig, SubmapRays, build_submap_ra
 from diffloc.maps.nerf.field import FieldConfig
 from diffloc.maps.nerf.module import NerfLossConfig, NerfModule, NerfTrainConfig
 from diffloc.maps.nerf.rays import camera_rays
-from diffloc.maps.nerf.renderer import render_image
+from diffloc.maps.nerf.renderer import render_image, render_rays
 from diffloc.maps.nerf.submaps import SubmapConfig, cluster_trajectory
 from diffloc.maps.nerf.train import fit_submap
 
@@ -45,7 +56,7 @@ VARIANTS = {
     "rgb_only": {"depth_weight": 0.0, "normal_weight": 0.0},
     "rgb_depth": {"normal_weight": 0.0},
 }
-EVAL_AT_S = (30, 60, 90, 120, 180, 240, 300, 420, 600, 900)
+EVAL_AT_S = (60, 120, 180, 300, 450, 600, 900)
 
 
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -73,6 +84,16 @@ def _gt_normals(depth: torch.Tensor, camera: PinholeCamera) -> torch.Tensor:
     return out
 
 
+@torch.no_grad()
+def _render_right_half(field, grid, origins, directions, code) -> torch.Tensor:
+    g = torch.Generator().manual_seed(0)
+    parts = [
+        render_rays(field, grid, origins[sl], directions[sl], g, code.expand(len(sl), -1)).rgb
+        for sl in torch.arange(len(origins)).split(8192)
+    ]
+    return torch.cat(parts)
+
+
 def evaluate(
     module: NerfModule, seq: SequenceData, rays: SubmapRays, full: bool
 ) -> dict[str, float]:
@@ -91,9 +112,14 @@ def evaluate(
         code = fit_appearance_code(
             field, grid, o[left], d[left], colours[left], steps=20, batch=512, lr=0.05
         )
-        out = render_image(field, grid, camera, T_wc, code, with_normals=full)
         half = camera.width // 2
-        psnrs.append(_psnr(out["rgb"][:, :, half:], image[:, :, half:]))
+        if full:
+            out = render_image(field, grid, camera, T_wc, code, with_normals=True)
+            right = out["rgb"][:, :, half:]
+        else:
+            right = _render_right_half(field, grid, o[~left], d[~left], code)
+            right = right.T.reshape(3, camera.height, camera.width - half)
+        psnrs.append(_psnr(right, image[:, :, half:]))
         if full:
             gt = seq.load_depth(frame)
             gt = F.interpolate(gt[None], size=(camera.height, camera.width), mode="nearest")[0]
@@ -118,24 +144,29 @@ class TimedEvaluation(L.Callback):
     def __init__(self, seq: SequenceData, rays: SubmapRays, budget_s: float) -> None:
         self.seq, self.rays, self.budget_s = seq, rays, budget_s
         self.curve: list[tuple[float, int, float]] = []
-        self.excluded = 0.0
+        self.excluded = self.excluded_cpu = 0.0
         self.marks = [m for m in EVAL_AT_S if m < budget_s] + [budget_s]
 
     def train_s(self) -> float:
         return time.perf_counter() - self.start - self.excluded
 
+    def train_cpu_s(self) -> float:
+        return time.process_time() - self.cpu_start - self.excluded_cpu
+
     def on_train_start(self, trainer: L.Trainer, module: NerfModule) -> None:
-        self.start = time.perf_counter()
+        self.start, self.cpu_start = time.perf_counter(), time.process_time()
 
     def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
         elapsed = self.train_s()
         if self.marks and elapsed >= self.marks[0]:
             while self.marks and elapsed >= self.marks[0]:
                 self.marks.pop(0)
-            tic = time.perf_counter()
+            tic, cpu = time.perf_counter(), time.process_time()
             psnr = evaluate(module, self.seq, self.rays, full=False)["psnr_heldout_db"]
             self.excluded += time.perf_counter() - tic
-            self.curve.append((round(elapsed, 1), trainer.global_step, round(psnr, 3)))
+            self.excluded_cpu += time.process_time() - cpu
+            point = (round(elapsed, 1), round(self.train_cpu_s(), 1), trainer.global_step)
+            self.curve.append((*point, round(psnr, 3)))
             print(f"  t={elapsed:.0f}s step={trainer.global_step} psnr={psnr:.2f}", flush=True)
         if elapsed >= self.budget_s:
             trainer.should_stop = True
@@ -146,21 +177,40 @@ def run_variant(
 ) -> dict:
     timer = TimedEvaluation(seq, rays, budget_s)
     module = fit_submap(rays, config, out, epochs=10**6, callbacks=[timer], show_progress=False)
-    train_s = timer.train_s()
+    train_s, train_cpu_s = timer.train_s(), timer.train_cpu_s()
     result = evaluate(module, seq, rays, full=True)
-    reached = [t for t, _, p in timer.curve if p >= 25.0]
+    reached = [t for t, _, _, p in timer.curve if p >= 25.0]
     camera = seq.camera.scaled(0.5)
     code = module.field.appearance.weight.detach().mean(0)
     tic = time.perf_counter()
     render_image(module.field, module.grid, camera, seq.T_wc[rays.heldout[0]], code)
     result |= {
         "train_s": round(train_s, 1),
+        "train_cpu_s": round(train_cpu_s, 1),
         "steps": module.global_step,
         "time_to_25db_s": reached[0] if reached else None,
         "render_320x240_s": round(time.perf_counter() - tic, 3),
         "curve": timer.curve,
     }
     return result
+
+
+def merge(parts: list[str], out: Path) -> None:
+    """One JSON line from the last lines of partial runs (run in parallel processes); keys
+    that differ between parts (load averages, times) are kept per part under ``parts``."""
+    records = [json.loads(Path(p).read_text().splitlines()[-1]) for p in parts]
+    merged = {}
+    for record in records:
+        for key, value in record.items():
+            merged.setdefault(key, value)
+    merged["parts"] = [
+        {k: r[k] for k in ("prepare_s", "threads", "load_avg_start", "load_avg_end") if k in r}
+        for r in records
+    ]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "a") as f:
+        f.write(json.dumps(merged) + "\n")
+    print(json.dumps(merged))
 
 
 def main() -> None:
@@ -174,7 +224,11 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--work", default="/tmp/nerf_bench")
     parser.add_argument("--out", default="experiments/results/bench_nerf.jsonl")
+    parser.add_argument("--merge", nargs="+", help="merge the last lines of these JSONL files")
     args = parser.parse_args()
+    if args.merge:
+        merge(args.merge, Path(args.out))
+        return
     torch.set_num_threads(args.threads)
     seq = read_sequence(args.data, "mapping")
     submaps = cluster_trajectory(seq.T_wc, SubmapConfig(num_submaps=4))
@@ -204,7 +258,8 @@ def main() -> None:
             config = dataclasses.replace(
                 base, loss=dataclasses.replace(NerfLossConfig(), **VARIANTS[variant])
             )
-            budget = args.budget_s if variant == "full" else ablation_budget
+            main_run = variant == "full" and encoding == encodings[0]
+            budget = args.budget_s if main_run else ablation_budget
             print(f"{encoding} {variant}: {budget:.0f} s", flush=True)
             out = Path(args.work) / f"{encoding}_{variant}"
             result = run_variant(seq, rays, config, budget, out)

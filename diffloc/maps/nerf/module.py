@@ -84,9 +84,9 @@ class NerfTrainConfig:
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     sampler: SamplerConfig = dataclasses.field(default_factory=SamplerConfig)
     loss: NerfLossConfig = dataclasses.field(default_factory=NerfLossConfig)
-    ray_batch: int = 2048
-    lidar_batch: int = 1024
-    normal_batch: int = 256
+    ray_batch: int = 1024
+    lidar_batch: int = 512
+    normal_batch: int = 128
     lr_encoding: float = 2e-2
     lr_network: float = 5e-3
     steps_per_epoch: int = 100

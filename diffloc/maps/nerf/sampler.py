@@ -40,12 +40,12 @@ class SamplerConfig:
         near_m: smallest near distance, metres.
     """
 
-    grid_resolution: int = 64
+    grid_resolution: int = 48
     grid_decay: float = 0.9
-    grid_update_every: int = 16
+    grid_update_every: int = 32
     coarse_samples: int = 128
-    importance_samples: int = 32
-    uniform_samples: int = 16
+    importance_samples: int = 24
+    uniform_samples: int = 8
     guided_samples: int = 8
     far_m: float = 200.0
     near_m: float = 0.05

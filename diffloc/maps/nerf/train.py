@@ -49,7 +49,7 @@ def fit_submap(
         accelerator="cpu",
         devices=1,
         max_epochs=epochs,
-        logger=CSVLogger(out_dir, name="logs", version=0),
+        logger=CSVLogger(out_dir, name="logs", version=0, flush_logs_every_n_steps=10),
         callbacks=[checkpoint, *callbacks],
         enable_model_summary=False,
         enable_progress_bar=progress_enabled(show_progress),
