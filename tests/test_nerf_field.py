@@ -94,7 +94,7 @@ def _field(kind: str, contracted: bool = False) -> RadianceField:
     torch.manual_seed(0)
     cfg = FieldConfig(
         encoding=kind,
-        triplane_resolutions=(6,),
+        triplane_resolutions=[6],
         triplane_channels=4,
         hash_levels=2,
         hash_log2_table_size=6,

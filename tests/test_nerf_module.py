@@ -22,7 +22,7 @@ DATA = SubmapDataConfig(image_scale=0.25, holdout_every=0, lidar_stride=8)
 
 def _config(**changes) -> NerfTrainConfig:
     cfg = NerfTrainConfig(
-        field=FieldConfig(triplane_resolutions=(16, 32), triplane_channels=4, hidden=16),
+        field=FieldConfig(triplane_resolutions=[16, 32], triplane_channels=4, hidden=16),
         sampler=SamplerConfig(
             grid_resolution=16,
             grid_update_every=2,

@@ -15,7 +15,7 @@ from diffloc.maps.nerf.sampler import DensityGrid, SamplerConfig
 
 def _scene() -> tuple[RadianceField, DensityGrid]:
     torch.manual_seed(0)
-    cfg = FieldConfig(triplane_resolutions=(8,), triplane_channels=4, hidden=16, appearance_dim=4)
+    cfg = FieldConfig(triplane_resolutions=[8], triplane_channels=4, hidden=16, appearance_dim=4)
     field = RadianceField(cfg, -2 * torch.ones(3), 2 * torch.ones(3), 3)
     with torch.no_grad():
         field.appearance.weight.normal_(0, 2.0)

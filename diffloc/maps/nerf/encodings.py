@@ -11,6 +11,7 @@ Vertex convention is ``align_corners=True``: coordinate ``-1`` is vertex 0, ``+1
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -108,7 +109,7 @@ class TriplaneEncoding(nn.Module):
 
     PAIRS = ((0, 1), (0, 2), (1, 2))
 
-    def __init__(self, resolutions: tuple[int, ...], channels: int, init_std: float) -> None:
+    def __init__(self, resolutions: Sequence[int], channels: int, init_std: float) -> None:
         super().__init__()
         self.resolutions = tuple(int(r) for r in resolutions)
         self.planes = nn.ParameterList(

@@ -49,7 +49,7 @@ def _dataclass(cls: type, values: dict, path: Path):
     unknown = set(values) - known
     if unknown:
         raise ValueError(f"{path}: unknown {cls.__name__} keys {sorted(unknown)}")
-    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+    return cls(**values)
 
 
 def load_field(in_dir: str | os.PathLike) -> tuple[RadianceField, DensityGrid]:

@@ -8,6 +8,7 @@ by the code rather than by geometry. Normals are the normalised negative density
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -42,7 +43,7 @@ class FieldConfig:
     """
 
     encoding: str = "triplane"
-    triplane_resolutions: tuple[int, ...] = (64, 128, 256)
+    triplane_resolutions: list[int] = dataclasses.field(default_factory=lambda: [64, 128, 256])
     triplane_channels: int = 8
     hash_levels: int = 12
     hash_channels: int = 2

@@ -242,7 +242,9 @@ class NerfModule(L.LightningModule):
         self.losses.append(float(loss.detach()))
         for name, value in terms.items():
             self.log(f"loss_{name}", value, on_step=True, prog_bar=name == "rgb")
-        self.log("psnr_train", -10 * math.log10(max(float(terms["rgb"]), 1e-10)), on_step=True)
+        self.log(
+            "psnr_train", -10 * math.log10(max(float(terms["rgb"].detach()), 1e-10)), on_step=True
+        )
         self.log("loss", loss, on_step=True)
         return loss
 
