@@ -42,6 +42,7 @@ from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.colmap_stage import export_colmap
 from diffloc.pipeline.database_stage import build_database, optimize_database
 from diffloc.pipeline.hints import Command, CommandHint, MissingStageError, override_key
+from diffloc.pipeline.nerf_stage import train_nerf_submap
 from diffloc.pipeline.reloc_stage import relocalize_dataset
 from diffloc.pipeline.rig_stage import calibrate_database_rig
 from diffloc.pipeline.update_stage import update_database
@@ -206,6 +207,14 @@ def run_main(cfg: DictConfig) -> dict:
     return results
 
 
+def run_train_nerf(cfg: DictConfig) -> dict:
+    """``task=train_nerf``: train one radiance-field submap under ``<dataset>/nerf``."""
+    summary = train_nerf_submap(Path(cfg.dataset), OmegaConf.to_object(cfg.task), cfg.progress)
+    print(f"submap {summary['submap']} of {summary['submaps']}: {summary['steps']} steps")
+    print(f"field: {summary['field']}")
+    return summary
+
+
 TASKS: dict[str, Callable[[DictConfig], object]] = {
     "simulate": run_simulate,
     "build_map": run_build_map,
@@ -216,6 +225,7 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
     "relocalize": run_relocalize,
     "export_colmap": run_export_colmap,
     "main": run_main,
+    "train_nerf": run_train_nerf,
 }
 
 

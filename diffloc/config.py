@@ -28,6 +28,7 @@ from diffloc.optim.rig_calibration import RigCalibrationConfig
 from diffloc.pipeline.build_map import BuildMapConfig
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
 from diffloc.pipeline.database_stage import DatabaseConfig
+from diffloc.pipeline.nerf_config import TrainNerfTaskConfig
 from diffloc.pipeline.reloc_stage import RelocStageConfig
 from diffloc.pipeline.update_stage import UpdateTaskConfig
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
@@ -121,6 +122,7 @@ GROUP_SCHEMAS: dict[str, type] = {
     "schema_task_calibrate_rig": RigCalibrationTaskConfig,
     "schema_task_export_colmap": ExportColmapTaskConfig,
     "schema_task_main": MainTaskConfig,
+    "schema_task_train_nerf": TrainNerfTaskConfig,
     "schema_surfel": SurfelMapConfig,
     "schema_reloc": RelocStageConfig,
     "schema_scene_indoor": IndoorSceneConfig,

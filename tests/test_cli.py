@@ -139,6 +139,7 @@ def test_console_script_simulates_a_dataset(tmp_path):
         "relocalize",
         "export_colmap",
         "main",
+        "train_nerf",
     ],
 )
 @pytest.mark.parametrize("scene", ["indoor", "outdoor"])

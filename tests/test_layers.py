@@ -31,7 +31,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("diffloc.geometry",),
     ("diffloc.io",),
     ("diffloc.maps",),
-    ("diffloc.render",),
+    ("diffloc.render", "diffloc.maps.nerf"),
     ("diffloc.features",),
     ("diffloc.database",),
     ("diffloc.crossmodal",),

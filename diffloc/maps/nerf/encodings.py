@@ -1,0 +1,190 @@
+"""Grid encodings of points in the normalised cube ``[-1, 1]^3``: tri-plane and hash grid.
+
+Both interpolate learnable feature tables, with ``grid_sample`` where the table is a dense
+grid and explicit gathers where it is hashed; both are twice differentiable in the positions
+(the rendered normal is the negative density gradient and the normal loss, Eq. 7,
+back-propagates through it). The gathers also serve as the slow reference of the fast path.
+Vertex convention is ``align_corners=True``: coordinate ``-1`` is vertex 0, ``+1`` vertex
+``R - 1``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from diffloc.checks import check_shape
+
+__all__ = ["HashGridEncoding", "TriplaneEncoding", "bilinear_gather", "trilinear_gather"]
+
+# Spatial hash primes of Instant-NGP (Mueller et al. 2022), one per axis.
+_PRIMES = (1, 2654435761, 805459861)
+
+
+def _cell(coords: torch.Tensor, resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower vertex index and fractional offset of each coordinate on a grid of ``resolution``
+    vertices per axis. coords: (N, D) in [-1, 1] -> (N, D) int64 and (N, D) float."""
+    u = (coords.clamp(-1.0, 1.0) + 1.0) * (0.5 * (resolution - 1))
+    lower = u.detach().floor().clamp(0, resolution - 2)
+    return lower.long(), u - lower
+
+
+def bilinear_gather(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> torch.Tensor:
+    """Bilinear interpolation of a square feature plane stored row-major.
+
+    Args:
+        table: (R * R, C) features, vertex ``(i, j)`` (i along the first coordinate) at row
+            ``j * R + i``.
+        uv: (N, 2) coordinates in [-1, 1] (clamped).
+        resolution: R >= 2.
+
+    Returns:
+        (N, C) interpolated features.
+    """
+    check_shape(uv, "N,2", "uv")
+    lower, frac = _cell(uv, resolution)
+    corners = torch.tensor([[0, 0], [1, 0], [0, 1], [1, 1]], device=uv.device)
+    vertex = lower[:, None] + corners
+    w = torch.where(corners.bool(), frac[:, None], 1 - frac[:, None]).prod(dim=-1)
+    rows = table.index_select(0, (vertex[..., 1] * resolution + vertex[..., 0]).reshape(-1))
+    return (w[..., None] * rows.view(len(uv), 4, -1)).sum(dim=1)
+
+
+def _vertex_index(vertex: torch.Tensor, resolution: int, table_size: int) -> torch.Tensor:
+    """Row of each (N, 3) integer vertex: dense if the grid fits the table, else hashed."""
+    if resolution**3 <= table_size:
+        return (vertex[:, 2] * resolution + vertex[:, 1]) * resolution + vertex[:, 0]
+    h = vertex[:, 0] * _PRIMES[0]
+    h = torch.bitwise_xor(h, vertex[:, 1] * _PRIMES[1])
+    h = torch.bitwise_xor(h, vertex[:, 2] * _PRIMES[2])
+    return torch.remainder(h, table_size)
+
+
+def trilinear_gather(table: torch.Tensor, xyz: torch.Tensor, resolution: int) -> torch.Tensor:
+    """Trilinear interpolation of one hash-grid level.
+
+    Args:
+        table: (T, C) features. A grid of ``R^3 <= T`` vertices is indexed densely
+            (vertex ``(i, j, k)`` at row ``(k R + j) R + i``), a larger one by the spatial hash.
+        xyz: (N, 3) coordinates in [-1, 1] (clamped).
+        resolution: R >= 2 vertices per axis.
+
+    Returns:
+        (N, C) interpolated features.
+    """
+    check_shape(xyz, "N,3", "xyz")
+    lower, frac = _cell(xyz, resolution)
+    corners = torch.tensor([[(c >> a) & 1 for a in range(3)] for c in range(8)], device=xyz.device)
+    vertex = (lower[:, None] + corners).reshape(-1, 3)
+    w = torch.where(corners.bool(), frac[:, None], 1 - frac[:, None]).prod(dim=-1)
+    rows = table.index_select(0, _vertex_index(vertex, resolution, len(table)))
+    return (w[..., None] * rows.view(len(xyz), 8, -1)).sum(dim=1)
+
+
+def _grid_sample(volume: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+    """``grid_sample`` with the gathers' conventions: volume (B, C, *R) with the first
+    coordinate along the last axis, coords (B, N, D) -> (B, N, C)."""
+    grid = coords.clamp(-1.0, 1.0).reshape(
+        len(coords), -1, *([1] * (coords.shape[-1] - 1)), coords.shape[-1]
+    )
+    out = F.grid_sample(volume, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out.reshape(len(coords), volume.shape[1], -1).transpose(1, 2)
+
+
+class TriplaneEncoding(nn.Module):
+    """Multi-resolution tri-plane (EG3D / K-Planes style): three axis-aligned feature planes
+    per resolution (xy, xz, yz), the per-plane features multiplied (K-Planes' Hadamard
+    product) and the levels concatenated. Interpolation uses ``grid_sample`` (twice
+    differentiable); :func:`bilinear_gather` is its slow reference.
+
+    Args:
+        resolutions: plane resolution of each level, e.g. ``(64, 128, 256)``.
+        channels: features per plane.
+        init_std: features start at ``1 + N(0, init_std)`` (the product starts near one).
+    """
+
+    PAIRS = ((0, 1), (0, 2), (1, 2))
+
+    def __init__(self, resolutions: Sequence[int], channels: int, init_std: float) -> None:
+        super().__init__()
+        self.resolutions = tuple(int(r) for r in resolutions)
+        self.planes = nn.ParameterList(
+            nn.Parameter(1.0 + init_std * torch.randn(3, channels, r, r)) for r in self.resolutions
+        )
+        self.out_dim = channels * len(self.resolutions)
+
+    def forward(self, xyz: torch.Tensor) -> torch.Tensor:
+        """Features of (N, 3) points in [-1, 1]^3 -> (N, out_dim)."""
+        check_shape(xyz, "N,3", "xyz")
+        coords = torch.stack([xyz[:, pair] for pair in self.PAIRS])
+        return torch.cat([_grid_sample(p, coords).prod(dim=0) for p in self.planes], dim=-1)
+
+    def forward_reference(self, xyz: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` with explicit gathers (slow reference for tests)."""
+        levels = []
+        for planes, r in zip(self.planes, self.resolutions, strict=True):
+            feature = 1.0
+            for plane, pair in zip(planes, self.PAIRS, strict=True):
+                table = plane.permute(1, 2, 0).reshape(r * r, -1)
+                feature = feature * bilinear_gather(table, xyz[:, pair], r)
+            levels.append(feature)
+        return torch.cat(levels, dim=-1)
+
+
+class HashGridEncoding(nn.Module):
+    """Multi-resolution hash grid (Instant-NGP): ``levels`` grids from ``base_resolution`` to
+    ``max_resolution`` vertices per axis in geometric progression, each a table of
+    ``2**log2_table_size`` rows of ``channels`` features (coarse levels that fit are dense).
+
+    Args:
+        levels: number of levels L.
+        channels: features per level F.
+        log2_table_size: log2 of the rows per level T.
+        base_resolution: vertices per axis of the coarsest level.
+        max_resolution: vertices per axis of the finest level.
+        init_std: features start as ``U(-init_std, init_std)``.
+    """
+
+    def __init__(
+        self,
+        levels: int,
+        channels: int,
+        log2_table_size: int,
+        base_resolution: int,
+        max_resolution: int,
+        init_std: float,
+    ) -> None:
+        super().__init__()
+        growth = math.exp(math.log(max_resolution / base_resolution) / max(levels - 1, 1))
+        self.resolutions = tuple(
+            max(2, int(math.floor(base_resolution * growth**level))) for level in range(levels)
+        )
+        size = 2**log2_table_size
+        self.tables = nn.ParameterList(
+            nn.Parameter((torch.rand(min(size, r**3), channels) * 2 - 1) * init_std)
+            for r in self.resolutions
+        )
+        self.table_size = size
+        self.out_dim = channels * levels
+
+    def forward(self, xyz: torch.Tensor) -> torch.Tensor:
+        """Features of (N, 3) points in [-1, 1]^3 -> (N, out_dim). Dense levels interpolate
+        with ``grid_sample``, hashed ones with :func:`trilinear_gather`."""
+        check_shape(xyz, "N,3", "xyz")
+        levels = []
+        for table, r in zip(self.tables, self.resolutions, strict=True):
+            if len(table) == r**3:
+                volume = table.T.reshape(1, -1, r, r, r)
+                levels.append(_grid_sample(volume, xyz[None])[0])
+            else:
+                levels.append(trilinear_gather(table, xyz, r))
+        return torch.cat(levels, dim=-1)
+
+    def forward_reference(self, xyz: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` with explicit gathers on every level (slow reference for tests)."""
+        pairs = zip(self.tables, self.resolutions, strict=True)
+        return torch.cat([trilinear_gather(table, xyz, r) for table, r in pairs], dim=-1)

@@ -1,0 +1,187 @@
+"""The radiance field: grid encoding, density and colour MLPs, per-image appearance codes.
+
+``density(x)`` depends on position only; ``colour(x, d, image)`` adds the view direction
+(real spherical harmonics up to degree 2) and a learnt appearance code of the image
+(NeRF-W, Martin-Brualla et al. 2021), so that lighting that changes between runs is explained
+by the code rather than by geometry. Normals are the normalised negative density gradient.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from diffloc.checks import check_shape
+from diffloc.maps.nerf.contraction import SceneNormalisation
+from diffloc.maps.nerf.encodings import HashGridEncoding, TriplaneEncoding
+
+__all__ = ["FieldConfig", "FieldOutputs", "RadianceField", "build_encoding", "sh_basis_deg2"]
+
+
+@dataclass
+class FieldConfig:
+    """Settings of :class:`RadianceField`.
+
+    Attributes:
+        encoding: ``"triplane"`` or ``"hashgrid"``.
+        triplane_resolutions: plane resolution per tri-plane level.
+        triplane_channels: features per plane.
+        hash_levels: hash-grid levels.
+        hash_channels: features per level.
+        hash_log2_table_size: log2 rows per level.
+        hash_base_resolution: coarsest vertices per axis.
+        hash_max_resolution: finest vertices per axis.
+        init_std: encoding initialisation scale.
+        hidden: width of both MLPs.
+        geo_features: features the density MLP passes to the colour MLP.
+        appearance_dim: length of the per-image appearance code (0: none).
+        contracted: mip-NeRF 360 contraction (unbounded scenes).
+        density_bias: added to the density logit before ``exp`` (start nearly empty).
+    """
+
+    encoding: str = "triplane"
+    triplane_resolutions: list[int] = dataclasses.field(default_factory=lambda: [64, 128, 256])
+    triplane_channels: int = 8
+    hash_levels: int = 12
+    hash_channels: int = 2
+    hash_log2_table_size: int = 17
+    hash_base_resolution: int = 16
+    hash_max_resolution: int = 512
+    init_std: float = 0.1
+    hidden: int = 64
+    geo_features: int = 15
+    appearance_dim: int = 8
+    contracted: bool = False
+    density_bias: float = -1.0
+
+
+@dataclass
+class FieldOutputs:
+    """Per-sample outputs: density (N,), rgb (N, 3), and normal (N, 3) when asked for."""
+
+    density: torch.Tensor
+    rgb: torch.Tensor
+    normal: torch.Tensor | None
+
+
+def build_encoding(config: FieldConfig) -> TriplaneEncoding | HashGridEncoding:
+    """The grid encoding named by ``config.encoding``.
+
+    Raises:
+        ValueError: an unknown encoding name.
+    """
+    if config.encoding == "triplane":
+        return TriplaneEncoding(
+            config.triplane_resolutions, config.triplane_channels, config.init_std
+        )
+    if config.encoding == "hashgrid":
+        return HashGridEncoding(
+            config.hash_levels,
+            config.hash_channels,
+            config.hash_log2_table_size,
+            config.hash_base_resolution,
+            config.hash_max_resolution,
+            config.init_std,
+        )
+    raise ValueError(f"unknown encoding {config.encoding!r}; use 'triplane' or 'hashgrid'")
+
+
+def sh_basis_deg2(directions: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonics of degree <= 2 of (N, 3) unit vectors -> (N, 9)."""
+    x, y, z = directions.unbind(-1)
+    return torch.stack(
+        (
+            torch.full_like(x, 0.28209479177387814),
+            0.4886025119029199 * y,
+            0.4886025119029199 * z,
+            0.4886025119029199 * x,
+            1.0925484305920792 * x * y,
+            1.0925484305920792 * y * z,
+            0.31539156525252005 * (3 * z * z - 1),
+            1.0925484305920792 * x * z,
+            0.5462742152960396 * (x * x - y * y),
+        ),
+        dim=-1,
+    )
+
+
+def _mlp(inputs: int, hidden: int, outputs: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(inputs, hidden), nn.ReLU(), nn.Linear(hidden, outputs))
+
+
+class RadianceField(nn.Module):
+    """Density and view-dependent colour of world points.
+
+    Args:
+        config: network settings.
+        box_min: (3,) world lower corner of the submap box.
+        box_max: (3,) upper corner.
+        num_images: number of training images (appearance codes).
+    """
+
+    def __init__(
+        self, config: FieldConfig, box_min: torch.Tensor, box_max: torch.Tensor, num_images: int
+    ) -> None:
+        super().__init__()
+        self.config = config
+        self.normalise = SceneNormalisation(box_min, box_max, config.contracted)
+        self.encoding = build_encoding(config)
+        self.density_mlp = _mlp(self.encoding.out_dim, config.hidden, 1 + config.geo_features)
+        colour_in = config.geo_features + 9 + config.appearance_dim
+        self.colour_mlp = _mlp(colour_in, config.hidden, 3)
+        self.appearance = nn.Embedding(max(num_images, 1), config.appearance_dim)
+        nn.init.zeros_(self.appearance.weight)
+
+    def _density_and_geo(self, points_world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        xyz, inside = self.normalise(points_world)
+        h = self.density_mlp(self.encoding(xyz))
+        logit = (h[:, 0] + self.config.density_bias).clamp(max=15.0)
+        return torch.exp(logit) * inside, h[:, 1:]
+
+    def density(self, points_world: torch.Tensor) -> torch.Tensor:
+        """Volume density (N,) in 1/m of (N, 3) world points (zero outside the field)."""
+        check_shape(points_world, "N,3", "points_world")
+        return self._density_and_geo(points_world)[0]
+
+    def forward(
+        self,
+        points_world: torch.Tensor,
+        directions: torch.Tensor,
+        appearance: torch.Tensor,
+        with_normals: bool = False,
+    ) -> FieldOutputs:
+        """Evaluate the field.
+
+        Args:
+            points_world: (N, 3) sample positions.
+            directions: (N, 3) unit ray directions.
+            appearance: (N, appearance_dim) appearance codes of the samples' images.
+            with_normals: also return unit normals ``-grad(density) / |grad(density)|``
+                (differentiable: the graph is kept for the normal loss).
+
+        Returns:
+            The per-sample :class:`FieldOutputs`.
+        """
+        check_shape(points_world, "N,3", "points_world")
+        check_shape(directions, "N,3", "directions")
+        check_shape(appearance, f"N,{self.config.appearance_dim}", "appearance")
+        normal = None
+        if with_normals:
+            keep_graph = torch.is_grad_enabled()
+            with torch.enable_grad():
+                if not points_world.requires_grad:
+                    points_world = points_world.detach().requires_grad_(True)
+                density, geo = self._density_and_geo(points_world)
+                (grad,) = torch.autograd.grad(density.sum(), points_world, create_graph=keep_graph)
+            normal = -grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+            if not keep_graph:
+                density, geo = density.detach(), geo.detach()
+        else:
+            density, geo = self._density_and_geo(points_world)
+        rgb = torch.sigmoid(
+            self.colour_mlp(torch.cat((geo, sh_basis_deg2(directions), appearance), dim=-1))
+        )
+        return FieldOutputs(density, rgb, normal)

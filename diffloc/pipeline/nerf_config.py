@@ -1,0 +1,37 @@
+"""``task=train_nerf``: the settings of training one radiance-field submap."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from diffloc.maps.nerf.data import SubmapDataConfig
+from diffloc.maps.nerf.module import NerfTrainConfig
+from diffloc.maps.nerf.submaps import SubmapConfig
+
+__all__ = ["TrainNerfTaskConfig"]
+
+
+@dataclass
+class TrainNerfTaskConfig:
+    """``task=train_nerf``: cluster the mapping run into submaps and train submap ``submap``.
+
+    Attributes:
+        submap: which submap to train (index into the clustering).
+        sequence: the mapping sequence of the dataset.
+        out_dir: run folder; empty: ``<dataset>/nerf``.
+        epochs: train until this many epochs of ``train.steps_per_epoch`` steps.
+        resume: continue from the submap's last checkpoint if there is one.
+        submaps: trajectory clustering settings.
+        data: training-ray settings.
+        train: field, sampler, loss and optimiser settings.
+    """
+
+    name: str = "train_nerf"
+    submap: int = 0
+    sequence: str = "mapping"
+    out_dir: str = ""
+    epochs: int = 30
+    resume: bool = True
+    submaps: SubmapConfig = field(default_factory=lambda: SubmapConfig(num_submaps=4))
+    data: SubmapDataConfig = field(default_factory=SubmapDataConfig)
+    train: NerfTrainConfig = field(default_factory=NerfTrainConfig)

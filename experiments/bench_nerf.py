@@ -1,0 +1,278 @@
+"""Radiance-field submap benchmark (issue 19): one JSON line of held-out PSNR, depth and normal
+error, training time, time to 25 dB and render time, for the full SiLVR losses and the
+photometric-only / photometric+depth ablations, and for both grid encodings.
+
+Protocol: default indoor scene (seed 0), mapping run clustered into submaps (spectral, k=4),
+the first submap (<= 80 frames); every 8th mapping frame is held out; images at 160x120.
+Training uses the images, mapping poses and lidar sweeps only. A held-out image's appearance
+code is fitted on its left half (field frozen) and PSNR is taken on its right half (NeRF-W).
+Ground-truth depth images are read here for scoring only (depth error, normal error).
+Training time excludes evaluation; ``train_s`` is wall time on a shared machine,
+``train_cpu_s`` the process CPU time (all threads); the curve holds (wall s, CPU s, step, dB).
+
+    PYTHONPATH=. OMP_NUM_THREADS=2 python3 experiments/bench_nerf.py --budget-s 600 \
+        --out experiments/results/bench_nerf.jsonl
+
+or in two processes of one thread each, merged into one line afterwards:
+
+    python3 experiments/bench_nerf.py --threads 1 --encodings triplane,hashgrid --variants full \
+        --budget-s 600 --ablation-budget-s 300 --out /tmp/nerf_a.jsonl --work /tmp/nerf_a &
+    python3 experiments/bench_nerf.py --threads 1 --encodings triplane \
+        --variants rgb_only,rgb_depth --ablation-budget-s 300 --out /tmp/nerf_b.jsonl \
+        --work /tmp/nerf_b &
+    wait; python3 experiments/bench_nerf.py --merge /tmp/nerf_a.jsonl /tmp/nerf_b.jsonl \
+        --out experiments/results/bench_nerf.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from diffloc.geometry.camera import PinholeCamera
+from diffloc.io.dataset import read_sequence
+from diffloc.io.sequence import SequenceData
+from diffloc.maps.nerf.appearance import fit_appearance_code
+from diffloc.maps.nerf.data import SubmapDataConfig, SubmapRays, build_submap_rays, load_image
+from diffloc.maps.nerf.field import FieldConfig
+from diffloc.maps.nerf.module import NerfLossConfig, NerfModule, NerfTrainConfig
+from diffloc.maps.nerf.rays import camera_rays
+from diffloc.maps.nerf.renderer import render_image, render_rays
+from diffloc.maps.nerf.submaps import SubmapConfig, cluster_trajectory
+from diffloc.maps.nerf.train import fit_submap
+
+VARIANTS = {
+    "full": {},
+    "rgb_only": {"depth_weight": 0.0, "normal_weight": 0.0},
+    "rgb_depth": {"normal_weight": 0.0},
+}
+EVAL_AT_S = (60, 120, 180, 300, 450, 600, 900)
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    return -10 * math.log10(max(float(((a - b) ** 2).mean()), 1e-12))
+
+
+def _gt_normals(depth: torch.Tensor, camera: PinholeCamera) -> torch.Tensor:
+    """Camera-frame normals (3, H, W) of a depth image by central differences; zero where a
+    neighbour is missing or across a depth jump of more than 5 %."""
+    h, w = depth.shape[-2:]
+    uv = camera.pixel_grid(torch.float32)
+    x = (uv[..., 0] - camera.cx) / camera.fx * depth[0]
+    y = (uv[..., 1] - camera.cy) / camera.fy * depth[0]
+    p = torch.stack((x, y, depth[0]), dim=0).float()
+    du = p[:, 1:-1, 2:] - p[:, 1:-1, :-2]
+    dv = p[:, 2:, 1:-1] - p[:, :-2, 1:-1]
+    n = torch.cross(dv, du, dim=0)
+    n = -n / n.norm(dim=0, keepdim=True).clamp_min(1e-9)
+    n = torch.where((n * p[:, 1:-1, 1:-1]).sum(0, keepdim=True) > 0, -n, n)
+    d = depth[0]
+    patch = torch.stack((d[1:-1, 2:], d[1:-1, :-2], d[2:, 1:-1], d[:-2, 1:-1]))
+    ok = (patch > 0).all(0) & ((patch - d[1:-1, 1:-1]).abs() < 0.05 * d[1:-1, 1:-1]).all(0)
+    out = torch.zeros(3, h, w)
+    out[:, 1:-1, 1:-1] = n * ok
+    return out
+
+
+@torch.no_grad()
+def _render_right_half(field, grid, origins, directions, code) -> torch.Tensor:
+    g = torch.Generator().manual_seed(0)
+    parts = [
+        render_rays(field, grid, origins[sl], directions[sl], g, code.expand(len(sl), -1)).rgb
+        for sl in torch.arange(len(origins)).split(8192)
+    ]
+    return torch.cat(parts)
+
+
+def evaluate(
+    module: NerfModule, seq: SequenceData, rays: SubmapRays, full: bool
+) -> dict[str, float]:
+    """Held-out PSNR (left-half code, right-half PSNR); with ``full`` also depth / normal
+    errors against the ground-truth depth images (scoring only)."""
+    field, grid, camera = module.field, module.grid, rays.camera
+    field.eval()
+    psnrs, depth_err, normal_err = [], [], []
+    uv = camera.pixel_grid(torch.float32).reshape(-1, 2)
+    left = uv[:, 0] < camera.width / 2
+    for frame in rays.heldout:
+        T_wc = seq.T_wc[frame].float()
+        image = load_image(seq, frame, camera)
+        o, d, _ = camera_rays(camera, T_wc, uv)
+        colours = image.reshape(3, -1).T
+        code = fit_appearance_code(
+            field, grid, o[left], d[left], colours[left], steps=20, batch=512, lr=0.05
+        )
+        half = camera.width // 2
+        if full:
+            out = render_image(field, grid, camera, T_wc, code, with_normals=True)
+            right = out["rgb"][:, :, half:]
+        else:
+            right = _render_right_half(field, grid, o[~left], d[~left], code)
+            right = right.T.reshape(3, camera.height, camera.width - half)
+        psnrs.append(_psnr(right, image[:, :, half:]))
+        if full:
+            gt = seq.load_depth(frame)
+            gt = F.interpolate(gt[None], size=(camera.height, camera.width), mode="nearest")[0]
+            valid = gt[0] > 0
+            depth_err.append((out["depth"][0] - gt[0])[valid].abs())
+            n_gt = _gt_normals(gt, camera)
+            n_gt_world = torch.einsum("ij,jhw->ihw", T_wc[:3, :3], n_gt)
+            ok = n_gt.abs().sum(0) > 0
+            cos = (out["normal"] * n_gt_world).sum(0)[ok].clamp(-1, 1)
+            normal_err.append(torch.rad2deg(torch.acos(cos)))
+    field.train()
+    result = {"psnr_heldout_db": float(np.mean(psnrs))}
+    if full:
+        result["depth_median_abs_err_m"] = float(torch.cat(depth_err).median())
+        result["normal_median_err_deg"] = float(torch.cat(normal_err).median())
+    return result
+
+
+class TimedEvaluation(L.Callback):
+    """Evaluate at training-time marks (evaluation time excluded) and stop at the budget."""
+
+    def __init__(self, seq: SequenceData, rays: SubmapRays, budget_s: float) -> None:
+        self.seq, self.rays, self.budget_s = seq, rays, budget_s
+        self.curve: list[tuple[float, int, float]] = []
+        self.excluded = self.excluded_cpu = 0.0
+        self.marks = [m for m in EVAL_AT_S if m < budget_s] + [budget_s]
+
+    def train_s(self) -> float:
+        return time.perf_counter() - self.start - self.excluded
+
+    def train_cpu_s(self) -> float:
+        return time.process_time() - self.cpu_start - self.excluded_cpu
+
+    def on_train_start(self, trainer: L.Trainer, module: NerfModule) -> None:
+        self.start, self.cpu_start = time.perf_counter(), time.process_time()
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+        elapsed = self.train_s()
+        if self.marks and elapsed >= self.marks[0]:
+            while self.marks and elapsed >= self.marks[0]:
+                self.marks.pop(0)
+            tic, cpu = time.perf_counter(), time.process_time()
+            psnr = evaluate(module, self.seq, self.rays, full=False)["psnr_heldout_db"]
+            self.excluded += time.perf_counter() - tic
+            self.excluded_cpu += time.process_time() - cpu
+            point = (round(elapsed, 1), round(self.train_cpu_s(), 1), trainer.global_step)
+            self.curve.append((*point, round(psnr, 3)))
+            print(f"  t={elapsed:.0f}s step={trainer.global_step} psnr={psnr:.2f}", flush=True)
+        if elapsed >= self.budget_s:
+            trainer.should_stop = True
+
+
+def run_variant(
+    seq: SequenceData, rays: SubmapRays, config: NerfTrainConfig, budget_s: float, out: Path
+) -> dict:
+    timer = TimedEvaluation(seq, rays, budget_s)
+    module = fit_submap(rays, config, out, epochs=10**6, callbacks=[timer], show_progress=False)
+    train_s, train_cpu_s = timer.train_s(), timer.train_cpu_s()
+    result = evaluate(module, seq, rays, full=True)
+    reached = [t for t, _, _, p in timer.curve if p >= 25.0]
+    camera = seq.camera.scaled(0.5)
+    code = module.field.appearance.weight.detach().mean(0)
+    tic = time.perf_counter()
+    render_image(module.field, module.grid, camera, seq.T_wc[rays.heldout[0]], code)
+    result |= {
+        "train_s": round(train_s, 1),
+        "train_cpu_s": round(train_cpu_s, 1),
+        "steps": module.global_step,
+        "time_to_25db_s": reached[0] if reached else None,
+        "render_320x240_s": round(time.perf_counter() - tic, 3),
+        "curve": timer.curve,
+    }
+    return result
+
+
+def merge(parts: list[str], out: Path) -> None:
+    """One JSON line from the last lines of partial runs (run in parallel processes); keys
+    that differ between parts (load averages, times) are kept per part under ``parts``."""
+    records = [json.loads(Path(p).read_text().splitlines()[-1]) for p in parts]
+    merged = {}
+    for record in records:
+        for key, value in record.items():
+            merged.setdefault(key, value)
+    merged["parts"] = [
+        {k: r[k] for k in ("prepare_s", "threads", "load_avg_start", "load_avg_end") if k in r}
+        for r in records
+    ]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "a") as f:
+        f.write(json.dumps(merged) + "\n")
+    print(json.dumps(merged))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", default="/work/main/data/indoor_seed0")
+    parser.add_argument("--budget-s", type=float, default=600.0)
+    parser.add_argument("--ablation-budget-s", type=float, default=None)
+    parser.add_argument("--variants", default="full,rgb_only,rgb_depth")
+    parser.add_argument("--encodings", default="triplane,hashgrid")
+    parser.add_argument("--submap", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--work", default="/tmp/nerf_bench")
+    parser.add_argument("--out", default="experiments/results/bench_nerf.jsonl")
+    parser.add_argument("--merge", nargs="+", help="merge the last lines of these JSONL files")
+    args = parser.parse_args()
+    if args.merge:
+        merge(args.merge, Path(args.out))
+        return
+    torch.set_num_threads(args.threads)
+    seq = read_sequence(args.data, "mapping")
+    submaps = cluster_trajectory(seq.T_wc, SubmapConfig(num_submaps=4))
+    submap = submaps[args.submap]
+    tic = time.perf_counter()
+    rays = build_submap_rays(seq, submap.frames, SubmapDataConfig())
+    record: dict = {
+        "data": args.data,
+        "submap": args.submap,
+        "frames": len(submap.frames),
+        "train_frames": len(rays.frames),
+        "heldout_frames": len(rays.heldout),
+        "lidar_rays": len(rays.lidar),
+        "box_m": [round(float(v), 2) for v in rays.box_max - rays.box_min],
+        "prepare_s": round(time.perf_counter() - tic, 1),
+        "threads": args.threads,
+        "load_avg_start": os.getloadavg()[0],
+    }
+    print(json.dumps(record), flush=True)
+    ablation_budget = args.ablation_budget_s or args.budget_s
+    encodings = args.encodings.split(",")
+    for encoding in encodings:
+        for variant in args.variants.split(","):
+            if encoding != encodings[0] and variant != "full":
+                continue
+            base = NerfTrainConfig(field=FieldConfig(encoding=encoding))
+            config = dataclasses.replace(
+                base, loss=dataclasses.replace(NerfLossConfig(), **VARIANTS[variant])
+            )
+            main_run = variant == "full" and encoding == encodings[0]
+            budget = args.budget_s if main_run else ablation_budget
+            print(f"{encoding} {variant}: {budget:.0f} s", flush=True)
+            out = Path(args.work) / f"{encoding}_{variant}"
+            result = run_variant(seq, rays, config, budget, out)
+            suffix = "" if variant == "full" else f"_{variant}"
+            prefix = "" if encoding == encodings[0] else f"{encoding}_"
+            record |= {f"{prefix}{k}{suffix}": v for k, v in result.items()}
+            print(json.dumps(result), flush=True)
+    record["load_avg_end"] = os.getloadavg()[0]
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    with open(args.out, "a") as f:
+        f.write(json.dumps(record) + "\n")
+    print(json.dumps(record))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,126 @@
+"""Lightning training of a submap: resumption, export without pickle, bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from diffloc.io.dataset import read_sequence
+from diffloc.maps.nerf.data import SubmapDataConfig, build_submap_rays, split_frames
+from diffloc.maps.nerf.export import export_field, load_field
+from diffloc.maps.nerf.field import FieldConfig
+from diffloc.maps.nerf.module import NerfTrainConfig
+from diffloc.maps.nerf.sampler import SamplerConfig
+from diffloc.maps.nerf.train import fit_submap
+
+DATA = SubmapDataConfig(image_scale=0.25, holdout_every=0, lidar_stride=8)
+
+
+def _config(**changes) -> NerfTrainConfig:
+    cfg = NerfTrainConfig(
+        field=FieldConfig(triplane_resolutions=[16, 32], triplane_channels=4, hidden=16),
+        sampler=SamplerConfig(
+            grid_resolution=16,
+            grid_update_every=2,
+            coarse_samples=32,
+            importance_samples=8,
+            uniform_samples=8,
+            guided_samples=4,
+        ),
+        ray_batch=128,
+        lidar_batch=64,
+        normal_batch=16,
+        steps_per_epoch=3,
+    )
+    return dataclasses.replace(cfg, **changes)
+
+
+@pytest.fixture(scope="module")
+def tiny_rays(tiny_indoor_dataset: Path):
+    seq = read_sequence(tiny_indoor_dataset, "mapping")
+    return build_submap_rays(seq, list(range(len(seq))), DATA)
+
+
+def test_split_frames_holds_out_every_nth_frame() -> None:
+    assert split_frames(list(range(10)), 8) == ([1, 2, 3, 4, 5, 6, 7, 9], [0, 8])
+    assert split_frames([3, 4], 0) == ([3, 4], [])
+
+
+def test_submap_rays_cover_the_images_and_the_box_holds_the_cameras(tiny_rays) -> None:
+    rays = tiny_rays
+    assert len(rays.rgb) == len(rays.frames) * 40 * 30
+    assert len(rays.lidar) > 0
+    assert bool(torch.allclose(rays.directions.norm(dim=-1), torch.ones(1)))
+    assert bool(((rays.origins >= rays.box_min) & (rays.origins <= rays.box_max)).all())
+    valid = rays.lidar.normals.abs().sum(-1) > 0
+    assert float(valid.float().mean()) > 0.5
+    assert bool(torch.allclose(rays.lidar.normals[valid].norm(dim=-1), torch.ones(1)))
+
+
+def test_resuming_continues_the_uninterrupted_loss_curve(tiny_rays, tmp_path: Path) -> None:
+    cfg = _config()
+    straight = fit_submap(tiny_rays, cfg, tmp_path / "a", epochs=2, show_progress=False)
+    fit_submap(tiny_rays, cfg, tmp_path / "b", epochs=1, show_progress=False)
+    resumed = fit_submap(tiny_rays, cfg, tmp_path / "b", epochs=2, resume=True, show_progress=False)
+    assert len(straight.losses) == 6 and len(resumed.losses) == 3
+    np.testing.assert_allclose(resumed.losses, straight.losses[3:], rtol=1e-6)
+    assert (tmp_path / "b" / "logs" / "version_0" / "metrics.csv").is_file()
+
+
+def test_training_lowers_the_loss(tiny_rays, tmp_path: Path) -> None:
+    cfg = _config(steps_per_epoch=20)
+    module = fit_submap(tiny_rays, cfg, tmp_path, epochs=1, show_progress=False)
+    assert np.mean(module.losses[-5:]) < np.mean(module.losses[:5])
+
+
+def test_export_round_trip_without_pickle(tiny_rays, tmp_path: Path) -> None:
+    module = fit_submap(tiny_rays, _config(), tmp_path / "run", epochs=1, show_progress=False)
+    out = export_field(tmp_path / "field", module.field, module.grid)
+    field, grid = load_field(out)
+    x = tiny_rays.origins[:50] + tiny_rays.directions[:50]
+    with torch.no_grad():
+        assert torch.equal(field.density(x), module.field.density(x))
+    assert torch.equal(grid.density, module.grid.density)
+    assert field.config == module.field.config
+
+
+def test_loading_a_pickle_or_foreign_json_is_a_clear_error(tiny_rays, tmp_path: Path) -> None:
+    module = fit_submap(tiny_rays, _config(), tmp_path / "run", epochs=1, show_progress=False)
+    out = export_field(tmp_path / "field", module.field, module.grid)
+    torch.save(module.field.state_dict(), out / "field.safetensors")
+    with pytest.raises(ValueError, match="safetensors"):
+        load_field(out)
+    (out / "field.json").write_text('{"format_version": 99}')
+    with pytest.raises(ValueError, match="format_version"):
+        load_field(out)
+    with pytest.raises(FileNotFoundError):
+        load_field(tmp_path / "missing")
+
+
+def test_a_nan_loss_skips_the_step_with_a_warning(tiny_rays, tmp_path: Path) -> None:
+    from diffloc.maps.nerf import module as module_mod
+
+    original = module_mod.photometric_loss
+    module_mod.photometric_loss = lambda a, b: original(a, b) * float("nan")
+    try:
+        with pytest.warns(UserWarning, match="non-finite loss"):
+            module = fit_submap(tiny_rays, _config(), tmp_path, epochs=1, show_progress=False)
+    finally:
+        module_mod.photometric_loss = original
+    assert module.losses == []
+    fresh = fit_submap(tiny_rays, _config(), tmp_path / "fresh", epochs=0, show_progress=False)
+    for a, b in zip(module.field.parameters(), fresh.field.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_a_submap_without_lidar_or_with_one_frame_is_refused(tiny_indoor_dataset: Path) -> None:
+    seq = read_sequence(tiny_indoor_dataset, "mapping")
+    with pytest.raises(ValueError, match="at least 2 training frames"):
+        build_submap_rays(seq, [1], DATA)
+    blind = dataclasses.replace(seq, lidar_paths=[], lidar_timestamps=np.zeros(0), T_wl=None)
+    with pytest.raises(ValueError, match="no lidar sweeps"):
+        build_submap_rays(blind, list(range(len(seq))), DATA)
