@@ -17,6 +17,7 @@ from diffloc.database.database import VisualDatabase
 from diffloc.features.local import XFeatConfig, make_extractor
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap
+from diffloc.pipeline import reloc_stage
 from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
 from diffloc.pipeline.revalidate import revalidate_run
 from diffloc.reloc.hierarchical import (
@@ -69,6 +70,26 @@ def test_main_job_writes_results_tables_and_plots(main_run):
     table = (out / "results.md").read_text()
     for header in ("recall@0.3m", "precision", "to nearest db pose", "seed 1's rule"):
         assert header in table
+
+
+def test_a_failed_relocalisation_leaves_the_previous_results_intact(main_run, monkeypatch):
+    root, out, _ = main_run
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    report = reloc_stage._report_sequence
+
+    def fail_on_the_second_sequence(run, cfg, work, final, name, T_wc_db_true):
+        if name == "query_lane":
+            raise RuntimeError("killed while reporting query_lane")
+        return report(run, cfg, work, final, name, T_wc_db_true)
+
+    monkeypatch.setattr(reloc_stage, "_report_sequence", fail_on_the_second_sequence)
+    overrides = [f"dataset={root}", f"task.out_dir={out}", "reloc.database=database"]
+    # Other settings (no pose can pass theta_in), so a half-written run would differ.
+    settings = ["reloc.sequences=[query_same,query_lane]", "reloc.validation.theta_in=100000"]
+    with pytest.raises(RuntimeError, match="killed"):
+        run(compose_config(TINY + FINE + ["task=relocalize", *overrides, *settings]))
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before, "a failed run changed or left files in the results folder"
 
 
 def test_precision_counts_the_accepted_poses_that_are_right(main_run):

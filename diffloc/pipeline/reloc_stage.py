@@ -262,12 +262,18 @@ def _candidate_entry(candidate: Candidate, T_wc_best: torch.Tensor) -> dict:
 
 
 def _report_sequence(
-    run: _SequenceRun, cfg: RelocStageConfig, out: Path, name: str, T_wc_db_true: torch.Tensor
+    run: _SequenceRun,
+    cfg: RelocStageConfig,
+    out: Path,
+    final: Path,
+    name: str,
+    T_wc_db_true: torch.Tensor,
 ) -> dict:
     """Metrics, TUM files and plots of one sequence; returns its results entry.
 
-    ``T_wc_db_true`` (K, 4, 4) are the true poses of the database keyframes, read for scoring
-    only: how far each query lies from the nearest of them.
+    The files are written into ``out`` (the stage's work folder); the entry names them where
+    the commit puts them, in ``final``. ``T_wc_db_true`` (K, 4, 4) are the true poses of the
+    database keyframes, read for scoring only: how far each query lies from the nearest of them.
     """
     out.mkdir(parents=True, exist_ok=True)
     verified = pose_errors(run.T_wc_est, run.T_wc_true, run.accepted)
@@ -342,8 +348,8 @@ def _report_sequence(
         "median_stage_ms": {
             s: statistics.median(t.get(s, 0.0) for t in run.timings) for s in stages
         },
-        "plots": {k: str(v) for k, v in plots.items()},
-        "estimates": str(out / "estimates.tum"),
+        "plots": {k: str(final / Path(v).name) for k, v in plots.items()},
+        "estimates": str(final / "estimates.tum"),
     }
 
 
@@ -425,6 +431,10 @@ def relocalize_dataset(
 ) -> dict:
     """Relocalise the query sequences of ``dataset`` and write metrics and plots (module doc).
 
+    The results commit as a whole (:func:`~diffloc.pipeline.stage.open_stage`): the sequence
+    folders, ``results.md``, ``results.json`` and the record ``relocalize.json`` appear
+    together, and a run that fails or is killed leaves the folder's previous results intact.
+
     Args:
         dataset: the dataset folder (with ``db/sigma_<s>/`` from the database stages).
         db_cfg: the database settings (noise level, local features).
@@ -458,19 +468,25 @@ def relocalize_dataset(
     results: dict = {"sequences": {}}
     rows = []
     T_wc_db_true = keyframe_true_poses(dataset, selected.keyframe_sources)
-    for name in cfg.sequences:
-        run = _relocalize_sequence(dataset, name, cfg, extractor, relocalizer, show_progress)
-        entry = _report_sequence(run, cfg, out / name, name, T_wc_db_true)
-        results["sequences"][name] = entry
-        rows.append(table_row(name, entry))
-    headline = results["sequences"].get("query_same") or next(iter(results["sequences"].values()))
-    for key in ("recall", "mATE_m", "queries", "median_reloc_ms"):
-        results[key] = headline[key]
-    results["database"] = str(selected.path)
-    results["config"] = asdict(cfg)
-    table = markdown_table(rows, RESULT_COLUMNS)
-    results["table"] = table
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "results.md", table + "\n")
-    atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
+    command = Command("relocalize", (f"dataset={dataset}",))
+    with open_stage(out, "relocalize", command) as stage:
+        work = stage.workdir()
+        for name in cfg.sequences:
+            run = _relocalize_sequence(dataset, name, cfg, extractor, relocalizer, show_progress)
+            entry = _report_sequence(run, cfg, work / name, out / name, name, T_wc_db_true)
+            results["sequences"][name] = entry
+            rows.append(table_row(name, entry))
+        sequences = results["sequences"]
+        headline = sequences.get("query_same") or next(iter(sequences.values()))
+        for key in ("recall", "mATE_m", "queries", "median_reloc_ms"):
+            results[key] = headline[key]
+        results["database"] = str(selected.path)
+        results["config"] = asdict(cfg)
+        table = markdown_table(rows, RESULT_COLUMNS)
+        results["table"] = table
+        atomic_write_text(work / "results.md", table + "\n")
+        atomic_write_text(work / "results.json", json.dumps(results, indent=2) + "\n")
+        key = stage_key({"reloc": asdict(cfg), "database": str(selected.path)}, {})
+        outputs = [*cfg.sequences, "results.md", "results.json"]
+        stage.commit(key, {"sequences": list(cfg.sequences)}, outputs)
     return results
