@@ -1,16 +1,17 @@
 """Stage runs killed at random points (SIGKILL), for the kill test and ``experiments/``.
 
-:func:`killed_run` forks a child that runs one stage on a dataset folder and kills it after a
+:func:`killed_run` starts a child that runs one stage on a dataset folder and kills it after a
 given delay (if it has not finished) with SIGKILL, the way the OOM killer or a lost machine
-would: no ``finally`` block, no ``atexit`` handler runs.
+would: no ``finally`` block, no ``atexit`` handler runs. Children come from a fork server
+(``multiprocessing``'s ``forkserver``, with this module preloaded): a fork of the test process
+itself could hang, since OpenMP's thread pool does not survive a fork once torch has used it.
 :func:`stage_outputs` reads back every output a stage's record lists, byte for byte.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import signal
+import multiprocessing
 import sys
 import time
 from pathlib import Path
@@ -40,12 +41,24 @@ def stage_folder(stage: str, root: Path) -> Path:
     return database_dir(root, STAGE_CONFIGS[stage])
 
 
-def killed_run(stage: str, root: Path, delay_s: float | None) -> tuple[bool, float]:
-    """Run ``stage`` on ``root`` in a forked child, SIGKILLed after ``delay_s`` seconds.
+_FORK_SERVER = multiprocessing.get_context("forkserver")
+_FORK_SERVER.set_forkserver_preload([__name__])
 
-    The child is a fork of this process (everything is imported already, so the delay falls
-    on the stage's own work); it runs the stage and exits with ``os._exit`` (status 1 and the
-    error on stderr if the stage raised).
+
+def _run_in_child(stage: str, root: str) -> None:
+    try:
+        run_stage(stage, Path(root))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent by the status
+        print(f"{stage} failed: {exc!r}", file=sys.stderr, flush=True)
+        sys.exit(1)
+
+
+def killed_run(stage: str, root: Path, delay_s: float | None) -> tuple[bool, float]:
+    """Run ``stage`` on ``root`` in a child process, SIGKILLed after ``delay_s`` seconds.
+
+    The child is forked from the fork server, which has imported everything already, so the
+    delay falls on the stage's own work; it exits with status 1 (the error on stderr) if the
+    stage raised.
 
     Args:
         stage: a key of :data:`STAGE_CONFIGS`.
@@ -58,28 +71,17 @@ def killed_run(stage: str, root: Path, delay_s: float | None) -> tuple[bool, flo
     Raises:
         RuntimeError: the child failed on its own.
     """
+    child = _FORK_SERVER.Process(target=_run_in_child, args=(stage, str(root)))
+    child.start()  # returns once the child is forked (the server is up)
     start = time.perf_counter()
-    pid = os.fork()
-    if pid == 0:  # the child
-        status = 0
-        try:
-            run_stage(stage, root)
-        except BaseException as exc:  # noqa: BLE001 - reported to the parent by the status
-            print(f"{stage} failed: {exc!r}", file=sys.stderr, flush=True)
-            status = 1
-        os._exit(status)
-    deadline = None if delay_s is None else start + delay_s
-    while True:
-        done, status = os.waitpid(pid, os.WNOHANG)
-        if done:
-            if os.waitstatus_to_exitcode(status) != 0:
-                raise RuntimeError(f"{stage} on {root} failed in the child (see stderr)")
-            return False, time.perf_counter() - start
-        if deadline is not None and time.perf_counter() >= deadline:
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
-            return True, time.perf_counter() - start
-        time.sleep(0.01)
+    child.join(delay_s)
+    if child.exitcode is None:
+        child.kill()
+        child.join()
+        return True, time.perf_counter() - start
+    if child.exitcode != 0:
+        raise RuntimeError(f"{stage} on {root} failed in the child (see stderr)")
+    return False, time.perf_counter() - start
 
 
 def stage_outputs(stage: str, root: Path) -> dict[str, bytes]:
