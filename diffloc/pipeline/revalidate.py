@@ -37,7 +37,7 @@ from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.reloc_stage import RESULT_COLUMNS, table_row, verdict_figures
 from diffloc.reloc.validation import PoseEvidence, PoseValidator, ValidationConfig
 
-__all__ = ["replay_validation", "revalidate_run"]
+__all__ = ["record_errors", "replay_validation", "revalidate_run"]
 
 
 def replay_validation(records: list[dict], config: ValidationConfig) -> np.ndarray:
@@ -56,7 +56,10 @@ def replay_validation(records: list[dict], config: ValidationConfig) -> np.ndarr
     )
 
 
-def _errors(records: list[dict], accepted: np.ndarray) -> PoseErrors:
+def record_errors(records: list[dict], accepted: np.ndarray) -> PoseErrors:
+    """The pose errors a ``queries.json`` recorded, with ``accepted`` (Q,) as the localised
+    queries (the verdicts of some validation)."""
+
     def column(key: str) -> np.ndarray:
         return np.array([math.nan if r[key] is None else r[key] for r in records], np.float64)
 
@@ -110,7 +113,7 @@ def revalidate_run(src: str | Path, dst: str | Path, config: ValidationConfig) -
         records = json.loads((src / name / "queries.json").read_text())
         accepted = replay_validation(records, config)
         seed1 = replay_validation(records, config.seed1_rule())
-        verified, seed1_errors = _errors(records, accepted), _errors(records, seed1)
+        verified, seed1_errors = record_errors(records, accepted), record_errors(records, seed1)
         sequences[name] = {**entry, **verdict_figures(verified, seed1_errors, max_trans, max_rot)}
         out = dst / name
         out.mkdir(parents=True, exist_ok=True)
