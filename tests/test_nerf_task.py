@@ -13,6 +13,7 @@ from diffloc.maps.nerf.export import load_field
 from diffloc.maps.nerf.field import FieldConfig
 from diffloc.maps.nerf.sampler import SamplerConfig
 from diffloc.maps.nerf.submaps import load_submaps
+from diffloc.pipeline import nerf_stage
 from diffloc.pipeline.nerf_config import TrainNerfTaskConfig
 from diffloc.pipeline.nerf_stage import train_nerf_submap
 
@@ -54,6 +55,25 @@ def test_train_nerf_writes_submaps_logs_and_a_loadable_field(
     assert (out / "submap_1" / "checkpoints" / "last.ckpt").is_file()
     field, _ = load_field(out / "submap_1" / "field")
     assert field.config.triplane_resolutions == [16]
+
+
+def test_a_second_run_reuses_the_committed_field_and_a_failed_one_keeps_it(
+    tiny_indoor_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = _tiny(tmp_path, submap=0)
+    first = train_nerf_submap(tiny_indoor_dataset, cfg, False)
+    field = tmp_path / "nerf" / "submap_0" / "field"
+    before = {p.name: p.read_bytes() for p in field.iterdir()}
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("trained again although the settings and data are unchanged")
+
+    monkeypatch.setattr(nerf_stage, "fit_submap", no_training)
+    assert train_nerf_submap(tiny_indoor_dataset, cfg, False) == first
+    with pytest.raises(AssertionError, match="trained again"):  # other settings: trains
+        train_nerf_submap(tiny_indoor_dataset, dataclasses.replace(cfg, epochs=2), False)
+    assert {p.name: p.read_bytes() for p in field.iterdir()} == before
+    assert not list(field.parent.glob(".tmp-*"))
 
 
 def test_bad_submaps_are_clear_errors(tiny_indoor_dataset: Path, tmp_path: Path) -> None:

@@ -5,19 +5,29 @@ submap k ``submap_<k>/`` with Lightning's CSV logs and checkpoints and the expor
 (``submap_<k>/field/``: safetensors + JSON). Runs of different submaps share nothing but the
 clustering, which is deterministic, so ``diffloc -m task=train_nerf task.submap=0,1,2,3``
 trains them in parallel processes under a parallel Hydra launcher.
+
+Each submap is a stage (:mod:`diffloc.pipeline.stage`) writing into ``submap_<k>/``: the field
+and its record ``train_nerf.json`` appear together, keyed on the task settings and the content
+of the mapping sequence, so a rerun with the same settings reuses the field and any change
+trains again (resuming from the last checkpoint when ``task.resume``; the checkpoints are the
+training's own state, kept beside the committed field).
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import asdict
 from pathlib import Path
 
 from diffloc.io.dataset import read_sequence
+from diffloc.io.identity import identity
 from diffloc.maps.nerf.data import build_submap_rays
 from diffloc.maps.nerf.export import export_field
 from diffloc.maps.nerf.submaps import cluster_trajectory, plot_submaps, save_submaps
 from diffloc.maps.nerf.train import fit_submap
+from diffloc.pipeline.hints import Command
 from diffloc.pipeline.nerf_config import TrainNerfTaskConfig
+from diffloc.pipeline.stage import open_stage, stage_key
 
 __all__ = ["train_nerf_submap"]
 
@@ -25,7 +35,7 @@ __all__ = ["train_nerf_submap"]
 def train_nerf_submap(
     dataset: str | os.PathLike, config: TrainNerfTaskConfig, show_progress: bool = True
 ) -> dict:
-    """Cluster the mapping run and train (or resume) one submap's field.
+    """Cluster the mapping run and train (or resume, or reuse) one submap's field.
 
     Args:
         dataset: dataset folder.
@@ -33,7 +43,8 @@ def train_nerf_submap(
         show_progress: Lightning's progress bar (off when ``CI=true``).
 
     Returns:
-        Summary: submap count, the trained submap's frames, steps, final loss and the paths.
+        Summary: submap count, the trained submap's frames, steps, final loss and the paths
+        (with the ``"stage"`` entry of its record).
 
     Raises:
         ValueError: a submap index out of range, or a submap that cannot be trained (one
@@ -52,21 +63,27 @@ def train_nerf_submap(
     save_submaps(out_dir / "submaps.json", submaps, config.submaps)
     plot_submaps(out_dir / "submaps.png", seq.T_wc, submaps)
     submap = submaps[config.submap]
-    name = f"submap {config.submap} of {dataset}"
-    rays = build_submap_rays(seq, submap.frames, config.data, name=name)
     run_dir = out_dir / f"submap_{config.submap}"
-    module = fit_submap(
-        rays, config.train, run_dir, config.epochs, config.resume, show_progress=show_progress
-    )
-    field_dir = export_field(run_dir / "field", module.field, module.grid, overwrite=True)
-    return {
-        "submaps": len(submaps),
-        "submap": config.submap,
-        "frames": len(submap.frames),
-        "train_frames": len(rays.frames),
-        "heldout_frames": len(rays.heldout),
-        "steps": module.global_step,
-        "final_loss": module.losses[-1] if module.losses else None,
-        "field": str(field_dir),
-        "plot": str(out_dir / "submaps.png"),
-    }
+    key = stage_key(asdict(config), {"sequence": identity(dataset / config.sequence)})
+    command = Command("train_nerf", (f"dataset={dataset}", f"task.submap={config.submap}"))
+    with open_stage(run_dir, "train_nerf", command) as stage:
+        if (record := stage.reusable(key)) is not None:
+            return record
+        name = f"submap {config.submap} of {dataset}"
+        rays = build_submap_rays(seq, submap.frames, config.data, name=name)
+        module = fit_submap(
+            rays, config.train, run_dir, config.epochs, config.resume, show_progress=show_progress
+        )
+        export_field(stage.workdir() / "field", module.field, module.grid)
+        summary = {
+            "submaps": len(submaps),
+            "submap": config.submap,
+            "frames": len(submap.frames),
+            "train_frames": len(rays.frames),
+            "heldout_frames": len(rays.heldout),
+            "steps": module.global_step,
+            "final_loss": module.losses[-1] if module.losses else None,
+            "field": str(run_dir / "field"),
+            "plot": str(out_dir / "submaps.png"),
+        }
+        return stage.commit(key, summary, ["field"])
