@@ -148,6 +148,10 @@ heldout_ablation 1,2,3 ablation_xfeat_small naive,F,FN netvlad "$t3_seqs"
 heldout_main 1,2,3,4,5 main_orb db.local_features=orb
 heldout_ablation 1,2,3,4,5 ablation_orb naive,F,FN netvlad db.local_features=orb
 heldout_noise 1,2,3 table3_noise_epipolar_prior2x "0.2:0.4 0.4:0.8" db.builder.association=epipolar "$t3_seqs"
+# The prior equal to the noise (an oracle) and half of it, one report each (committed as they
+# finish), then all levels with sigma 0 in one report (it reuses those databases).
+heldout_noise 1,2,3 table3_noise_epipolar_prior1x "0.2:0.2 0.4:0.4" db.builder.association=epipolar "$t3_seqs"
+heldout_noise 1,2,3 table3_noise_epipolar_priorhalf "0.2:0.1 0.4:0.2" db.builder.association=epipolar "$t3_seqs"
 heldout_noise 1,2,3 table3_noise_epipolar "$all_levels" db.builder.association=epipolar "$t3_seqs"
 
 # Outdoors: main job and Tables I/II on seeds 1-3, Table III on seeds 1-2.
