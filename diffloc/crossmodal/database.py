@@ -38,6 +38,7 @@ from diffloc.features.global_ import NetVLAD, netvlad_from_dense_maps
 from diffloc.features.local import Features, XFeatConfig, XFeatExtractor
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.io.atomic import atomic_directory, atomic_open, atomic_write_text
+from diffloc.io.json_record import read_json_record
 from diffloc.io.npz import read_npz_archive
 from diffloc.progress import progress
 
@@ -202,11 +203,8 @@ class RenderedDatabase:
         for p in (meta_path, npz_path):
             if not p.is_file():
                 raise FileNotFoundError(f"{p} is missing: not a saved RGB-D database folder")
-        try:
-            meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{meta_path} is not valid JSON: {exc}") from exc
-        if not isinstance(meta, dict) or meta.get("kind") != _KIND:
+        meta = read_json_record(meta_path)
+        if meta.get("kind") != _KIND:
             raise ValueError(f"{meta_path}: not a diffloc RGB-D database (kind {_KIND!r})")
         if meta.get("format_version") != DATABASE_FORMAT_VERSION:
             raise ValueError(

@@ -33,6 +33,7 @@ from diffloc.features.global_ import BagOfWords, NetVLAD, netvlad_from_dense_map
 from diffloc.features.index import RetrievalIndex
 from diffloc.features.local import Features
 from diffloc.io.atomic import atomic_open, atomic_write_text
+from diffloc.io.json_record import read_json_record
 from diffloc.io.npz import read_npz_archive, write_npz
 
 __all__ = [
@@ -114,11 +115,8 @@ def _read_folder(path: Path) -> tuple[dict, dict[str, torch.Tensor]]:
     for p in (meta_path, array_path):
         if not p.is_file():
             raise FileNotFoundError(f"{p} is missing: not a saved retriever folder")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{meta_path} is not valid JSON: {error}") from error
-    if not isinstance(meta, dict) or meta.get("format_version") != FORMAT_VERSION:
+    meta = read_json_record(meta_path)
+    if meta.get("format_version") != FORMAT_VERSION:
         raise ValueError(f"{meta_path}: not a diffloc retriever (format {FORMAT_VERSION})")
     arrays = read_npz_archive(array_path)
     for name, array in arrays.items():

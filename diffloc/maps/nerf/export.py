@@ -14,6 +14,7 @@ from safetensors.torch import load as load_safetensors
 from safetensors.torch import save as save_safetensors
 
 from diffloc.io.atomic import atomic_directory
+from diffloc.io.json_record import read_json_record
 from diffloc.maps.nerf.field import FieldConfig, RadianceField
 from diffloc.maps.nerf.sampler import DensityGrid, SamplerConfig
 
@@ -64,11 +65,8 @@ def load_field(in_dir: str | os.PathLike) -> tuple[RadianceField, DensityGrid]:
     for path in (meta, weights):
         if not path.is_file():
             raise FileNotFoundError(f"{path} does not exist")
-    try:
-        record = json.loads(meta.read_text())
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{meta}: not JSON ({error})") from error
-    if not isinstance(record, dict) or record.get("format_version") != FORMAT_VERSION:
+    record = read_json_record(meta)
+    if record.get("format_version") != FORMAT_VERSION:
         raise ValueError(f"{meta}: not a diffloc field of format_version {FORMAT_VERSION}")
     try:
         tensors = load_safetensors(weights.read_bytes())
