@@ -45,18 +45,22 @@ from diffloc.io.sequence import SequenceData
 from diffloc.maps.nerf.appearance import fit_appearance_code
 from diffloc.maps.nerf.data import SubmapDataConfig, SubmapRays, build_submap_rays, load_image
 from diffloc.maps.nerf.field import FieldConfig
-from diffloc.maps.nerf.module import NerfLossConfig, NerfModule, NerfTrainConfig
+from diffloc.maps.nerf.module import NerfModule, NerfTrainConfig
 from diffloc.maps.nerf.rays import camera_rays
 from diffloc.maps.nerf.renderer import render_image, render_rays
 from diffloc.maps.nerf.submaps import SubmapConfig, cluster_trajectory
 from diffloc.maps.nerf.train import fit_submap
 
+# variant -> (loss overrides, sampler overrides). "uniform" drops the density grid and the
+# lidar-guided samples and gives every ray 40 stratified samples (camera rays get 32 and lidar
+# rays 40 with the grid), so it never has fewer samples than the default.
 VARIANTS = {
-    "full": {},
-    "rgb_only": {"depth_weight": 0.0, "normal_weight": 0.0},
-    "rgb_depth": {"normal_weight": 0.0},
+    "full": ({}, {}),
+    "rgb_only": ({"depth_weight": 0.0, "normal_weight": 0.0}, {}),
+    "rgb_depth": ({"normal_weight": 0.0}, {}),
+    "uniform": ({}, {"importance_samples": 0, "guided_samples": 0, "uniform_samples": 40}),
 }
-EVAL_AT_S = (60, 120, 180, 300, 450, 600, 900)
+EVAL_AT_S = (30, 60, 90, 120, 180, 240, 300, 450, 600, 900)
 
 
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -139,10 +143,12 @@ def evaluate(
 
 
 class TimedEvaluation(L.Callback):
-    """Evaluate at training-time marks (evaluation time excluded) and stop at the budget."""
+    """Evaluate at training-time marks (evaluation time excluded) and stop at the budget.
+    Marks and budget are on ``clock``: ``"wall"`` or ``"cpu"`` (process time, all threads)."""
 
-    def __init__(self, seq: SequenceData, rays: SubmapRays, budget_s: float) -> None:
+    def __init__(self, seq: SequenceData, rays: SubmapRays, budget_s: float, clock: str) -> None:
         self.seq, self.rays, self.budget_s = seq, rays, budget_s
+        self.elapsed = self.train_cpu_s if clock == "cpu" else self.train_s
         self.curve: list[tuple[float, int, float]] = []
         self.excluded = self.excluded_cpu = 0.0
         self.marks = [m for m in EVAL_AT_S if m < budget_s] + [budget_s]
@@ -157,7 +163,7 @@ class TimedEvaluation(L.Callback):
         self.start, self.cpu_start = time.perf_counter(), time.process_time()
 
     def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
-        elapsed = self.train_s()
+        elapsed = self.elapsed()
         if self.marks and elapsed >= self.marks[0]:
             while self.marks and elapsed >= self.marks[0]:
                 self.marks.pop(0)
@@ -165,34 +171,75 @@ class TimedEvaluation(L.Callback):
             psnr = evaluate(module, self.seq, self.rays, full=False)["psnr_heldout_db"]
             self.excluded += time.perf_counter() - tic
             self.excluded_cpu += time.process_time() - cpu
-            point = (round(elapsed, 1), round(self.train_cpu_s(), 1), trainer.global_step)
+            point = (round(self.train_s(), 1), round(self.train_cpu_s(), 1), trainer.global_step)
             self.curve.append((*point, round(psnr, 3)))
-            print(f"  t={elapsed:.0f}s step={trainer.global_step} psnr={psnr:.2f}", flush=True)
+            print(f"  {point} psnr={psnr:.2f}", flush=True)
         if elapsed >= self.budget_s:
             trainer.should_stop = True
 
 
+def _first_reaching(curve: list, psnr_db: float) -> tuple[float | None, float | None]:
+    """(wall s, CPU s) of the first evaluation at or above ``psnr_db``, or ``(None, None)``."""
+    reached = [(wall, cpu) for wall, cpu, _, p in curve if p >= psnr_db]
+    return reached[0] if reached else (None, None)
+
+
+def _render_times(module: NerfModule, seq: SequenceData, rays: SubmapRays) -> dict[str, float]:
+    """Wall and CPU seconds of a 320x240 RGB-D render, without and with normals."""
+    camera = seq.camera.scaled(0.5)
+    code = module.field.appearance.weight.detach().mean(0)
+    times = {}
+    for suffix, normals in (("", False), ("_normals", True)):
+        tic, cpu = time.perf_counter(), time.process_time()
+        pose = seq.T_wc[rays.heldout[0]]
+        render_image(module.field, module.grid, camera, pose, code, with_normals=normals)
+        times[f"render_320x240{suffix}_s"] = round(time.perf_counter() - tic, 3)
+        times[f"render_320x240{suffix}_cpu_s"] = round(time.process_time() - cpu, 3)
+    return times
+
+
 def run_variant(
-    seq: SequenceData, rays: SubmapRays, config: NerfTrainConfig, budget_s: float, out: Path
+    seq: SequenceData,
+    rays: SubmapRays,
+    config: NerfTrainConfig,
+    budget_s: float,
+    out: Path,
+    clock: str,
 ) -> dict:
-    timer = TimedEvaluation(seq, rays, budget_s)
+    timer = TimedEvaluation(seq, rays, budget_s, clock)
     module = fit_submap(rays, config, out, epochs=10**6, callbacks=[timer], show_progress=False)
     train_s, train_cpu_s = timer.train_s(), timer.train_cpu_s()
     result = evaluate(module, seq, rays, full=True)
-    reached = [t for t, _, _, p in timer.curve if p >= 25.0]
-    camera = seq.camera.scaled(0.5)
-    code = module.field.appearance.weight.detach().mean(0)
-    tic = time.perf_counter()
-    render_image(module.field, module.grid, camera, seq.T_wc[rays.heldout[0]], code)
+    wall_25, cpu_25 = _first_reaching(timer.curve, 25.0)
     result |= {
         "train_s": round(train_s, 1),
         "train_cpu_s": round(train_cpu_s, 1),
         "steps": module.global_step,
-        "time_to_25db_s": reached[0] if reached else None,
-        "render_320x240_s": round(time.perf_counter() - tic, 3),
+        "cpu_ms_per_step": round(1000 * train_cpu_s / max(module.global_step, 1), 1),
+        "time_to_25db_s": wall_25,
+        "cpu_to_25db_s": cpu_25,
+        **_render_times(module, seq, rays),
         "curve": timer.curve,
     }
     return result
+
+
+def sampling_comparison(record: dict) -> dict:
+    """Grid + lidar-guided sampling against uniform: the CPU seconds each needed to first
+    reach the best held-out PSNR the uniform run reached (evaluation marks, so an upper
+    bound for both), and each run's final figures."""
+    target = max(p for *_, p in record["curve_uniform"])
+    return {
+        "target_psnr_db": target,
+        "cpu_to_target_s_grid": _first_reaching(record["curve"], target)[1],
+        "cpu_to_target_s_uniform": _first_reaching(record["curve_uniform"], target)[1],
+        "psnr_heldout_db_grid": record["psnr_heldout_db"],
+        "psnr_heldout_db_uniform": record["psnr_heldout_db_uniform"],
+        "depth_median_abs_err_m_grid": record["depth_median_abs_err_m"],
+        "depth_median_abs_err_m_uniform": record["depth_median_abs_err_m_uniform"],
+        "train_cpu_s_grid": record["train_cpu_s"],
+        "train_cpu_s_uniform": record["train_cpu_s_uniform"],
+    }
 
 
 def merge(parts: list[str], out: Path) -> None:
@@ -213,10 +260,36 @@ def merge(parts: list[str], out: Path) -> None:
     print(json.dumps(merged))
 
 
+def sampling_markdown(record: dict) -> str:
+    """The grid-vs-uniform comparison of a record as a Markdown table."""
+    c = record["sampling_vs_uniform"]
+    rows = [
+        ("CPU s to first reach the target", "cpu_to_target_s"),
+        ("held-out PSNR at the end, dB", "psnr_heldout_db"),
+        ("median depth error at the end, m", "depth_median_abs_err_m"),
+        ("training CPU s", "train_cpu_s"),
+    ]
+    lines = [
+        f"Sampling vs uniform ({record['data']}, submap {record['submap']}, "
+        f"{record['threads']} thread(s), load {record['load_avg_start']:.1f} at start); "
+        f"target = best held-out PSNR of the uniform run, {c['target_psnr_db']:.2f} dB "
+        "(first evaluation mark at or above it).",
+        "",
+        "| | grid + lidar-guided | uniform (40 per ray) |",
+        "|---|---|---|",
+    ]
+    for label, key in rows:
+        grid, uniform = c[f"{key}_grid"], c[f"{key}_uniform"]
+        lines.append(f"| {label} | {grid} | {uniform} |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default="/work/main/data/indoor_seed0")
     parser.add_argument("--budget-s", type=float, default=600.0)
+    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall")
+    parser.add_argument("--sampling-md", help="write the grid-vs-uniform table (Markdown) here")
     parser.add_argument("--ablation-budget-s", type=float, default=None)
     parser.add_argument("--variants", default="full,rgb_only,rgb_depth")
     parser.add_argument("--encodings", default="triplane,hashgrid")
@@ -255,19 +328,27 @@ def main() -> None:
             if encoding != encodings[0] and variant != "full":
                 continue
             base = NerfTrainConfig(field=FieldConfig(encoding=encoding))
+            loss, sampler = VARIANTS[variant]
             config = dataclasses.replace(
-                base, loss=dataclasses.replace(NerfLossConfig(), **VARIANTS[variant])
+                base,
+                loss=dataclasses.replace(base.loss, **loss),
+                sampler=dataclasses.replace(base.sampler, **sampler),
             )
             main_run = variant == "full" and encoding == encodings[0]
             budget = args.budget_s if main_run else ablation_budget
             print(f"{encoding} {variant}: {budget:.0f} s", flush=True)
             out = Path(args.work) / f"{encoding}_{variant}"
-            result = run_variant(seq, rays, config, budget, out)
+            result = run_variant(seq, rays, config, budget, out, args.clock)
             suffix = "" if variant == "full" else f"_{variant}"
             prefix = "" if encoding == encodings[0] else f"{encoding}_"
             record |= {f"{prefix}{k}{suffix}": v for k, v in result.items()}
             print(json.dumps(result), flush=True)
     record["load_avg_end"] = os.getloadavg()[0]
+    record["clock"] = args.clock
+    if "curve_uniform" in record and "curve" in record:
+        record["sampling_vs_uniform"] = sampling_comparison(record)
+        if args.sampling_md:
+            Path(args.sampling_md).write_text(sampling_markdown(record))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "a") as f:
         f.write(json.dumps(record) + "\n")

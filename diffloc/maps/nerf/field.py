@@ -135,7 +135,10 @@ class RadianceField(nn.Module):
         self.appearance = nn.Embedding(max(num_images, 1), config.appearance_dim)
         nn.init.zeros_(self.appearance.weight)
 
-    def _density_and_geo(self, points_world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def geometry(self, points_world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density (N,) in 1/m (zero outside the field) and the geometry features
+        (N, geo_features) the colour MLP reads, of (N, 3) world points."""
+        check_shape(points_world, "N,3", "points_world")
         xyz, inside = self.normalise(points_world)
         h = self.density_mlp(self.encoding(xyz))
         logit = (h[:, 0] + self.config.density_bias).clamp(max=15.0)
@@ -143,8 +146,29 @@ class RadianceField(nn.Module):
 
     def density(self, points_world: torch.Tensor) -> torch.Tensor:
         """Volume density (N,) in 1/m of (N, 3) world points (zero outside the field)."""
+        return self.geometry(points_world)[0]
+
+    def normals(self, points_world: torch.Tensor) -> torch.Tensor:
+        """Unit normals ``-grad(density) / |grad(density)|`` (N, 3) of (N, 3) world points.
+        Differentiable when grad is enabled (the graph is kept for the normal loss)."""
         check_shape(points_world, "N,3", "points_world")
-        return self._density_and_geo(points_world)[0]
+        keep_graph = torch.is_grad_enabled()
+        with torch.enable_grad():
+            if not points_world.requires_grad:
+                points_world = points_world.detach().requires_grad_(True)
+            density = self.density(points_world)
+            (grad,) = torch.autograd.grad(density.sum(), points_world, create_graph=keep_graph)
+        return -grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+
+    def colour(
+        self, geo: torch.Tensor, directions: torch.Tensor, appearance: torch.Tensor
+    ) -> torch.Tensor:
+        """RGB (N, 3) in [0, 1] of samples with geometry features (N, geo_features) seen along
+        unit directions (N, 3) in images with appearance codes (N, appearance_dim)."""
+        check_shape(directions, "N,3", "directions")
+        check_shape(appearance, f"N,{self.config.appearance_dim}", "appearance")
+        features = torch.cat((geo, sh_basis_deg2(directions), appearance), dim=-1)
+        return torch.sigmoid(self.colour_mlp(features))
 
     def forward(
         self,
@@ -153,35 +177,18 @@ class RadianceField(nn.Module):
         appearance: torch.Tensor,
         with_normals: bool = False,
     ) -> FieldOutputs:
-        """Evaluate the field.
+        """Evaluate the field (:meth:`geometry`, :meth:`colour` and :meth:`normals`).
 
         Args:
             points_world: (N, 3) sample positions.
             directions: (N, 3) unit ray directions.
             appearance: (N, appearance_dim) appearance codes of the samples' images.
-            with_normals: also return unit normals ``-grad(density) / |grad(density)|``
-                (differentiable: the graph is kept for the normal loss).
+            with_normals: also return unit normals (differentiable when grad is enabled).
 
         Returns:
             The per-sample :class:`FieldOutputs`.
         """
-        check_shape(points_world, "N,3", "points_world")
-        check_shape(directions, "N,3", "directions")
-        check_shape(appearance, f"N,{self.config.appearance_dim}", "appearance")
-        normal = None
-        if with_normals:
-            keep_graph = torch.is_grad_enabled()
-            with torch.enable_grad():
-                if not points_world.requires_grad:
-                    points_world = points_world.detach().requires_grad_(True)
-                density, geo = self._density_and_geo(points_world)
-                (grad,) = torch.autograd.grad(density.sum(), points_world, create_graph=keep_graph)
-            normal = -grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-            if not keep_graph:
-                density, geo = density.detach(), geo.detach()
-        else:
-            density, geo = self._density_and_geo(points_world)
-        rgb = torch.sigmoid(
-            self.colour_mlp(torch.cat((geo, sh_basis_deg2(directions), appearance), dim=-1))
-        )
+        density, geo = self.geometry(points_world)
+        rgb = self.colour(geo, directions, appearance)
+        normal = self.normals(points_world) if with_normals else None
         return FieldOutputs(density, rgb, normal)

@@ -39,12 +39,17 @@ class RenderedRays:
     deltas: torch.Tensor
 
 
+def _scatter(values: torch.Tensor, index: torch.Tensor, total: int) -> torch.Tensor:
+    """Values (K, ...) of samples ``index`` (K,) into zeros (total, ...) (differentiable)."""
+    return values.new_zeros(total, *values.shape[1:]).index_copy(0, index, values)
+
+
 def render_rays(
     field: RadianceField,
     grid: DensityGrid,
     origins: torch.Tensor,
     directions: torch.Tensor,
-    generator: torch.Generator,
+    generator: torch.Generator | None,
     appearance: torch.Tensor | None = None,
     depth: torch.Tensor | None = None,
     depth_sigma: float = 0.0,
@@ -52,12 +57,17 @@ def render_rays(
 ) -> RenderedRays:
     """Render rays.
 
+    Only samples worth it are evaluated (``grid.config``): density where the density grid
+    is occupied (and always within 3 ``depth_sigma`` of a lidar range, which the depth loss
+    supervises), colour and normals where the Eq. 5 weight exceeds ``min_weight``; the others
+    count as zero, which changes the result by at most those thresholds.
+
     Args:
         field: the radiance field.
         grid: its density grid (the sampler).
         origins: (R, 3) world ray origins.
         directions: (R, 3) unit directions.
-        generator: source of the sample positions.
+        generator: source of the sample positions (``None``: deterministic samples).
         appearance: (R, A) appearance codes; ``None`` renders density only (no colour).
         depth: (R,) lidar ranges for guided samples, or ``None``.
         depth_sigma: spread of the guided samples, metres.
@@ -76,27 +86,22 @@ def render_rays(
     deltas = interval_lengths(t, near, t[:, -1] if field.normalise.contracted else far)
     r, s = t.shape
     points = (origins[:, None] + t[..., None] * directions[:, None]).reshape(-1, 3)
-    dirs = directions[:, None].expand(r, s, 3).reshape(-1, 3)
+    xyz, inside = field.normalise(points)
+    keep = grid.occupied(xyz)
+    if depth is not None:
+        keep |= ((t - depth[:, None]).abs() <= 3 * depth_sigma).reshape(-1)
+    evaluated = (keep & inside).nonzero().squeeze(1)
+    density, geo = field.geometry(points[evaluated])
+    weights = render_weights(_scatter(density, evaluated, r * s).reshape(r, s), deltas)
+    seen = weights.detach().reshape(-1)[evaluated] > grid.config.min_weight
+    visible, ray = evaluated[seen], evaluated[seen] // s
     rgb = normal = None
-    if appearance is None and not with_normals:
-        density = field.density(points)
-    else:
-        codes = (
-            appearance[:, None].expand(r, s, -1).reshape(r * s, -1)
-            if appearance is not None
-            else torch.zeros(r * s, field.config.appearance_dim)
-        )
-        out = field(points, dirs, codes, with_normals=with_normals)
-        density = out.density
-        if appearance is not None:
-            rgb = out.rgb.reshape(r, s, 3)
-        if with_normals:
-            normal = out.normal.reshape(r, s, 3)
-    weights = render_weights(density.reshape(r, s), deltas)
-    if rgb is not None:
-        rgb = composite(weights, rgb)
-    if normal is not None:
-        normal = composite(weights, normal)
+    if appearance is not None:
+        colour = field.colour(geo[seen], directions[ray], appearance[ray])
+        rgb = composite(weights, _scatter(colour, visible, r * s).reshape(r, s, 3))
+    if with_normals:
+        normals = _scatter(field.normals(points[visible]), visible, r * s).reshape(r, s, 3)
+        normal = composite(weights, normals)
         normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-9)
     return RenderedRays(
         rgb=rgb,
@@ -116,11 +121,11 @@ def render_image(
     camera: PinholeCamera,
     T_wc: torch.Tensor,
     appearance: torch.Tensor,
-    seed: int = 0,
     chunk: int = 8192,
     with_normals: bool = False,
 ) -> dict[str, torch.Tensor]:
-    """Render an image (RGB, depth, optionally normals) at a pose.
+    """Render an image (RGB, depth, optionally normals) at a pose, with deterministic samples
+    (strata centres), so that the image does not depend on ``chunk``.
 
     Args:
         field: the radiance field.
@@ -128,7 +133,6 @@ def render_image(
         camera: unbatched pinhole camera (the output size).
         T_wc: (4, 4) camera-to-world pose.
         appearance: (A,) appearance code.
-        seed: seed of the sample jitter.
         chunk: rays per batch.
         with_normals: also render world-frame normals.
 
@@ -138,7 +142,6 @@ def render_image(
     """
     uv = camera.pixel_grid(torch.float32).reshape(-1, 2)
     origins, directions, z_per_metre = camera_rays(camera, T_wc.float(), uv)
-    g = torch.Generator().manual_seed(seed)
     parts: dict[str, list[torch.Tensor]] = {"rgb": [], "depth": [], "opacity": [], "normal": []}
     for sl in torch.arange(len(uv)).split(chunk):
         out = render_rays(
@@ -146,7 +149,7 @@ def render_image(
             grid,
             origins[sl],
             directions[sl],
-            g,
+            None,
             appearance.expand(len(sl), -1),
             with_normals=with_normals,
         )

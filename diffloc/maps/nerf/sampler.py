@@ -38,6 +38,10 @@ class SamplerConfig:
         guided_samples: samples around the lidar range of rays that have one.
         far_m: far distance of contracted (unbounded) fields, metres.
         near_m: smallest near distance, metres.
+        skip_density: samples in cells whose stored density (1/m) is below this are not
+            evaluated (density zero) once the grid has been refreshed; 0 evaluates all.
+        min_weight: samples whose Eq. 5 weight is at most this get no colour or normal
+            evaluation (zero); -1 evaluates all.
     """
 
     grid_resolution: int = 48
@@ -49,6 +53,15 @@ class SamplerConfig:
     guided_samples: int = 8
     far_m: float = 200.0
     near_m: float = 0.05
+    skip_density: float = 0.01
+    min_weight: float = 1e-4
+
+
+def _jitter(rows: int, n: int, generator: torch.Generator | None) -> torch.Tensor:
+    """Stratified positions (rows, n) in [0, 1): uniform within each of n strata, or the
+    strata centres when ``generator`` is ``None`` (deterministic rendering)."""
+    offsets = torch.rand(rows, n, generator=generator) if generator is not None else 0.5
+    return ((torch.arange(n) + offsets) / n).expand(rows, n)
 
 
 def spacing(s: torch.Tensor, near: torch.Tensor, far: torch.Tensor, far_outer: float | None):
@@ -119,6 +132,13 @@ class DensityGrid(nn.Module):
         self.density.copy_(torch.maximum(decayed, values.reshape(g, g, g)))
         self.refreshed.fill_(True)
 
+    def occupied(self, xyz: torch.Tensor) -> torch.Tensor:
+        """Whether (..., 3) cube points lie in cells worth evaluating -> (...) bool: all of
+        them until the first refresh or when ``skip_density`` is 0."""
+        if not bool(self.refreshed) or self.config.skip_density <= 0:
+            return torch.ones(xyz.shape[:-1], dtype=torch.bool, device=xyz.device)
+        return self.lookup(xyz) >= self.config.skip_density
+
     def lookup(self, xyz: torch.Tensor) -> torch.Tensor:
         """Stored density of the cells holding (..., 3) cube points -> (...)."""
         g = self.config.grid_resolution
@@ -133,7 +153,7 @@ class DensityGrid(nn.Module):
         near: torch.Tensor,
         far: torch.Tensor,
         normalisation: SceneNormalisation,
-        generator: torch.Generator,
+        generator: torch.Generator | None,
         depth: torch.Tensor | None = None,
         depth_sigma: float = 0.0,
     ) -> torch.Tensor:
@@ -145,7 +165,8 @@ class DensityGrid(nn.Module):
             near: (R,) near distances.
             far: (R,) far distances (box exit).
             normalisation: the field's world-to-cube map.
-            generator: source of the stratification and the guided offsets.
+            generator: source of the stratification and the guided offsets; ``None`` takes
+                strata centres and normal quantiles (the same distances for any batching).
             depth: (R,) lidar ranges along the rays (> 0), or ``None``.
             depth_sigma: spread of the guided samples, metres.
 
@@ -156,14 +177,12 @@ class DensityGrid(nn.Module):
         check_shape(origins, "R,3", "origins")
         cfg, r = self.config, len(origins)
         far_outer = cfg.far_m if normalisation.contracted else None
-        u = torch.arange(cfg.uniform_samples) + torch.rand(
-            r, cfg.uniform_samples, generator=generator
-        )
-        parts = [spacing(u / cfg.uniform_samples, near, far, far_outer)]
+        parts = [spacing(_jitter(r, cfg.uniform_samples, generator), near, far, far_outer)]
         if cfg.importance_samples and bool(self.refreshed):
             parts.append(self._importance(origins, directions, near, far, normalisation, generator))
         if depth is not None and cfg.guided_samples:
-            offsets = torch.randn(r, cfg.guided_samples, generator=generator) * depth_sigma
+            quantiles = torch.special.ndtri(_jitter(r, cfg.guided_samples, generator).clamp(1e-6))
+            offsets = quantiles * depth_sigma
             upper = far.maximum(near) if far_outer is None else torch.full_like(far, far_outer)
             guided = (depth[:, None] + offsets).clamp(min=near[:, None]).minimum(upper[:, None])
             parts.append(guided)
@@ -176,7 +195,7 @@ class DensityGrid(nn.Module):
         near: torch.Tensor,
         far: torch.Tensor,
         normalisation: SceneNormalisation,
-        generator: torch.Generator,
+        generator: torch.Generator | None,
     ) -> torch.Tensor:
         cfg, r = self.config, len(origins)
         far_outer = cfg.far_m if normalisation.contracted else None
@@ -190,7 +209,7 @@ class DensityGrid(nn.Module):
         cdf = torch.cumsum(pdf / pdf.sum(-1, keepdim=True), dim=-1)
         cdf = torch.cat((torch.zeros_like(cdf[:, :1]), cdf), dim=-1).contiguous()
         n = cfg.importance_samples
-        u = (torch.arange(n) + torch.rand(r, n, generator=generator)) / n
+        u = _jitter(r, n, generator)
         bins = torch.searchsorted(cdf, u.contiguous(), right=True).clamp(1, cfg.coarse_samples)
         c0, c1 = cdf.gather(1, bins - 1), cdf.gather(1, bins)
         t0, t1 = edges.gather(1, bins - 1), edges.gather(1, bins)
