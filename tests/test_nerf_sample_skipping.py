@@ -43,13 +43,14 @@ def _rays(n: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _reference(field, grid, out, origins, directions, codes) -> dict[str, torch.Tensor]:
-    """Every sample evaluated, then the skipped ones zeroed by the documented rules."""
+    """Every sample evaluated, then those outside occupied cells (tested apart) and their
+    colours and normals below ``min_weight`` zeroed."""
     r, s = out.t.shape
     points = (origins[:, None] + out.t[..., None] * directions[:, None]).reshape(-1, 3)
     dirs = directions[:, None].expand(r, s, 3).reshape(-1, 3)
     full = field(points, dirs, codes[:, None].expand(r, s, -1).reshape(r * s, -1), True)
     xyz, _ = field.normalise(points)
-    occupied = grid.lookup(xyz) >= grid.config.skip_density
+    occupied = grid.occupied(xyz)
     weights = render_weights((full.density * occupied).reshape(r, s), out.deltas)
     seen = (weights.detach() > grid.config.min_weight)[..., None]
     normal = composite(weights, full.normal.reshape(r, s, 3) * seen)
@@ -111,3 +112,14 @@ def test_render_image_does_not_depend_on_the_chunk() -> None:
     for key in whole:
         torch.testing.assert_close(small[key], whole[key], rtol=1e-5, atol=1e-6)
     assert float(whole["opacity"].max()) > 0.1
+
+
+def test_a_cell_and_its_neighbours_count_as_occupied() -> None:
+    grid = DensityGrid(SamplerConfig(grid_resolution=8, skip_density=0.5))
+    centre = lambda i: (torch.tensor(i, dtype=torch.float32) + 0.5) / 8 * 2 - 1  # noqa: E731
+    points = torch.stack([centre(i) for i in ([3, 3, 3], [4, 2, 3], [5, 3, 3], [3, 3, 6])])
+    assert bool(grid.occupied(points).all())  # not refreshed yet: everything
+    with torch.no_grad():
+        grid.density[3, 3, 3] = 1.0
+        grid.refreshed.fill_(True)
+    assert grid.occupied(points).tolist() == [True, True, False, False]

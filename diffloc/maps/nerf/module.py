@@ -195,7 +195,7 @@ class NerfModule(L.LightningModule):
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor | None:
         cfg, step = self.config, self.global_step
-        if step % cfg.sampler.grid_update_every == 0:
+        if self.grid.in_use and step % cfg.sampler.grid_update_every == 0:
             self.grid.refresh(
                 self.field.density, self.field.normalise, _generator(cfg.seed, step, 1)
             )

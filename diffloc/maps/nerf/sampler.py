@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from diffloc.checks import check_shape
@@ -38,15 +39,16 @@ class SamplerConfig:
         guided_samples: samples around the lidar range of rays that have one.
         far_m: far distance of contracted (unbounded) fields, metres.
         near_m: smallest near distance, metres.
-        skip_density: samples in cells whose stored density (1/m) is below this are not
-            evaluated (density zero) once the grid has been refreshed; 0 evaluates all.
+        skip_density: samples in cells whose stored density (1/m), and that of all 26
+            neighbours, is below this are not evaluated (density zero) once the grid has been
+            refreshed; 0 evaluates all.
         min_weight: samples whose Eq. 5 weight is at most this get no colour or normal
             evaluation (zero); -1 evaluates all.
     """
 
     grid_resolution: int = 48
-    grid_decay: float = 0.9
-    grid_update_every: int = 32
+    grid_decay: float = 0.5
+    grid_update_every: int = 16
     coarse_samples: int = 128
     importance_samples: int = 24
     uniform_samples: int = 8
@@ -111,6 +113,11 @@ class DensityGrid(nn.Module):
         self.register_buffer("density", torch.zeros(g, g, g))
         self.register_buffer("refreshed", torch.zeros((), dtype=torch.bool))
 
+    @property
+    def in_use(self) -> bool:
+        """Whether sampling reads the grid (importance samples or skipping)."""
+        return self.config.importance_samples > 0 or self.config.skip_density > 0
+
     @torch.no_grad()
     def refresh(
         self, density_fn, normalisation: SceneNormalisation, generator: torch.Generator
@@ -133,11 +140,16 @@ class DensityGrid(nn.Module):
         self.refreshed.fill_(True)
 
     def occupied(self, xyz: torch.Tensor) -> torch.Tensor:
-        """Whether (..., 3) cube points lie in cells worth evaluating -> (...) bool: all of
-        them until the first refresh or when ``skip_density`` is 0."""
+        """Whether (..., 3) cube points lie in cells worth evaluating -> (...) bool: a cell is
+        if it or a neighbour (3x3x3 block: the one probe per cell may miss a thin surface)
+        stores at least ``skip_density``; all points until the first refresh or when
+        ``skip_density`` is 0."""
         if not bool(self.refreshed) or self.config.skip_density <= 0:
             return torch.ones(xyz.shape[:-1], dtype=torch.bool, device=xyz.device)
-        return self.lookup(xyz) >= self.config.skip_density
+        g = self.config.grid_resolution
+        block = F.max_pool3d(self.density[None, None], 3, stride=1, padding=1)[0, 0]
+        cell = ((xyz + 1.0) * (g / 2.0)).long().clamp(0, g - 1)
+        return block[cell[..., 0], cell[..., 1], cell[..., 2]] >= self.config.skip_density
 
     def lookup(self, xyz: torch.Tensor) -> torch.Tensor:
         """Stored density of the cells holding (..., 3) cube points -> (...)."""
