@@ -289,8 +289,14 @@ def sampling_markdown(record: dict) -> str:
         "|---|---|---|",
     ]
     for label, key in rows:
-        grid, uniform = c[f"{key}_grid"], c[f"{key}_uniform"]
-        lines.append(f"| {label} | {grid} | {uniform} |")
+        values = [c[f"{key}_{run}"] for run in ("grid", "uniform")]
+        cells = ["not reached" if v is None else f"{v:.3g}" for v in values]
+        lines.append(f"| {label} | {cells[0]} | {cells[1]} |")
+    curves = [
+        ", ".join(f"{cpu:.0f} s: {psnr:.2f}" for _, cpu, _, psnr in record[key])
+        for key in ("curve", "curve_uniform")
+    ]
+    lines.append(f"| held-out PSNR (right-half eval) at CPU s | {curves[0]} | {curves[1]} |")
     return "\n".join(lines) + "\n"
 
 
