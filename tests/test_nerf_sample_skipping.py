@@ -123,3 +123,9 @@ def test_a_cell_and_its_neighbours_count_as_occupied() -> None:
         grid.density[3, 3, 3] = 1.0
         grid.refreshed.fill_(True)
     assert grid.occupied(points).tolist() == [True, True, False, False]
+
+
+def test_the_grid_is_in_use_only_when_sampling_reads_it() -> None:
+    assert DensityGrid(SamplerConfig()).in_use
+    assert DensityGrid(SamplerConfig(importance_samples=0)).in_use  # skipping reads it
+    assert not DensityGrid(SamplerConfig(importance_samples=0, skip_density=0)).in_use
