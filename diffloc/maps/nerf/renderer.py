@@ -60,7 +60,9 @@ def render_rays(
     Only samples worth it are evaluated (``grid.config``): density where the density grid
     is occupied (and always within 3 ``depth_sigma`` of a lidar range, which the depth loss
     supervises), colour and normals where the Eq. 5 weight exceeds ``min_weight``; the others
-    count as zero, which changes the result by at most those thresholds.
+    count as zero, which changes the result by at most those thresholds. With grad enabled,
+    a no-grad pre-pass finds the weights first and only samples above ``grad_min_weight``
+    (and the lidar window) are differentiable; the others enter as constants.
 
     Args:
         field: the radiance field.
@@ -87,12 +89,19 @@ def render_rays(
     r, s = t.shape
     points = (origins[:, None] + t[..., None] * directions[:, None]).reshape(-1, 3)
     xyz, inside = field.normalise(points)
-    keep = grid.occupied(xyz)
+    window = torch.zeros_like(inside)
     if depth is not None:
-        keep |= ((t - depth[:, None]).abs() <= 3 * depth_sigma).reshape(-1)
-    evaluated = (keep & inside).nonzero().squeeze(1)
+        window = ((t - depth[:, None]).abs() <= 3 * depth_sigma).reshape(-1)
+    evaluated = ((grid.occupied(xyz) | window) & inside).nonzero().squeeze(1)
+    fixed = points.new_zeros(r * s)
+    if torch.is_grad_enabled() and grid.config.grad_min_weight >= 0:
+        with torch.no_grad():
+            fixed = _scatter(field.density(points[evaluated]), evaluated, r * s)
+            live = render_weights(fixed.reshape(r, s), deltas).reshape(-1)
+        live = (live > grid.config.grad_min_weight) | window
+        evaluated = evaluated[live[evaluated]]
     density, geo = field.geometry(points[evaluated])
-    weights = render_weights(_scatter(density, evaluated, r * s).reshape(r, s), deltas)
+    weights = render_weights(fixed.index_copy(0, evaluated, density).reshape(r, s), deltas)
     seen = weights.detach().reshape(-1)[evaluated] > grid.config.min_weight
     visible, ray = evaluated[seen], evaluated[seen] // s
     rgb = normal = None

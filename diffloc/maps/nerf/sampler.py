@@ -44,6 +44,13 @@ class SamplerConfig:
             refreshed; 0 evaluates all.
         min_weight: samples whose Eq. 5 weight is at most this get no colour or normal
             evaluation (zero); -1 evaluates all.
+        grad_min_weight: when gradients are recorded, a no-grad pre-pass evaluates density at
+            every sample first, and only samples whose Eq. 5 weight exceeds this (and lidar
+            samples within 3 sigma of the range) are evaluated again with autograd; the others
+            keep their pre-pass density as a constant and get no colour or normal (as with
+            ``min_weight``): the render changes by at most that weight, and the gradient loses
+            only their density terms (proportional to the sample's opacity or transmittance).
+            -1: no pre-pass, all differentiable.
     """
 
     grid_resolution: int = 48
@@ -57,6 +64,7 @@ class SamplerConfig:
     near_m: float = 0.05
     skip_density: float = 0.01
     min_weight: float = 1e-4
+    grad_min_weight: float = 1e-4
 
 
 def _jitter(rows: int, n: int, generator: torch.Generator | None) -> torch.Tensor:
