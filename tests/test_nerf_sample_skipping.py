@@ -27,7 +27,6 @@ def _scene(skip_density: float, min_weight: float) -> tuple[RadianceField, Densi
         importance_samples=8,
         skip_density=skip_density,
         min_weight=min_weight,
-        grad_min_weight=-1.0,  # the pre-pass is tested in test_nerf_prepass.py
     )
     grid = DensityGrid(sampler)
     grid.refresh(field.density, field.normalise, torch.Generator().manual_seed(0))
