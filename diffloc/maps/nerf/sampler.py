@@ -123,6 +123,7 @@ class DensityGrid(nn.Module):
         g = config.grid_resolution
         self.register_buffer("density", torch.zeros(g, g, g))
         self.register_buffer("refreshed", torch.zeros((), dtype=torch.bool))
+        self._occupied_cache: tuple[int, torch.Tensor] | None = None
 
     @property
     def in_use(self) -> bool:
@@ -158,9 +159,18 @@ class DensityGrid(nn.Module):
         if not bool(self.refreshed) or self.config.skip_density <= 0:
             return torch.ones(xyz.shape[:-1], dtype=torch.bool, device=xyz.device)
         g = self.config.grid_resolution
-        block = F.max_pool3d(self.density[None, None], 3, stride=1, padding=1)[0, 0]
         cell = ((xyz + 1.0) * (g / 2.0)).long().clamp(0, g - 1)
-        return block[cell[..., 0], cell[..., 1], cell[..., 2]] >= self.config.skip_density
+        return self._occupied_cells()[cell[..., 0], cell[..., 1], cell[..., 2]]
+
+    def _occupied_cells(self) -> torch.Tensor:
+        """(g, g, g) bool: cells whose 3x3x3 block stores at least ``skip_density``. Cached
+        until the density grid changes (a refresh or a loaded checkpoint writes it in place,
+        which bumps the tensor's version counter)."""
+        version = self.density._version
+        if self._occupied_cache is None or self._occupied_cache[0] != version:
+            block = F.max_pool3d(self.density[None, None], 3, stride=1, padding=1)[0, 0]
+            self._occupied_cache = (version, block >= self.config.skip_density)
+        return self._occupied_cache[1]
 
     def lookup(self, xyz: torch.Tensor) -> torch.Tensor:
         """Stored density of the cells holding (..., 3) cube points -> (...)."""
