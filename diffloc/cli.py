@@ -139,9 +139,7 @@ def run_calibrate_rig(cfg: DictConfig) -> dict:
 
 def run_export_colmap(cfg: DictConfig) -> dict:
     """``task=export_colmap``: a saved database as a COLMAP TEXT model."""
-    summary = export_colmap(
-        Path(cfg.dataset), to_object(cfg.db), OmegaConf.to_object(cfg.task)
-    )
+    summary = export_colmap(Path(cfg.dataset), to_object(cfg.db), OmegaConf.to_object(cfg.task))
     print(
         f"COLMAP model: {summary['model']} ({summary['images']} images, {summary['points']} "
         f"points, {summary['observations']} observations; colours: {summary['colors']})"
