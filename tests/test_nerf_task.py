@@ -6,9 +6,8 @@ import dataclasses
 from pathlib import Path
 
 import pytest
-from omegaconf import OmegaConf
 
-from diffloc.config import compose_config
+from diffloc.config import compose_config, to_object
 from diffloc.maps.nerf.export import load_field
 from diffloc.maps.nerf.field import FieldConfig
 from diffloc.maps.nerf.sampler import SamplerConfig
@@ -19,7 +18,7 @@ from diffloc.pipeline.nerf_stage import train_nerf_submap
 
 
 def test_task_config_composes_with_overrides() -> None:
-    cfg = OmegaConf.to_object(
+    cfg = to_object(
         compose_config(["task=train_nerf", "nerf.submap=3", "nerf.train.field.encoding=hashgrid"])
     )
     assert isinstance(cfg.nerf, TrainNerfConfig) and cfg.task.name == "train_nerf"

@@ -8,7 +8,8 @@ folder per job.
 
 Every job has a *scene seed* (``scene.seed=N`` in its overrides, else ``scene.seed`` of its
 ``.hydra/config.yaml``) and a *variant*: its overrides without ``hydra.*``, ``task=``,
-``+experiment=`` and ``scene.seed``, so the same variant on several seeds groups together, across sweep folders.
+``+experiment=`` and ``scene.seed``, so the same variant on several seeds groups together,
+across sweep folders.
 
 Reading is strict: an empty or half-finished sweep (fewer finished jobs than ``multirun.yaml``
 describes, or job folders without ``results.json``), two jobs of one variant on the same seed,
