@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -23,6 +23,7 @@ from diffloc.maps.surfel import SurfelMap
 from diffloc.optim.rig_calibration import calibrate_rig
 from diffloc.optim.surfel_cost import replace_map_points
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.pipeline.config_record import config_record
 from diffloc.pipeline.database_stage import (
     DatabaseConfig,
     OptimisationRejectedWarning,
@@ -101,7 +102,8 @@ def test_stage_reuse_needs_the_same_pose_prior(mapped: Path):
     cfg = DatabaseConfig(noise_sigma=0.05, pose_prior_sigma_m=0.1)
     summary = database_dir(mapped, cfg) / "build_db.json"
     assert built["pose_prior_sigma_m"] == 0.1
-    assert built["stage"]["key"]["config"] == json.loads(json.dumps(asdict(cfg)))
+    assert built["stage"]["key"]["config"] == json.loads(json.dumps(config_record(cfg)))
+    assert built["config"]["features"]["_target_"] == "diffloc.features.local.XFeatConfig"
     before = summary.stat().st_mtime_ns
     assert _run("build_db", mapped, *overrides) == built
     assert summary.stat().st_mtime_ns == before
