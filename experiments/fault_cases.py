@@ -93,7 +93,7 @@ def f1_failed_run_then_old_config(root: Path) -> None:
     good = image.read_bytes()
     image.write_bytes(b"not a png")
     try:
-        run_task("build_map", root, "surfel.voxel_size_m=0.05", "task.point_maps=[]")
+        run_task("build_map", root, "map.voxel_size_m=0.05", "task.point_maps=[]")
     except (ValueError, OSError):
         pass
     image.write_bytes(good)
@@ -102,7 +102,7 @@ def f1_failed_run_then_old_config(root: Path) -> None:
 
 
 def f1_render_batch_zero(root: Path) -> None:
-    run_task("build_map", root, "task.render_batch=0", "surfel.voxel_size_m=0.05")
+    run_task("build_map", root, "task.render_batch=0", "map.voxel_size_m=0.05")
 
 
 def f2_optimized_of_older_build(root: Path) -> None:
@@ -130,7 +130,7 @@ def _nan_database(field: str) -> Callable[[Path], None]:
 
 def f4_retriever_of_another_size(root: Path) -> None:
     _db(root)
-    settings = ("reloc.retriever=bow", "reloc.database=database", "reloc.sequences=[query_same]")
+    settings = ("retriever=bow", "reloc.database=database", "reloc.sequences=[query_same]")
     run_task("relocalize", root, *settings, f"task.out_dir={root / 'a'}")
     folder = database_dir(root, DatabaseConfig())
     db = VisualDatabase.load(folder / "database")

