@@ -38,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from diffloc.benchmark import peak_rss_mb
 from diffloc.config import CONF_DIR, check_known_keys, register_configs
 from diffloc.io.atomic import atomic_write_text
+from diffloc.io.lock import lock_config
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.colmap_stage import export_colmap
 from diffloc.pipeline.database_stage import build_database, optimize_database
@@ -233,7 +234,7 @@ MAKE_DATASET = ("simulate", "main")
 """Tasks that write the dataset folder; every other task reads an existing one."""
 
 
-VALUE_NODES = ("surfel", "db", "reloc", "task")
+VALUE_NODES = ("surfel", "db", "reloc", "task", "stage")
 """Config nodes whose schemas check their ranges and names when built (``__post_init__``)."""
 
 
@@ -274,7 +275,8 @@ def run(cfg: DictConfig) -> object:
     description = Path(cfg.dataset) / "dataset.json"
     if name not in MAKE_DATASET and not description.is_file():
         raise MissingStageError(description, Command("simulate", (), (f"out_dir={cfg.dataset}",)))
-    return TASKS[name](cfg)
+    with lock_config(OmegaConf.to_object(cfg.stage)):
+        return TASKS[name](cfg)
 
 
 CHECKED_ERRORS = (OSError, ValueError)

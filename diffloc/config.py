@@ -23,6 +23,7 @@ from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
+from diffloc.io.lock import LockConfig
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.rig_calibration import RigCalibrationConfig
 from diffloc.pipeline.build_map import BuildMapConfig
@@ -101,7 +102,13 @@ class MainTaskConfig:
 
 @dataclass
 class DifflocConfig:
-    """The app's root: which task, which scene, where the dataset lives, map settings."""
+    """The app's root: which task, which scene, where the dataset lives, map settings.
+
+    Attributes:
+        stage: what a run does when a stage folder it needs is in use by another run
+            (``stage.wait=false`` refuses at once, ``stage.timeout_s=60`` waits at most a
+            minute; default: wait as long as it takes).
+    """
 
     task: Any = MISSING
     scene: Any = MISSING
@@ -111,6 +118,7 @@ class DifflocConfig:
     db: DatabaseConfig = field(default_factory=DatabaseConfig)
     reloc: RelocStageConfig = MISSING
     progress: bool = True
+    stage: LockConfig = field(default_factory=LockConfig)
 
 
 GROUP_SCHEMAS: dict[str, type] = {

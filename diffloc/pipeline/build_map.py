@@ -36,7 +36,7 @@ from diffloc.maps.lidar_source import lidar_points_with_origins
 from diffloc.maps.pointcloud import ColorizeConfig, PointMap
 from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
 from diffloc.pipeline.hints import Command
-from diffloc.pipeline.stage import open_stage, stage_key
+from diffloc.pipeline.stage import LockLevel, open_stage, stage_key
 from diffloc.progress import progress
 from diffloc.render.surfel_render import render_surfel_index
 
@@ -285,7 +285,7 @@ def build_maps(
     existing = map_paths(root)
     used = [key for key in dict.fromkeys([*cfg.clouds, *cfg.point_maps]) if key in existing]
     command = Command("build_map", (f"dataset={dataset}",))
-    with open_stage(out, STAGE, command) as stage:
+    with open_stage(out, STAGE, command, LockLevel.MAP) as stage:
         inputs = {"sequence": identity(root / cfg.sequence)}
         inputs.update({key: identity(existing[key]) for key in used})
         key = stage_key(config, inputs)

@@ -43,6 +43,7 @@ from diffloc.optim.robust import RobustKernel
 from diffloc.optim.surfel_cost import SurfelOptimConfig, replace_map_points
 from diffloc.pipeline.hints import Command, MissingStageError
 from diffloc.pipeline.stage import (
+    LockLevel,
     open_stage,
     output_identity,
     read_lock,
@@ -303,7 +304,7 @@ def read_surfel_map(dataset: str | Path) -> tuple[dict, SurfelMap]:
         StaleStageError: a record that does not describe the files beside it.
     """
     folder = Path(dataset) / "map"
-    with read_lock(folder):
+    with read_lock(folder, LockLevel.MAP):
         record = verified_record(folder, MAP_STAGE, map_command(dataset))
         return record, SurfelMap.load(folder / "surfel_map.ply")
 
@@ -342,7 +343,8 @@ def build_database(
         raise MissingStageError(root / "map" / f"{MAP_STAGE}.json", map_command(dataset))
     seq = read_sequence(root, cfg.sequence)
     out = database_dir(root, cfg)
-    with open_stage(out, BUILD_STAGE, Command(BUILD_STAGE, db_overrides(root, cfg))) as stage:
+    command = Command(BUILD_STAGE, db_overrides(root, cfg))
+    with open_stage(out, BUILD_STAGE, command, LockLevel.DATABASE) as stage:
         map_record, surfels = read_surfel_map(root)
         inputs = {
             "surfel_map": output_identity(map_record, "surfel_map.ply"),
@@ -446,7 +448,8 @@ def optimize_database(
     built_path = out / f"{BUILD_STAGE}.json"
     if not built_path.is_file():
         raise MissingStageError(built_path, Command(BUILD_STAGE, db_overrides(root, cfg)))
-    with open_stage(out, OPTIMIZE_STAGE, Command(OPTIMIZE_STAGE, db_overrides(root, cfg))) as stage:
+    command = Command(OPTIMIZE_STAGE, db_overrides(root, cfg))
+    with open_stage(out, OPTIMIZE_STAGE, command, LockLevel.DATABASE) as stage:
         built = read_built_record(root, cfg)
         map_record, surfels = read_surfel_map(root)
         inputs = {
