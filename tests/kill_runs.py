@@ -18,19 +18,25 @@ from pathlib import Path
 
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.pipeline.database_stage import DatabaseConfig, build_database, database_dir
-from tests.conftest import FINE_SURFELS
+from diffloc.sim.dataset import simulate_dataset
+from tests.conftest import FINE_SURFELS, TINY, scene_config
 
 STAGE_CONFIGS = {
     "build_map": BuildMapConfig(point_maps=["tls_map"], preview_frames=1),
     "build_db": DatabaseConfig(noise_sigma=0.05),
+    "simulate": TINY + ["scene=indoor"],
 }
-"""The stage runs that are killed: a map with a coloured point map, a noisy database."""
+"""The stage runs that are killed: a map with a coloured point map, a noisy database, the
+tiny indoor dataset (its overrides; ``root`` is then the dataset folder to write)."""
 
 
-def run_stage(stage: str, root: Path) -> dict:
-    """Run ``stage`` (a key of :data:`STAGE_CONFIGS`) on ``root``; its record."""
+def run_stage(stage: str, root: Path) -> dict | Path:
+    """Run ``stage`` (a key of :data:`STAGE_CONFIGS`) on ``root``; its record (the dataset
+    folder for ``simulate``)."""
     if stage == "build_map":
         return build_maps(root, STAGE_CONFIGS[stage], FINE_SURFELS, show_progress=False)
+    if stage == "simulate":
+        return simulate_dataset(scene_config(STAGE_CONFIGS[stage]), root, show_progress=False)
     return build_database(root, STAGE_CONFIGS[stage], show_progress=False)
 
 
@@ -38,7 +44,18 @@ def stage_folder(stage: str, root: Path) -> Path:
     """The folder ``stage`` writes into."""
     if stage == "build_map":
         return root / "map"
+    if stage == "simulate":
+        return root
     return database_dir(root, STAGE_CONFIGS[stage])
+
+
+def folder_files(folder: Path) -> dict[str, bytes]:
+    """The bytes of every file under ``folder`` (hidden lock files left out), by path."""
+    return {
+        p.relative_to(folder).as_posix(): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != ".diffloc.lock"
+    }
 
 
 _FORK_SERVER = multiprocessing.get_context("forkserver")

@@ -50,18 +50,22 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from enum import IntEnum
 from pathlib import Path
 
 __all__ = [
     "LOCK_NAME",
     "FolderBusyError",
     "LockConfig",
+    "LockLevel",
     "LockOrderError",
     "ReadOnlyFolderError",
     "folder_lock",
     "lock_config",
+    "remove_sibling_temporaries",
     "remove_temporaries",
     "runtime_lock_path",
+    "sibling_lock_path",
 ]
 
 LOCK_NAME = ".diffloc.lock"
@@ -76,6 +80,25 @@ _TEMPORARY = re.compile(r"^\.(tmp-.*|.+\.tmp-.*|.+\.tmp(\.[A-Za-z0-9]+)?|.+\.old
 
 _READ_ONLY_ERRNOS = (errno.EACCES, errno.EPERM, errno.EROFS)
 """``OSError.errno`` values that mean "this folder cannot be written"."""
+
+
+class LockLevel(IntEnum):
+    """The lock order of diffloc's folders (:func:`folder_lock` levels): a downstream stage's
+    folder has the higher level and is locked first; while holding it, a run may lock the
+    folders of stages upstream of it (lower levels), never the reverse."""
+
+    DATASET = 0
+    """The dataset folder (``task=simulate``)."""
+    MAP = 1
+    """``<dataset>/map`` (``build_map``)."""
+    DATABASE = 2
+    """A database folder ``<dataset>/db/<name>`` (``build_db``, ``optimize_db``,
+    ``calibrate_rig``, its retriever caches) and a radiance-field submap folder."""
+    UPDATED = 3
+    """An updated database ``<database folder>/updated_<sequence>`` (``update_db``) and its
+    retriever caches."""
+    RESULTS = 4
+    """Relocalisation results (``task.out_dir``) and stages outside the pipeline."""
 
 
 @dataclass
@@ -172,11 +195,18 @@ def _check_order(folder: Path, level: int) -> None:
             )
 
 
-def _open(folder: Path, shared: bool) -> tuple[int, Path]:
-    """An open file descriptor of ``folder``'s lock file, and that file."""
-    path = folder / LOCK_NAME
+def sibling_lock_path(folder: str | os.PathLike) -> Path:
+    """The lock file of a folder that is made whole and renamed into place (a simulated
+    dataset): ``<parent>/.<name>.diffloc.lock``, beside it, since a lock inside it would be
+    replaced with it."""
+    folder = Path(folder)
+    return folder.parent / f".{folder.name}{LOCK_NAME}"
+
+
+def _open(folder: Path, shared: bool, path: Path) -> tuple[int, Path]:
+    """An open file descriptor of ``folder``'s lock file ``path``, and that file."""
     try:
-        folder.mkdir(parents=True, exist_ok=True)
+        path.parent.mkdir(parents=True, exist_ok=True)
         return os.open(path, os.O_RDWR | os.O_CREAT, 0o666), path
     except OSError as exc:
         if exc.errno not in _READ_ONLY_ERRNOS:
@@ -225,14 +255,22 @@ def _acquire(fd: int, mode: int, folder: Path, path: Path, shared: bool) -> None
 
 
 @contextlib.contextmanager
-def folder_lock(folder: str | os.PathLike, shared: bool = False, level: int = 0) -> Iterator[Path]:
+def folder_lock(
+    folder: str | os.PathLike,
+    shared: bool = False,
+    level: int = LockLevel.DATASET,
+    lock_path: str | os.PathLike | None = None,
+) -> Iterator[Path]:
     """Hold the lock of ``folder`` (created if missing) for the ``with`` block.
 
     Args:
         folder: the folder to lock.
         shared: a reader's lock (many readers together, no writer); else a writer's lock.
-        level: the lock's place in the lock order: while this thread holds locks, ``level``
-            must be lower than each of theirs.
+        level: the lock's place in the lock order (:class:`LockLevel`): while this thread
+            holds locks, ``level`` must be lower than each of theirs.
+        lock_path: the lock file; default ``<folder>/.diffloc.lock`` (the folder is created);
+            :func:`sibling_lock_path` for a folder that is renamed into place as a whole (the
+            folder is not created).
 
     Yields:
         The lock file (the runtime lock file for a reader of a folder without one).
@@ -245,8 +283,8 @@ def folder_lock(folder: str | os.PathLike, shared: bool = False, level: int = 0)
     """
     folder = Path(folder)
     _check_order(folder, level)
-    fd, path = _open(folder, shared)
-    writes_pid = not shared and path.parent == folder
+    fd, path = _open(folder, shared, Path(lock_path) if lock_path else folder / LOCK_NAME)
+    writes_pid = not shared  # a writer's lock file is never the per-user runtime one
     try:
         _acquire(fd, fcntl.LOCK_SH if shared else fcntl.LOCK_EX, folder, path, shared)
         if writes_pid:
@@ -262,6 +300,28 @@ def folder_lock(folder: str | os.PathLike, shared: bool = False, level: int = 0)
                 os.ftruncate(fd, 0)
     finally:
         os.close(fd)
+
+
+def remove_sibling_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporaries that killed runs of :func:`diffloc.io.atomic.atomic_directory`
+    left beside ``folder`` (``.<name>.tmp-*``, ``.<name>.old-*``).
+
+    Call it only while holding ``folder``'s lock at :func:`sibling_lock_path`.
+
+    Returns:
+        The removed paths.
+    """
+    folder = Path(folder)
+    if not folder.parent.is_dir():
+        return []
+    prefixes = (f".{folder.name}.tmp-", f".{folder.name}.old-")
+    removed = sorted(p for p in folder.parent.iterdir() if p.name.startswith(prefixes))
+    for path in removed:
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+    return removed
 
 
 def remove_temporaries(folder: str | os.PathLike) -> list[Path]:

@@ -52,13 +52,12 @@ import os
 import shutil
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
-from enum import IntEnum
 from pathlib import Path
 
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.identity import identity
 from diffloc.io.json_record import read_json_record
-from diffloc.io.lock import ReadOnlyFolderError, folder_lock, remove_temporaries
+from diffloc.io.lock import LockLevel, ReadOnlyFolderError, folder_lock, remove_temporaries
 from diffloc.pipeline.hints import Command, MissingStageError, StaleStageError
 
 __all__ = [
@@ -80,25 +79,6 @@ STAGE_FORMAT_VERSION = 1
 JOURNAL = "commit.json"
 """The journal of a commit in progress, inside the work folder: the record (its file name and
 content) to write and the stale outputs to remove."""
-
-
-class LockLevel(IntEnum):
-    """The lock order of the stage folders (:func:`diffloc.io.lock.folder_lock` levels):
-    a downstream stage's folder has the higher level and is locked first; while holding it,
-    a run may lock the folders of stages upstream of it (lower levels), never the reverse."""
-
-    DATASET = 0
-    """The dataset folder (``task=simulate``)."""
-    MAP = 1
-    """``<dataset>/map`` (``build_map``)."""
-    DATABASE = 2
-    """A database folder ``<dataset>/db/<name>`` (``build_db``, ``optimize_db``,
-    ``calibrate_rig``, its retriever caches) and a radiance-field submap folder."""
-    UPDATED = 3
-    """An updated database ``<database folder>/updated_<sequence>`` (``update_db``) and its
-    retriever caches."""
-    RESULTS = 4
-    """Relocalisation results (``task.out_dir``) and stages outside the pipeline."""
 
 
 def record_path(folder: str | os.PathLike, name: str) -> Path:
