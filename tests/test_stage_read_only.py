@@ -1,19 +1,13 @@
 """Stages on a dataset folder the run cannot write (issue 17, read-only mounts).
 
-We run as root here, and root ignores permission bits, so ``chmod`` cannot make a folder
-read-only for these tests; a read-only mount needs privileges the test runner lacks. Instead
-:func:`read_only` makes every call that would create, replace or delete something under the
-dataset folder fail with ``EROFS``, as a read-only mount does (``os.open`` with a write flag,
-``os.mkdir``, ``os.replace``, ``os.rename``, ``os.unlink``, ``os.rmdir``), and the tests
-check the folder's snapshot (every file, hidden ones included, with size and mtime) too.
+Root ignores permission bits, so the folder is made read-only by :func:`tests.read_only.
+read_only` (every create, replace or delete under it fails with ``EROFS``), and the tests
+compare the folder's snapshot (every file, hidden ones included, with size and mtime) too.
 """
 
 from __future__ import annotations
 
-import contextlib
-import errno
 import os
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -24,52 +18,9 @@ from diffloc.pipeline.database_stage import DatabaseConfig, build_database, data
 from diffloc.pipeline.hints import Command
 from diffloc.pipeline.stage import verified_record
 from tests.conftest import FINE_SURFELS, copy_dataset
+from tests.read_only import read_only, snapshot
 
 MAP_CFG = BuildMapConfig(point_maps=[], preview_frames=1)
-WRITES = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_APPEND
-
-
-@contextlib.contextmanager
-def read_only(monkeypatch: pytest.MonkeyPatch, root: Path) -> Iterator[None]:
-    """Make ``root`` behave as a read-only mount for the ``with`` block."""
-    inside = str(root.resolve()) + os.sep
-
-    def under(path) -> bool:
-        return str(Path(os.fsdecode(path)).resolve()).startswith(inside)
-
-    def refuse(path) -> None:
-        raise OSError(errno.EROFS, os.strerror(errno.EROFS), os.fsdecode(path))
-
-    real_open = os.open
-
-    def fake_open(path, flags, *args, **kwargs):
-        if flags & WRITES and under(path):
-            refuse(path)
-        return real_open(path, flags, *args, **kwargs)
-
-    def guard(name: str) -> None:
-        real = getattr(os, name)
-
-        def fake(path, *args, **kwargs):
-            if under(path) or (args and isinstance(args[0], str | Path) and under(args[0])):
-                refuse(path)
-            return real(path, *args, **kwargs)
-
-        monkeypatch.setattr(os, name, fake)
-
-    with monkeypatch.context() as patch:
-        patch.setattr(os, "open", fake_open)
-        for name in ("mkdir", "replace", "rename", "unlink", "rmdir"):
-            guard(name)
-        yield
-
-
-def snapshot(root: Path) -> dict[str, tuple[int, int]]:
-    """Size and mtime of every file and folder under ``root`` (hidden ones included)."""
-    return {
-        p.relative_to(root).as_posix(): (p.stat().st_size, p.stat().st_mtime_ns)
-        for p in root.rglob("*")
-    }
 
 
 @pytest.fixture(scope="module")
@@ -80,17 +31,17 @@ def built(tiny_indoor_mapped: Path, tmp_path_factory: pytest.TempPathFactory) ->
     return root
 
 
-def test_the_read_only_check_refuses_writes(built: Path, monkeypatch: pytest.MonkeyPatch):
-    with read_only(monkeypatch, built), pytest.raises(OSError, match="Read-only"):
+def test_the_read_only_check_refuses_writes(built: Path):
+    with read_only(built), pytest.raises(OSError, match="Read-only"):
         (built / "map" / "new").mkdir()
 
 
-def test_complete_results_are_reused_without_writing(built: Path, monkeypatch):
+def test_complete_results_are_reused_without_writing(built: Path):
     db_folder = database_dir(built, DatabaseConfig())
     expected_map = verified_record(built / "map", "build_map", Command("build_map"))
     expected_db = verified_record(db_folder, "build_db", Command("build_db"))
     before = snapshot(built)
-    with read_only(monkeypatch, built):
+    with read_only(built):
         assert build_maps(built, MAP_CFG, FINE_SURFELS, show_progress=False) == expected_map
         assert build_database(built, DatabaseConfig(), show_progress=False) == expected_db
     assert snapshot(built) == before
@@ -107,17 +58,17 @@ def test_a_folder_without_lock_files_is_read_under_a_per_user_lock(
     runtime = tmp_path_factory.mktemp("runtime")
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
     expected = verified_record(database_dir(root, DatabaseConfig()), "build_db", Command("x"))
-    with read_only(monkeypatch, root):
+    with read_only(root):
         assert build_database(root, DatabaseConfig(), show_progress=False) == expected
     assert runtime_lock_path(root / "map").parent == runtime / f"diffloc-locks-{os.getuid()}"
     assert runtime_lock_path(root / "map").is_file()
     assert not list(root.rglob(LOCK_NAME))
 
 
-def test_a_stage_that_must_build_fails_naming_the_folder(built: Path, monkeypatch):
+def test_a_stage_that_must_build_fails_naming_the_folder(built: Path):
     before = snapshot(built)
     coarse = FINE_SURFELS.__class__(voxel_size_m=0.05, mean_radius_m=0.05, normal_radius_m=0.15)
-    with read_only(monkeypatch, built):
+    with read_only(built):
         with pytest.raises(ReadOnlyFolderError) as error:
             build_maps(built, MAP_CFG, coarse, show_progress=False)
         assert f"{built / 'map'} cannot be written" in str(error.value)
