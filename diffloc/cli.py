@@ -22,6 +22,7 @@ message that names a command to run carries the user's own overrides (``scene=ou
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -238,6 +239,34 @@ VALUE_NODES = ("surfel", "db", "reloc", "task", "stage")
 """Config nodes whose schemas check their ranges and names when built (``__post_init__``)."""
 
 
+def _build_node(node: DictConfig, path: str) -> None:
+    """Build the typed node ``node`` at key ``path``; a bad value's message names its full key.
+
+    A nested schema checks its own fields without knowing where it sits (``max_keypoints must
+    be ...``); the error is raised again from the deepest node that fails, its key in front
+    (``db.xfeat.max_keypoints must be ...``).
+    """
+    try:
+        OmegaConf.to_object(node)
+    except ValueError as exc:
+        for key in node.keys():
+            if OmegaConf.is_missing(node, key) or OmegaConf.is_interpolation(node, key):
+                continue
+            child = node[key]
+            if isinstance(child, DictConfig) and dataclasses.is_dataclass(
+                OmegaConf.get_type(child)
+            ):
+                _build_node(child, f"{path}.{key}")
+        message = str(exc)
+        if message.startswith(f"{path}.") or message.startswith(f"{path} "):
+            raise
+        first, _, rest = message.partition(" ")
+        field_name = first.removeprefix(f"{OmegaConf.get_type(node).__name__}.")
+        if field_name in node:
+            raise ValueError(f"{path}.{field_name} {rest}") from exc
+        raise ValueError(f"{path}: {message}") from exc
+
+
 def check_values(cfg: DictConfig) -> None:
     """Check every range and name of the config before any work starts.
 
@@ -247,11 +276,11 @@ def check_values(cfg: DictConfig) -> None:
     seconds instead of after the stages before it.
 
     Raises:
-        ValueError: the first bad value; the message names its key.
+        ValueError: the first bad value; the message names its full key.
     """
     for key in VALUE_NODES:
         if key in cfg:
-            OmegaConf.to_object(cfg[key])
+            _build_node(cfg[key], key)
     if cfg.task.name in MAKE_DATASET:
         validate_scene_config(OmegaConf.to_object(cfg.scene))
 

@@ -117,3 +117,28 @@ def test_reloc_ranges_are_refused_before_any_stage_runs(
 def test_a_misspelt_sequence_is_refused_before_relocalisation(tiny_indoor_dataset: Path):
     with pytest.raises(FileNotFoundError, match=r"query_sam.*query_same"):
         run_task("relocalize", tiny_indoor_dataset, "reloc.sequences=[query_sam]")
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ("db.xfeat.max_keypoints=0", r"^db\.xfeat\.max_keypoints must be a positive integer"),
+        ("db.optim.min_pairs=-1", r"^db\.optim\.min_pairs must be >= 0"),
+        ("surfel.voxel_size_m=-1", r"^surfel\.voxel_size_m must be a positive finite number"),
+        ("db.noise_sigma=-0.1", r"^db\.noise_sigma must be a finite number >= 0"),
+        ("db.noise_sigma=nan", r"^db\.noise_sigma must be a finite number >= 0"),
+        ("db.radius_px_per_prior_m=-1", r"^db\.radius_px_per_prior_m must be a finite number"),
+        ("db.point_gate_m_per_prior_m=-1", r"^db\.point_gate_m_per_prior_m must be a finite"),
+    ],
+)
+def test_a_bad_nested_value_is_named_by_its_full_key_before_any_work(
+    tiny_indoor_mapped: Path, setting: str, message: str
+):
+    """A nested schema's check does not know where it sits (``max_keypoints must be ...``):
+    the error names the full key, so the user can find the setting; nothing is written."""
+    before = sorted(p.relative_to(tiny_indoor_mapped) for p in tiny_indoor_mapped.rglob("*"))
+    with pytest.raises(ValueError, match=message):
+        run_task("build_db", tiny_indoor_mapped, setting)
+    assert (
+        sorted(p.relative_to(tiny_indoor_mapped) for p in tiny_indoor_mapped.rglob("*")) == before
+    )

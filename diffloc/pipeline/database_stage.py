@@ -144,12 +144,16 @@ class DatabaseConfig:
                 f"local_features must be one of {LOCAL_FEATURES}, got {self.local_features!r}"
             )
         prior = self.pose_prior_sigma_m
-        number = isinstance(prior, int | float) and not isinstance(prior, bool)
-        if not (number and math.isfinite(prior) and prior >= 0):
+        if not _finite_at_least_zero(prior):
             raise ValueError(
                 "db.pose_prior_sigma_m (the believed per-axis position error of the database "
                 f"poses, metres) must be a finite number >= 0, got {prior!r}"
             )
+        for name in ("noise_sigma", "radius_px_per_prior_m", "point_gate_m_per_prior_m"):
+            if not _finite_at_least_zero(getattr(self, name)):
+                raise ValueError(
+                    f"db.{name} must be a finite number >= 0, got {getattr(self, name)!r}"
+                )
 
     def extractor_config(self) -> XFeatConfig | OrbConfig:
         """The settings of the chosen local feature extractor."""
@@ -165,6 +169,11 @@ class DatabaseConfig:
             gate = epipolar.max_point_distance_m + prior * self.point_gate_m_per_prior_m
             epipolar = replace(epipolar, max_point_distance_m=gate)
         return replace(self.builder, guided_radius_px=radius, epipolar=epipolar)
+
+
+def _finite_at_least_zero(value: object) -> bool:
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    return number and math.isfinite(value) and value >= 0
 
 
 def database_dir(dataset: str | Path, cfg: DatabaseConfig) -> Path:
