@@ -142,3 +142,31 @@ def test_a_bad_nested_value_is_named_by_its_full_key_before_any_work(
     assert (
         sorted(p.relative_to(tiny_indoor_mapped) for p in tiny_indoor_mapped.rglob("*")) == before
     )
+
+
+@pytest.mark.parametrize(
+    ("task", "setting", "message"),
+    [
+        ("relocalize", "reloc.bow.words=0", r"^reloc\.bow\.words must be a positive integer"),
+        ("relocalize", "reloc.netvlad.clusters=0", r"^reloc\.netvlad\.clusters must be a posi"),
+        ("train_nerf", "task.epochs=0", r"^task\.epochs must be an integer >= 1"),
+        ("train_nerf", "task.submap=-1", r"^task\.submap must be an integer >= 0"),
+        ("simulate", "scene.camera.width=0", r"^scene\.camera\.width must be a positive int"),
+        ("simulate", "scene.camera.hfov_deg=200", r"^scene\.camera\.hfov_deg must be in"),
+        ("simulate", "scene.lidar.rate_hz=0", r"^scene\.lidar\.rate_hz must be a finite number"),
+    ],
+)
+def test_task_ranges_are_refused_before_anything_is_written(
+    tiny_indoor_mapped: Path, tmp_path: Path, task: str, setting: str, message: str
+):
+    """Until now these surfaced only in the middle of the task (an empty vocabulary, a
+    training of no epochs that wrote its run folder, a simulation that had taken its lock)."""
+    before = sorted(p.relative_to(tiny_indoor_mapped) for p in tiny_indoor_mapped.rglob("*"))
+    out = tmp_path / "out"
+    where = {"simulate": f"out_dir={out}", "relocalize": f"task.out_dir={out}"}
+    with pytest.raises(ValueError, match=message):
+        run_task(task, tiny_indoor_mapped, setting, *([where[task]] if task in where else []))
+    assert (
+        sorted(p.relative_to(tiny_indoor_mapped) for p in tiny_indoor_mapped.rglob("*")) == before
+    )
+    assert list(tmp_path.iterdir()) == []

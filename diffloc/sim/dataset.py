@@ -65,10 +65,10 @@ FRAMES_PER_BATCH = 4
 
 def camera_from_config(cfg: CameraConfig) -> PinholeCamera:
     """The simulated camera (square pixels, principal point at the image centre)."""
-    width = check_positive_int(cfg.width, "camera.width")
-    height = check_positive_int(cfg.height, "camera.height")
+    width = check_positive_int(cfg.width, "scene.camera.width")
+    height = check_positive_int(cfg.height, "scene.camera.height")
     if not 0.0 < cfg.hfov_deg < 180.0:
-        raise ValueError(f"camera.hfov_deg must be in (0, 180), got {cfg.hfov_deg}")
+        raise ValueError(f"scene.camera.hfov_deg must be in (0, 180), got {cfg.hfov_deg}")
     coefficients = [cfg.k1, cfg.k2, cfg.p1, cfg.p2]
     distortion = torch.tensor(coefficients, dtype=torch.float64) if any(coefficients) else None
     return PinholeCamera.from_fov(width, height, math.radians(cfg.hfov_deg), distortion=distortion)
@@ -115,6 +115,10 @@ def validate_scene_config(cfg: SceneConfig) -> None:
     if cfg.map.lidar_sequence not in names:
         raise ValueError(f"scene.map.lidar_sequence {cfg.map.lidar_sequence!r} is not in {names}")
     check_positive_int(cfg.sensor.motion_blur_samples, "scene.sensor.motion_blur_samples")
+    camera_from_config(cfg.camera)
+    rate = cfg.lidar.rate_hz
+    if not (isinstance(rate, int | float) and math.isfinite(rate) and rate > 0):
+        raise ValueError(f"scene.lidar.rate_hz must be a finite number > 0, got {rate!r}")
     for key in ("voxel_size_m", "normal_radius_m"):
         value = getattr(cfg.map, key)
         if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
