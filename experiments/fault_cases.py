@@ -47,6 +47,8 @@ from pathlib import Path
 import numpy as np
 from hydra.errors import ConfigCompositionException
 
+from diffloc.cli import run
+from diffloc.config import compose_config
 from diffloc.database.database import VisualDatabase
 from diffloc.io.identity import identity
 from diffloc.io.lock import LockLevel, folder_lock, remove_temporaries
@@ -72,7 +74,7 @@ from tests.read_only import read_only, snapshot
 
 CLASSES = ("clear", "correct", "silent", "traceback")
 MAP_CFG = BuildMapConfig(point_maps=[], preview_frames=1)
-KEY = re.compile(r"\b(task|db|reloc|scene|surfel)\.[a-z_0-9.]+")
+KEY = re.compile(r"\b(task|db|reloc|scene|surfel|stage)\.[a-z_0-9.]+")
 
 
 class Silent(Exception):
@@ -600,6 +602,13 @@ def _config_case(task: str, override: str) -> Callable[[Path], None]:
 # ---------------------------------------------------------------------------- concurrent pairs
 
 
+def _task(task: str, root: Path, *overrides: str) -> Callable[[], object]:
+    """``run_task`` as a callable for a thread, its config composed here (Hydra's composition
+    is not thread-safe; concurrent runs of the command are separate processes anyway)."""
+    cfg = compose_config(TINY + [f"task={task}", f"dataset={root}", *overrides])
+    return lambda: run(cfg)
+
+
 def _together(*runs: Callable[[], object]) -> list[BaseException]:
     """Run the callables in threads started together; the exceptions they raised."""
     errors: list[BaseException] = []
@@ -630,8 +639,8 @@ def concurrent_build_dbs_of_one_folder(root: Path) -> None:
     noisy = ("db.noise_sigma=0.05", *DB)
     _raise_first(
         _together(
-            lambda: run_task("build_db", root, *noisy, "db.noise_seed=0"),
-            lambda: run_task("build_db", root, *noisy, "db.noise_seed=1"),
+            _task("build_db", root, *noisy, "db.noise_seed=0"),
+            _task("build_db", root, *noisy, "db.noise_seed=1"),
         )
     )
     folder = database_dir(root, DatabaseConfig(noise_sigma=0.05))
@@ -648,7 +657,7 @@ def concurrent_build_map_and_build_db(root: Path) -> None:
     _raise_first(
         _together(
             lambda: build_maps(root, overwrite, coarse, False),
-            lambda: run_task("build_db", root, *DB),
+            _task("build_db", root, *DB),
         )
     )
     new = identity(root / "map" / "surfel_map.ply")
@@ -664,8 +673,8 @@ def concurrent_optimize_and_build_db(root: Path) -> None:
     made from the current build."""
     run_task("build_db", root, *DB)
     errors = _together(
-        lambda: run_task("optimize_db", root, *DB),
-        lambda: run_task("build_db", root, *DB, "db.noise_seed=3"),
+        _task("optimize_db", root, *DB),
+        _task("build_db", root, *DB, "db.noise_seed=3"),
     )
     _raise_first([e for e in errors if not isinstance(e, FileNotFoundError | StaleStageError)])
     try:
@@ -685,8 +694,8 @@ def concurrent_optimize_and_build_db(root: Path) -> None:
 def concurrent_update_and_build_db(root: Path) -> None:
     run_task("build_db", root, *DB)
     errors = _together(
-        lambda: run_task("update_db", root, *DB, "task.sequence=query_lane"),
-        lambda: run_task("build_db", root, *DB, "db.noise_seed=3"),
+        _task("update_db", root, *DB, "task.sequence=query_lane"),
+        _task("build_db", root, *DB, "db.noise_seed=3"),
     )
     _raise_first([e for e in errors if not isinstance(e, FileNotFoundError | StaleStageError)])
     try:
@@ -708,8 +717,8 @@ def concurrent_relocalizations(root: Path) -> None:
     settings = _reloc_settings(root)
     _raise_first(
         _together(
-            lambda: run_task("relocalize", root, *DB, *settings),
-            lambda: run_task("relocalize", root, *DB, *settings, "reloc.max_rot_deg=10"),
+            _task("relocalize", root, *DB, *settings),
+            _task("relocalize", root, *DB, *settings, "reloc.max_rot_deg=10"),
         )
     )
     record = verified_record(root / "reloc_out", "relocalize", Command("x"))
@@ -735,9 +744,8 @@ def _held_while(setting: str) -> Callable[[Path], None]:
     def case(root: Path) -> None:
         errors: list[BaseException] = []
         with folder_lock(root / "map", level=LockLevel.MAP):
-            thread = threading.Thread(
-                target=lambda: _collect(errors, lambda: run_task("build_map", root, setting))
-            )
+            second = _task("build_map", root, setting)
+            thread = threading.Thread(target=lambda: _collect(errors, second))
             thread.start()
             thread.join(timeout=120)
         _raise_first(errors)
