@@ -374,9 +374,13 @@ def _db_folder(root: Path) -> Path:
 
 def stage_result(stage: str, root: Path) -> dict[str, bytes]:
     """What a stage made, comparable across dataset copies: its output files' bytes (for
-    ``relocalize`` its metrics table, for ``export_colmap`` the model's files)."""
-    if stage == "relocalize":
-        return {"table": json.loads((root / "reloc_out" / "results.json").read_text())["table"]}
+    ``relocalize`` its metrics per sequence, for ``export_colmap`` the model's files)."""
+    if stage == "relocalize":  # the metrics, not the timings
+        results = json.loads((root / "reloc_out" / "results.json").read_text())
+        return {
+            name: json.dumps([entry[k] for k in ("queries", "recall", "mATE_m")]).encode()
+            for name, entry in results["sequences"].items()
+        }
     folders = {
         "build_map": (root / "map", "build_map"),
         "build_db": (_db_folder(root), "build_db"),
