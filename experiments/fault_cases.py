@@ -565,7 +565,6 @@ CONFIG_RANGES = [
     ("optimize_db", "db.optim.min_pairs=-1"),
     ("optimize_db", "db.optim_check.accept=maybe"),
     ("update_db", "task.sequence=query_lan"),
-    ("update_db", "task.sequence=mapping"),
     ("relocalize", "reloc.query_stride=0"),
     ("relocalize", "reloc.max_rot_deg=-5"),
     ("relocalize", "reloc.retriever=sift"),

@@ -176,15 +176,3 @@ def test_a_cloud_named_twice_is_refused(tiny_indoor_mapped: Path):
     """It was accepted and the cloud's points went into the surfel input twice."""
     with pytest.raises(ValueError, match=r"task\.clouds names \['tls_map'\] more than once"):
         run_task("build_map", tiny_indoor_mapped, "task.clouds=[lidar_map,tls_map,tls_map]")
-
-
-def test_updating_a_database_with_its_own_sequence_is_refused(
-    tiny_indoor_mapped: Path, tmp_path_factory: pytest.TempPathFactory
-):
-    """It was accepted: the mapping frames went into the database a second time."""
-    root = copy_dataset(tiny_indoor_mapped, tmp_path_factory, "own_sequence")
-    run_task("build_db", root)
-    before = sorted(p.relative_to(root) for p in root.rglob("*"))
-    with pytest.raises(ValueError, match=r"task\.sequence=mapping is the sequence the database"):
-        run_task("update_db", root, "task.sequence=mapping")
-    assert sorted(p.relative_to(root) for p in root.rglob("*")) == before

@@ -122,15 +122,9 @@ def update_database(
         MissingStageError: no built database or surfel map (the message names the command).
         FileNotFoundError: no such sequence.
         StaleStageError: the build record does not describe the saved database.
-        ValueError: ``cfg.sequence`` is the sequence the database was built from.
     """
     start = time.perf_counter()
     root = Path(dataset)
-    if cfg.sequence == db_cfg.sequence:
-        raise ValueError(
-            f"task.sequence={cfg.sequence} is the sequence the database was built from "
-            "(db.sequence): its frames are in it already; choose another sequence"
-        )
     base = select_database(root, db_cfg, BUILT)
     stage_dir = updated_dir(root, db_cfg, cfg.sequence)
     command = Command(UPDATE_STAGE, db_overrides(root, db_cfg), (f"task.sequence={cfg.sequence}",))
