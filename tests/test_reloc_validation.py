@@ -52,6 +52,23 @@ def test_bad_reference_age_is_refused(age: float):
         ValidationConfig(max_reference_age_s=age)
 
 
+def test_a_conflicting_pose_keeps_the_live_reference_when_configured():
+    cfg = ValidationConfig(theta_in=15, theta_dist_m=0.3, max_reference_age_s=2.0)
+    seed1, kept = PoseValidator(cfg), PoseValidator(replace(cfg, conflict_keeps_reference=True))
+    for v in (seed1, kept):
+        v.validate(pose_at(0.0), 30, 0.0)
+        assert not v.validate(pose_at(6.7), 200, 1.0)  # a jump to a repeated place
+    # Seed 1: the jump became the reference and its repetition verifies it.
+    assert seed1.validate(pose_at(6.7), 200, 2.0)
+    # Kept: the reference is still at 0 (2 s old), so the repetition is not verified ...
+    assert not kept.validate(pose_at(6.7), 200, 2.0)
+    assert kept.validate(pose_at(0.1), 30, 2.0)  # ... and the track at 0 goes on.
+    # Once the reference expires, the other place can start a track of its own.
+    assert not kept.validate(pose_at(6.7), 200, 4.5)
+    assert kept.validate(pose_at(6.8), 200, 5.0)
+    assert not replace(cfg, conflict_keeps_reference=True).seed1_rule().conflict_keeps_reference
+
+
 def test_speed_allowance_grows_with_the_time_gap():
     v = PoseValidator(ValidationConfig(theta_in=15, theta_dist_m=0.3, max_speed_mps=1.0))
     v.validate(pose_at(0.0), 30, 0.0)

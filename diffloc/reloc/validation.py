@@ -13,7 +13,11 @@ gives the paper's test exactly). A reference older than ``max_reference_age_s`` 
 about where the camera is now (after 10 s at 1 m/s the allowance is 10 m), so it verifies
 nothing: the pose becomes the new reference unverified, like the first one of a sequence.
 Two wrong poses of one repeated place (the same storey shift, the facade window one period
-along) far apart in time would otherwise verify each other.
+along) far apart in time would otherwise verify each other. With
+``conflict_keeps_reference``, a pose that fails the distance test against a live reference
+does not replace it either: a jump to a repeated place (two consecutive queries that both
+match the other storey) then cannot verify itself on the next query while the right track's
+reference is still young.
 
 Seed 1's tests let confident wrong poses through where the scene repeats or is seen from the
 other side: a chain of consistently wrong poses passes the distance test. Three further tests,
@@ -65,6 +69,11 @@ class ValidationConfig:
         min_coverage: smallest fraction of the image grid holding inliers (0 disables it).
         ambiguity_ratio: a competing candidate with at least this fraction of the inliers,
             farther than ``theta_dist_m`` from the pose, rejects it (``None`` disables it).
+        conflict_keeps_reference: an inlier pose that fails the distance test against a live
+            reference (not older than ``max_reference_age_s``) is not verified and does not
+            replace the reference (seed 1: every inlier pose replaces it, ``False``). A jump
+            to a repeated place then needs the reference to expire before it can verify
+            itself (module docstring).
     """
 
     theta_in: int = 15
@@ -75,6 +84,7 @@ class ValidationConfig:
     min_inlier_ratio: float = 0.0
     min_coverage: float = 0.0
     ambiguity_ratio: float | None = None
+    conflict_keeps_reference: bool = False
 
     def __post_init__(self) -> None:
         if self.theta_in < 0:
@@ -96,13 +106,15 @@ class ValidationConfig:
 
     def seed1_rule(self) -> ValidationConfig:
         """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity, the
-        reference age) off; the speed allowance of sparse query streams stays."""
+        reference age, the kept reference) off; the speed allowance of sparse query streams
+        stays."""
         return replace(
             self,
             min_inlier_ratio=0.0,
             min_coverage=0.0,
             ambiguity_ratio=None,
             max_reference_age_s=None,
+            conflict_keeps_reference=False,
         )
 
 
@@ -242,9 +254,12 @@ class PoseValidator:
             return True
         position = position.to(torch.float64)
         previous, dt = self._last_position, abs(timestamp - self._last_time)
-        self._last_position, self._last_time = position, float(timestamp)
         age = self.config.max_reference_age_s
         if previous is None or (age is not None and dt > age):
+            self._last_position, self._last_time = position, float(timestamp)
             return False
         limit = self.config.theta_dist_m + self.config.max_speed_mps * dt
-        return bool(torch.linalg.vector_norm(position - previous) <= limit)
+        verified = bool(torch.linalg.vector_norm(position - previous) <= limit)
+        if verified or not self.config.conflict_keeps_reference:
+            self._last_position, self._last_time = position, float(timestamp)
+        return verified
