@@ -25,6 +25,7 @@ message that names a command to run carries the user's own overrides (``scene=ou
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -41,6 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 from diffloc.benchmark import peak_rss_mb
 from diffloc.config import CONF_DIR, check_known_keys, register_configs, to_object
 from diffloc.io.atomic import atomic_write_text
+from diffloc.io.lock import lock_config
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.colmap_stage import export_colmap
 from diffloc.pipeline.database_stage import build_database, optimize_database
@@ -234,8 +236,36 @@ MAKE_DATASET = ("simulate", "main")
 """Tasks that write the dataset folder; every other task reads an existing one."""
 
 
-VALUE_NODES = ("map", "db", "reloc", "nerf", "task")
+VALUE_NODES = ("map", "db", "reloc", "nerf", "task", "stage")
 """Config nodes whose schemas check their ranges and names when built (``__post_init__``)."""
+
+
+def _build_node(node: DictConfig, path: str) -> None:
+    """Build the typed node ``node`` at key ``path``; a bad value's message names its full key.
+
+    A nested schema checks its own fields without knowing where it sits (``max_keypoints must
+    be ...``); the error is raised again from the deepest node that fails, its key in front
+    (``db.xfeat.max_keypoints must be ...``).
+    """
+    try:
+        to_object(node)
+    except ValueError as exc:
+        for key in node.keys():
+            if OmegaConf.is_missing(node, key) or OmegaConf.is_interpolation(node, key):
+                continue
+            child = node[key]
+            if isinstance(child, DictConfig) and (
+                "_target_" in child or dataclasses.is_dataclass(OmegaConf.get_type(child))
+            ):
+                _build_node(child, f"{path}.{key}")
+        message = str(exc)
+        if message.startswith(f"{path}.") or message.startswith(f"{path} "):
+            raise
+        first, _, rest = message.partition(" ")
+        field_name = first.removeprefix(f"{OmegaConf.get_type(node).__name__}.")
+        if field_name in node:
+            raise ValueError(f"{path}.{field_name} {rest}") from exc
+        raise ValueError(f"{path}: {message}") from exc
 
 
 def check_values(cfg: DictConfig) -> None:
@@ -247,11 +277,11 @@ def check_values(cfg: DictConfig) -> None:
     seconds instead of after the stages before it.
 
     Raises:
-        ValueError: the first bad value; the message names its key.
+        ValueError: the first bad value; the message names its full key.
     """
     for key in VALUE_NODES:
         if key in cfg:
-            to_object(cfg[key])
+            _build_node(cfg[key], key)
     if cfg.task.name in MAKE_DATASET:
         validate_scene_config(OmegaConf.to_object(cfg.scene))
 
@@ -275,7 +305,8 @@ def run(cfg: DictConfig) -> object:
     description = Path(cfg.dataset) / "dataset.json"
     if name not in MAKE_DATASET and not description.is_file():
         raise MissingStageError(description, Command("simulate", (), (f"out_dir={cfg.dataset}",)))
-    return TASKS[name](cfg)
+    with lock_config(OmegaConf.to_object(cfg.stage)):
+        return TASKS[name](cfg)
 
 
 CHECKED_ERRORS = (OSError, ValueError)

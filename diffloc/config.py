@@ -24,6 +24,7 @@ from hydra.core.config_store import ConfigStore
 from hydra.utils import get_class, instantiate
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
+from diffloc.io.lock import LockConfig
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.rig_calibration import RigCalibrationConfig
 from diffloc.pipeline.build_map import BuildMapConfig
@@ -118,6 +119,11 @@ class DifflocConfig:
     (``db.features``), ``optim/`` (``db.optim``, ``db.optim_check``), ``retriever/``
     (``reloc.retriever``), ``matcher/`` (the relocaliser's matching, in ``reloc.method``) and
     ``experiment/`` (named setups of the committed tables).
+
+    Attributes:
+        stage: what a run does when a stage folder it needs is in use by another run
+            (``stage.wait=false`` refuses at once, ``stage.timeout_s=60`` waits at most a
+            minute; default: wait as long as it takes).
     """
 
     task: Any = MISSING
@@ -129,6 +135,7 @@ class DifflocConfig:
     reloc: Any = MISSING  # a RelocStageConfig, typed by reloc/<scene>.yaml (its retriever swaps)
     nerf: TrainNerfConfig = field(default_factory=TrainNerfConfig)
     progress: bool = True
+    stage: LockConfig = field(default_factory=LockConfig)
 
 
 GROUP_SCHEMAS: dict[str, type] = {

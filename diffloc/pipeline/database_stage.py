@@ -45,6 +45,7 @@ from diffloc.optim.surfel_cost import SurfelOptimConfig, replace_map_points
 from diffloc.pipeline.config_record import config_record
 from diffloc.pipeline.hints import Command, MissingStageError
 from diffloc.pipeline.stage import (
+    LockLevel,
     open_stage,
     output_identity,
     read_lock,
@@ -143,12 +144,16 @@ class DatabaseConfig:
                 f"or AkazeConfig; on the command line features=xfeat|orb), got {self.features!r}"
             )
         prior = self.pose_prior_sigma_m
-        number = isinstance(prior, int | float) and not isinstance(prior, bool)
-        if not (number and math.isfinite(prior) and prior >= 0):
+        if not _finite_at_least_zero(prior):
             raise ValueError(
                 "db.pose_prior_sigma_m (the believed per-axis position error of the database "
                 f"poses, metres) must be a finite number >= 0, got {prior!r}"
             )
+        for name in ("noise_sigma", "radius_px_per_prior_m", "point_gate_m_per_prior_m"):
+            if not _finite_at_least_zero(getattr(self, name)):
+                raise ValueError(
+                    f"db.{name} must be a finite number >= 0, got {getattr(self, name)!r}"
+                )
 
     def builder_config(self) -> BuilderConfig:
         """``builder`` with its pose-dependent gates widened by ``pose_prior_sigma_m``:
@@ -160,6 +165,11 @@ class DatabaseConfig:
             gate = epipolar.max_point_distance_m + prior * self.point_gate_m_per_prior_m
             epipolar = replace(epipolar, max_point_distance_m=gate)
         return replace(self.builder, guided_radius_px=radius, epipolar=epipolar)
+
+
+def _finite_at_least_zero(value: object) -> bool:
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    return number and math.isfinite(value) and value >= 0
 
 
 def database_dir(dataset: str | Path, cfg: DatabaseConfig) -> Path:
@@ -299,7 +309,7 @@ def read_surfel_map(dataset: str | Path) -> tuple[dict, SurfelMap]:
         StaleStageError: a record that does not describe the files beside it.
     """
     folder = Path(dataset) / "map"
-    with read_lock(folder):
+    with read_lock(folder, LockLevel.MAP):
         record = verified_record(folder, MAP_STAGE, map_command(dataset))
         return record, SurfelMap.load(folder / "surfel_map.ply")
 
@@ -338,7 +348,8 @@ def build_database(
         raise MissingStageError(root / "map" / f"{MAP_STAGE}.json", map_command(dataset))
     seq = read_sequence(root, cfg.sequence)
     out = database_dir(root, cfg)
-    with open_stage(out, BUILD_STAGE, Command(BUILD_STAGE, db_overrides(root, cfg))) as stage:
+    command = Command(BUILD_STAGE, db_overrides(root, cfg))
+    with open_stage(out, BUILD_STAGE, command, LockLevel.DATABASE) as stage:
         map_record, surfels = read_surfel_map(root)
         inputs = {
             "surfel_map": output_identity(map_record, "surfel_map.ply"),
@@ -442,7 +453,8 @@ def optimize_database(
     built_path = out / f"{BUILD_STAGE}.json"
     if not built_path.is_file():
         raise MissingStageError(built_path, Command(BUILD_STAGE, db_overrides(root, cfg)))
-    with open_stage(out, OPTIMIZE_STAGE, Command(OPTIMIZE_STAGE, db_overrides(root, cfg))) as stage:
+    command = Command(OPTIMIZE_STAGE, db_overrides(root, cfg))
+    with open_stage(out, OPTIMIZE_STAGE, command, LockLevel.DATABASE) as stage:
         built = read_built_record(root, cfg)
         map_record, surfels = read_surfel_map(root)
         inputs = {

@@ -36,3 +36,9 @@ class TrainNerfConfig:
     submaps: SubmapConfig = field(default_factory=lambda: SubmapConfig(num_submaps=4))
     data: SubmapDataConfig = field(default_factory=SubmapDataConfig)
     train: NerfTrainConfig = field(default_factory=NerfTrainConfig)
+
+    def __post_init__(self) -> None:
+        for name, low in (("submap", 0), ("epochs", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"nerf.{name} must be an integer >= {low}, got {value!r}")

@@ -27,7 +27,7 @@ from diffloc.maps.nerf.submaps import cluster_trajectory, plot_submaps, save_sub
 from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline.hints import Command
 from diffloc.pipeline.nerf_config import TrainNerfConfig
-from diffloc.pipeline.stage import open_stage, stage_key
+from diffloc.pipeline.stage import LockLevel, open_stage, stage_key
 
 __all__ = ["train_nerf_submap"]
 
@@ -66,7 +66,7 @@ def train_nerf_submap(
     run_dir = out_dir / f"submap_{config.submap}"
     key = stage_key(asdict(config), {"sequence": identity(dataset / config.sequence)})
     command = Command("train_nerf", (f"dataset={dataset}", f"nerf.submap={config.submap}"))
-    with open_stage(run_dir, "train_nerf", command) as stage:
+    with open_stage(run_dir, "train_nerf", command, LockLevel.DATABASE) as stage:
         if (record := stage.reusable(key)) is not None:
             return record
         name = f"submap {config.submap} of {dataset}"

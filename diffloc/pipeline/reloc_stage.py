@@ -59,6 +59,7 @@ from diffloc.io.trajectory import write_tum
 from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.config_record import config_record
 from diffloc.pipeline.database_select import (
+    UPDATED_PREFIX,
     SelectedDatabase,
     check_database_name,
     keyframe_images,
@@ -67,7 +68,7 @@ from diffloc.pipeline.database_select import (
 )
 from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.hints import Command, StaleStageError
-from diffloc.pipeline.stage import open_stage, stage_key
+from diffloc.pipeline.stage import LockLevel, open_stage, stage_key
 from diffloc.progress import progress
 from diffloc.reloc.hierarchical import (
     Candidate,
@@ -169,7 +170,8 @@ def _retriever(
     settings = asdict(cfg.retriever)
     config = {"settings": settings, "keyframe_sources": selected.keyframe_sources}
     command = Command("relocalize", (f"dataset={dataset}",))
-    with open_stage(selected.retriever_root, name, command) as stage:
+    level = LockLevel.UPDATED if selected.name.startswith(UPDATED_PREFIX) else LockLevel.DATABASE
+    with open_stage(selected.retriever_root, name, command, level) as stage:
         key = stage_key(config, _retriever_inputs(dataset, cfg, db, selected))
         if stage.reusable(key) is not None:
             retriever = load_retriever(selected.retriever_root / name)
@@ -472,7 +474,7 @@ def relocalize_dataset(
     rows = []
     T_wc_db_true = keyframe_true_poses(dataset, selected.keyframe_sources)
     command = Command("relocalize", (f"dataset={dataset}",))
-    with open_stage(out, "relocalize", command) as stage:
+    with open_stage(out, "relocalize", command, LockLevel.RESULTS) as stage:
         work = stage.workdir()
         for name in cfg.sequences:
             run = _relocalize_sequence(dataset, name, cfg, extractor, relocalizer, show_progress)

@@ -55,7 +55,7 @@ from diffloc.pipeline.database_stage import (
     read_surfel_map,
 )
 from diffloc.pipeline.hints import Command, StaleStageError
-from diffloc.pipeline.stage import open_stage, output_identity, stage_key
+from diffloc.pipeline.stage import LockLevel, open_stage, output_identity, stage_key
 
 __all__ = ["UpdateTaskConfig", "update_database"]
 
@@ -130,7 +130,7 @@ def update_database(
     stage_dir = updated_dir(root, db_cfg, cfg.sequence)
     command = Command(UPDATE_STAGE, db_overrides(root, db_cfg), (f"task.sequence={cfg.sequence}",))
     sequence = read_sequence(root, cfg.sequence)
-    with open_stage(stage_dir, UPDATE_STAGE, command) as stage:
+    with open_stage(stage_dir, UPDATE_STAGE, command, LockLevel.UPDATED) as stage:
         map_record, surfels = read_surfel_map(root)
         inputs = {
             "database": base.identity,

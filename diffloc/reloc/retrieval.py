@@ -85,6 +85,10 @@ class NetVLADConfig:
     batch_size: int = 8
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        for name in ("clusters", "samples_per_image", "kmeans_iterations", "batch_size"):
+            check_positive_int(getattr(self, name), name)
+
 
 @dataclass
 class BowConfig:
@@ -102,6 +106,10 @@ class BowConfig:
     vocabulary_samples: int = 50_000
     kmeans_iterations: int = 20
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("words", "vocabulary_samples", "kmeans_iterations"):
+            check_positive_int(getattr(self, name), name)
 
 
 def _write_folder(path: Path, meta: dict, arrays: dict[str, torch.Tensor]) -> Path:
