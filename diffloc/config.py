@@ -21,6 +21,7 @@ from typing import Any
 
 from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
+from hydra.errors import InstantiationException
 from hydra.utils import get_class, instantiate
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
@@ -216,11 +217,23 @@ def to_object(node: DictConfig) -> Any:
     Returns:
         The dataclass instance; its ``__post_init__`` checks have run.
 
+    Raises:
+        ValueError: a setting out of range, as the settings class raised it (Hydra's
+            ``InstantiationException`` wrapper is removed, so the message is the class's own).
+
     Example:
         >>> to_object(compose_config(["features=orb"]).db).features.kind
         'orb'
     """
-    return instantiate(node, _convert_="object")
+    try:
+        return instantiate(node, _convert_="object")
+    except InstantiationException as exc:
+        cause = exc.__cause__
+        while isinstance(cause, InstantiationException) and cause.__cause__ is not None:
+            cause = cause.__cause__
+        if isinstance(cause, ValueError):
+            raise cause from None
+        raise
 
 
 class UnknownKeyError(ValueError):
