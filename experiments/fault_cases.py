@@ -338,7 +338,7 @@ DB = ("db.optim.min_pairs=5", "db.optim_check.accept=always")
 
 def _reloc_settings(root: Path) -> tuple[str, ...]:
     return (
-        "reloc.retriever=bow",
+        "retriever=bow",
         "reloc.database=database",
         "reloc.sequences=[query_same]",
         f"task.out_dir={root / 'reloc_out'}",
