@@ -74,7 +74,11 @@ from tests.read_only import read_only, snapshot
 
 CLASSES = ("clear", "correct", "silent", "traceback")
 MAP_CFG = BuildMapConfig(point_maps=[], preview_frames=1)
-KEY = re.compile(r"\b(task|db|reloc|scene|surfel|stage)\.[a-z_0-9.]+")
+KEY = re.compile(
+    r"\b(task|db|reloc|scene|map|nerf|stage)\.[a-z_0-9.]+"
+    r"|'(features|retriever|matcher|optim|map|nerf|experiment|task|scene|reloc)/[\w/]+'"
+)
+"""A setting's full key (``map.voxel_size_m``) or a group option (``'features/sift'``)."""
 
 
 class Silent(Exception):
