@@ -215,7 +215,7 @@ def merge(parts: list[str], out: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default="/work/main/data/indoor_seed0")
+    parser.add_argument("--data", default="data/indoor_seed0")
     parser.add_argument("--budget-s", type=float, default=600.0)
     parser.add_argument("--ablation-budget-s", type=float, default=None)
     parser.add_argument("--variants", default="full,rgb_only,rgb_depth")

@@ -17,7 +17,7 @@ matching).
 
 Usage:
     PYTHONPATH=. OMP_NUM_THREADS=1 python3 experiments/match_quality.py \\
-        --dataset /work/main/data/indoor_seed0 --work /tmp/rendered_work --every 8
+        --dataset data/indoor_seed0 --work /tmp/rendered_work --every 8
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ METHODS = ("AKAZE", "SIFT", "ORB", "XFeat + MNN", "XFeat + LighterGlue")
 
 def _parse() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--dataset", type=Path, default=Path("/work/main/data/indoor_seed0"))
+    parser.add_argument("--dataset", type=Path, default=Path("data/indoor_seed0"))
     parser.add_argument("--work", type=Path, default=Path("/tmp/rendered_work"))
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("--tag", default="indoor_seed0")

@@ -27,7 +27,7 @@ Algorithm 1. Images are downscaled by ``--scale`` (0.5: 320x240 for the 640x480 
 
 Usage:
     PYTHONPATH=. OMP_NUM_THREADS=1 python3 experiments/rendered_localization.py \\
-        --dataset /work/main/data/indoor_seed0 --work /tmp/rendered_work
+        --dataset data/indoor_seed0 --work /tmp/rendered_work
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ RETRIEVAL_ANGLE_DEG = 45.0
 
 def _parse() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--dataset", type=Path, default=Path("/work/main/data/indoor_seed0"))
+    parser.add_argument("--dataset", type=Path, default=Path("data/indoor_seed0"))
     parser.add_argument("--work", type=Path, default=Path("/tmp/rendered_work"))
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("--tag", default="indoor_seed0")
