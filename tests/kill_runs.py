@@ -101,7 +101,9 @@ def _run_in_child(stage: str, root: str) -> None:
         sys.exit(1)
 
 
-def killed_run(stage: str, root: Path, delay_s: float | None) -> tuple[bool, float]:
+def killed_run(
+    stage: str, root: Path, delay_s: float | None, *, after_glob: str | None = None
+) -> tuple[bool, float]:
     """Run ``stage`` on ``root`` in a child process, SIGKILLed after ``delay_s`` seconds.
 
     The child is forked from the fork server, which has imported everything already, so the
@@ -112,6 +114,10 @@ def killed_run(stage: str, root: Path, delay_s: float | None) -> tuple[bool, flo
         stage: a key of :data:`STAGE_CONFIGS`.
         root: the dataset folder.
         delay_s: seconds to let it run before the kill; ``None``: let it finish.
+        after_glob: start the ``delay_s`` clock only once a path matching this pattern exists
+            beside ``root`` (polled every 2 ms), e.g. the stage's temporary folder; the kill
+            then lands while that path is being written, however the machine's load shifts
+            the stage's timing.
 
     Returns:
         ``(killed, seconds until it exited or was killed)``.
@@ -122,6 +128,9 @@ def killed_run(stage: str, root: Path, delay_s: float | None) -> tuple[bool, flo
     child = _FORK_SERVER.Process(target=_run_in_child, args=(stage, str(root)))
     child.start()  # returns once the child is forked (the server is up)
     start = time.perf_counter()
+    if after_glob is not None:
+        while child.is_alive() and not any(Path(root).parent.glob(after_glob)):
+            time.sleep(0.002)
     child.join(delay_s)
     if child.exitcode is None:
         child.kill()

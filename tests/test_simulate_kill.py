@@ -21,7 +21,10 @@ def test_a_killed_simulate_leaves_no_dataset_and_the_next_run_cleans_up(
     leftovers_seen = 0
     for trial in range(TRIALS):
         root = tmp_path / f"trial{trial}" / "indoor_seed0"
-        killed_run("simulate", root, rng.uniform(0.2, 0.9) * seconds)
+        if trial == 0:  # while the dataset is being written into its temporary folder
+            killed_run("simulate", root, 0.0, after_glob=".indoor_seed0.tmp-*")
+        else:  # anywhere in the run, scene building included
+            killed_run("simulate", root, rng.uniform(0.2, 0.9) * seconds)
         assert not root.exists() or folder_files(root) == expected, f"trial {trial}: partial"
         leftovers_seen += sum(
             p.name.startswith(".indoor_seed0.tmp-") for p in root.parent.iterdir()
