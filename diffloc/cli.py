@@ -10,6 +10,9 @@ Examples:
     diffloc task=update_db task.sequence=query_lane  # add a sequence to the built database
     diffloc task=calibrate_rig                      # camera extrinsic + time offset of a database
     diffloc task=relocalize reloc.method.points=F    # relocalise the query sequences
+    diffloc task=relocalize features=orb retriever=bow  # swap extractor and retriever (groups)
+    diffloc task=train_nerf nerf.submap=3            # one radiance-field submap
+    diffloc -m +experiment=table3_noise              # a committed table's sweep
     diffloc task=export_colmap task.database=optimized  # the database as a COLMAP model
     diffloc task=main                               # all of the above, each stage cached
 
@@ -22,6 +25,7 @@ message that names a command to run carries the user's own overrides (``scene=ou
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -36,8 +40,9 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from diffloc.benchmark import peak_rss_mb
-from diffloc.config import CONF_DIR, check_known_keys, register_configs
+from diffloc.config import CONF_DIR, check_known_keys, register_configs, to_object
 from diffloc.io.atomic import atomic_write_text
+from diffloc.io.lock import lock_config
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.colmap_stage import export_colmap
 from diffloc.pipeline.database_stage import build_database, optimize_database
@@ -65,7 +70,7 @@ def run_build_map(cfg: DictConfig) -> dict:
     summary = build_maps(
         Path(cfg.dataset),
         OmegaConf.to_object(cfg.task),
-        OmegaConf.to_object(cfg.surfel),
+        to_object(cfg.map),
         show_progress=cfg.progress,
     )
     print(f"surfels: {summary['surfels']} from {summary['source']}")
@@ -77,7 +82,7 @@ def run_build_map(cfg: DictConfig) -> dict:
 
 def run_build_db(cfg: DictConfig) -> dict:
     """``task=build_db``: the visual database of ``dataset`` (noisy poses if ``db.noise_sigma``)."""
-    summary = build_database(Path(cfg.dataset), OmegaConf.to_object(cfg.db), cfg.progress)
+    summary = build_database(Path(cfg.dataset), to_object(cfg.db), cfg.progress)
     print(
         f"database: {summary['database']} ({summary['keyframes']} keyframes, "
         f"{summary['map_points']} map points, keyframe position RMSE "
@@ -88,7 +93,7 @@ def run_build_db(cfg: DictConfig) -> dict:
 
 def run_optimize_db(cfg: DictConfig) -> dict:
     """``task=optimize_db``: surfel reprojection optimisation of the ``build_db`` database."""
-    summary = optimize_database(Path(cfg.dataset), OmegaConf.to_object(cfg.db), cfg.progress)
+    summary = optimize_database(Path(cfg.dataset), to_object(cfg.db), cfg.progress)
     verdict = "accepted" if summary["accepted"] else "NOT accepted, built poses kept"
     print(
         f"optimized: {summary['database']} ({verdict}: {summary['check_reason']}; keyframe "
@@ -101,7 +106,7 @@ def run_optimize_db(cfg: DictConfig) -> dict:
 def run_update_db(cfg: DictConfig) -> dict:
     """``task=update_db``: add the frames of ``task.sequence`` to the ``build_db`` database."""
     summary = update_database(
-        Path(cfg.dataset), OmegaConf.to_object(cfg.db), OmegaConf.to_object(cfg.task), cfg.progress
+        Path(cfg.dataset), to_object(cfg.db), OmegaConf.to_object(cfg.task), cfg.progress
     )
     before, added, after = summary["before"], summary["after_adding"], summary["after_culling"]
     culled = summary["culled"]
@@ -119,7 +124,7 @@ def run_update_db(cfg: DictConfig) -> dict:
 def run_calibrate_rig(cfg: DictConfig) -> dict:
     """``task=calibrate_rig``: the camera extrinsic and time offset of the ``build_db`` database."""
     summary = calibrate_database_rig(
-        Path(cfg.dataset), OmegaConf.to_object(cfg.db), OmegaConf.to_object(cfg.task.calibration)
+        Path(cfg.dataset), to_object(cfg.db), OmegaConf.to_object(cfg.task.calibration)
     )
     std_cm = 100.0 * math.sqrt(sum(s * s for s in summary["std"][:3]))
     print(
@@ -136,9 +141,7 @@ def run_calibrate_rig(cfg: DictConfig) -> dict:
 
 def run_export_colmap(cfg: DictConfig) -> dict:
     """``task=export_colmap``: a saved database as a COLMAP TEXT model."""
-    summary = export_colmap(
-        Path(cfg.dataset), OmegaConf.to_object(cfg.db), OmegaConf.to_object(cfg.task)
-    )
+    summary = export_colmap(Path(cfg.dataset), to_object(cfg.db), OmegaConf.to_object(cfg.task))
     print(
         f"COLMAP model: {summary['model']} ({summary['images']} images, {summary['points']} "
         f"points, {summary['observations']} observations; colours: {summary['colors']})"
@@ -169,8 +172,8 @@ def run_relocalize(cfg: DictConfig) -> dict:
     out = _results_dir(cfg)
     results = relocalize_dataset(
         Path(cfg.dataset),
-        OmegaConf.to_object(cfg.db),
-        OmegaConf.to_object(cfg.reloc),
+        to_object(cfg.db),
+        to_object(cfg.reloc),
         out,
         show_progress=cfg.progress,
     )
@@ -188,14 +191,14 @@ def run_main(cfg: DictConfig) -> dict:
     build_maps(
         dataset,
         OmegaConf.to_object(cfg.task.build_map),
-        OmegaConf.to_object(cfg.surfel),
+        to_object(cfg.map),
         show_progress=cfg.progress,
     )
-    db_cfg = OmegaConf.to_object(cfg.db)
+    db_cfg = to_object(cfg.db)
     run_build_db(cfg)  # each stage is reused while its config and inputs are unchanged
     if cfg.task.optimize:
         run_optimize_db(cfg)
-    reloc = OmegaConf.to_object(cfg.reloc)
+    reloc = to_object(cfg.reloc)
     reloc.database = "optimized" if cfg.task.optimize else "database"
     out = _results_dir(cfg)
     results = relocalize_dataset(dataset, db_cfg, reloc, out, show_progress=cfg.progress)
@@ -209,7 +212,7 @@ def run_main(cfg: DictConfig) -> dict:
 
 def run_train_nerf(cfg: DictConfig) -> dict:
     """``task=train_nerf``: train one radiance-field submap under ``<dataset>/nerf``."""
-    summary = train_nerf_submap(Path(cfg.dataset), OmegaConf.to_object(cfg.task), cfg.progress)
+    summary = train_nerf_submap(Path(cfg.dataset), to_object(cfg.nerf), cfg.progress)
     print(f"submap {summary['submap']} of {summary['submaps']}: {summary['steps']} steps")
     print(f"field: {summary['field']}")
     return summary
@@ -233,8 +236,36 @@ MAKE_DATASET = ("simulate", "main")
 """Tasks that write the dataset folder; every other task reads an existing one."""
 
 
-VALUE_NODES = ("surfel", "db", "reloc", "task")
+VALUE_NODES = ("map", "db", "reloc", "nerf", "task", "stage")
 """Config nodes whose schemas check their ranges and names when built (``__post_init__``)."""
+
+
+def _build_node(node: DictConfig, path: str) -> None:
+    """Build the typed node ``node`` at key ``path``; a bad value's message names its full key.
+
+    A nested schema checks its own fields without knowing where it sits (``max_keypoints must
+    be ...``); the error is raised again from the deepest node that fails, its key in front
+    (``db.xfeat.max_keypoints must be ...``).
+    """
+    try:
+        to_object(node)
+    except ValueError as exc:
+        for key in node.keys():
+            if OmegaConf.is_missing(node, key) or OmegaConf.is_interpolation(node, key):
+                continue
+            child = node[key]
+            if isinstance(child, DictConfig) and (
+                "_target_" in child or dataclasses.is_dataclass(OmegaConf.get_type(child))
+            ):
+                _build_node(child, f"{path}.{key}")
+        message = str(exc)
+        if message.startswith(f"{path}.") or message.startswith(f"{path} "):
+            raise
+        first, _, rest = message.partition(" ")
+        field_name = first.removeprefix(f"{OmegaConf.get_type(node).__name__}.")
+        if field_name in node:
+            raise ValueError(f"{path}.{field_name} {rest}") from exc
+        raise ValueError(f"{path}: {message}") from exc
 
 
 def check_values(cfg: DictConfig) -> None:
@@ -246,11 +277,11 @@ def check_values(cfg: DictConfig) -> None:
     seconds instead of after the stages before it.
 
     Raises:
-        ValueError: the first bad value; the message names its key.
+        ValueError: the first bad value; the message names its full key.
     """
     for key in VALUE_NODES:
         if key in cfg:
-            OmegaConf.to_object(cfg[key])
+            _build_node(cfg[key], key)
     if cfg.task.name in MAKE_DATASET:
         validate_scene_config(OmegaConf.to_object(cfg.scene))
 
@@ -274,7 +305,8 @@ def run(cfg: DictConfig) -> object:
     description = Path(cfg.dataset) / "dataset.json"
     if name not in MAKE_DATASET and not description.is_file():
         raise MissingStageError(description, Command("simulate", (), (f"out_dir={cfg.dataset}",)))
-    return TASKS[name](cfg)
+    with lock_config(OmegaConf.to_object(cfg.stage)):
+        return TASKS[name](cfg)
 
 
 CHECKED_ERRORS = (OSError, ValueError)

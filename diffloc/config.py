@@ -21,14 +21,17 @@ from typing import Any
 
 from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
+from hydra.errors import InstantiationException
+from hydra.utils import get_class, instantiate
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
+from diffloc.io.lock import LockConfig
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.rig_calibration import RigCalibrationConfig
 from diffloc.pipeline.build_map import BuildMapConfig
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
 from diffloc.pipeline.database_stage import DatabaseConfig
-from diffloc.pipeline.nerf_config import TrainNerfTaskConfig
+from diffloc.pipeline.nerf_config import TrainNerfConfig
 from diffloc.pipeline.reloc_stage import RelocStageConfig
 from diffloc.pipeline.update_stage import UpdateTaskConfig
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
@@ -47,7 +50,8 @@ class SimulateTaskConfig:
 
 @dataclass
 class DatabaseTaskConfig:
-    """``task=build_db`` / ``task=optimize_db``: the settings live in the root ``db`` node."""
+    """``task=build_db`` / ``task=optimize_db``: the settings live in the root ``db`` node
+    (its ``features`` and ``optim`` from the groups of those names)."""
 
     name: str = "build_db"
 
@@ -65,8 +69,16 @@ class RigCalibrationTaskConfig:
 
 
 @dataclass
+class TrainNerfTaskConfig:
+    """``task=train_nerf``: the settings live in the root ``nerf`` node."""
+
+    name: str = "train_nerf"
+
+
+@dataclass
 class RelocalizeTaskConfig:
-    """``task=relocalize``: the settings live in the root ``reloc`` node.
+    """``task=relocalize``: the settings live in the root ``reloc`` node (its ``retriever``
+    and ``method`` matching from the ``retriever`` and ``matcher`` groups).
 
     Attributes:
         out_dir: where results go; empty: the Hydra run folder (``<dataset>/reloc`` outside
@@ -101,16 +113,30 @@ class MainTaskConfig:
 
 @dataclass
 class DifflocConfig:
-    """The app's root: which task, which scene, where the dataset lives, map settings."""
+    """The app's root: which task, which scene, where the dataset lives, the map, the
+    database, the relocalisation and the radiance-field settings.
+
+    The groups fill it: ``task/``, ``scene/``, ``map/`` (the surfel map), ``features/``
+    (``db.features``), ``optim/`` (``db.optim``, ``db.optim_check``), ``retriever/``
+    (``reloc.retriever``), ``matcher/`` (the relocaliser's matching, in ``reloc.method``) and
+    ``experiment/`` (named setups of the committed tables).
+
+    Attributes:
+        stage: what a run does when a stage folder it needs is in use by another run
+            (``stage.wait=false`` refuses at once, ``stage.timeout_s=60`` waits at most a
+            minute; default: wait as long as it takes).
+    """
 
     task: Any = MISSING
     scene: Any = MISSING
-    surfel: SurfelMapConfig = MISSING
+    map: SurfelMapConfig = MISSING
     out_dir: str = MISSING
     dataset: str = MISSING
     db: DatabaseConfig = field(default_factory=DatabaseConfig)
-    reloc: RelocStageConfig = MISSING
+    reloc: Any = MISSING  # a RelocStageConfig, typed by reloc/<scene>.yaml (its retriever swaps)
+    nerf: TrainNerfConfig = field(default_factory=TrainNerfConfig)
     progress: bool = True
+    stage: LockConfig = field(default_factory=LockConfig)
 
 
 GROUP_SCHEMAS: dict[str, type] = {
@@ -123,12 +149,28 @@ GROUP_SCHEMAS: dict[str, type] = {
     "schema_task_export_colmap": ExportColmapTaskConfig,
     "schema_task_main": MainTaskConfig,
     "schema_task_train_nerf": TrainNerfTaskConfig,
-    "schema_surfel": SurfelMapConfig,
+    "schema_map_surfel": SurfelMapConfig,
     "schema_reloc": RelocStageConfig,
     "schema_scene_indoor": IndoorSceneConfig,
     "schema_scene_outdoor": OutdoorSceneConfig,
 }
 """The schemas of the group YAML files, by the name their defaults lists give them."""
+
+SWAP_POINTS: dict[str, tuple[str, ...]] = {
+    "diffloc_schema": ("db.features",),
+    "schema_reloc": ("retriever",),
+}
+"""Nodes of a schema that a group option fills with a ``_target_`` node (``features/*.yaml``,
+``retriever/*.yaml``): the stored schema leaves them empty, so the option's class, not the
+dataclass default's, types them."""
+
+
+def _schema(name: str, node: type) -> DictConfig:
+    """The schema ``node`` as Hydra stores it: its swap points (:data:`SWAP_POINTS`) empty."""
+    schema = OmegaConf.structured(node)
+    for key in SWAP_POINTS.get(name, ()):
+        OmegaConf.update(schema, key, MISSING, merge=False)
+    return schema
 
 
 def register_configs() -> None:
@@ -137,12 +179,11 @@ def register_configs() -> None:
     The group schemas (:data:`GROUP_SCHEMAS`) are stored at the top level and named by the
     YAML files with an absolute path (``- /schema_task_main@_here_``), so they are not
     choices of their group: ``diffloc --help`` and the "available options" of a misspelt
-    choice list only real tasks, scenes, surfel and reloc settings.
+    choice list only real tasks, scenes, maps, features, retrievers, ...
     """
     store = ConfigStore.instance()
-    store.store(name="diffloc_schema", node=DifflocConfig)
-    for name, node in GROUP_SCHEMAS.items():
-        store.store(name=name, node=node)
+    for name, node in {"diffloc_schema": DifflocConfig, **GROUP_SCHEMAS}.items():
+        store.store(name=name, node=_schema(name, node))
 
 
 def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
@@ -164,6 +205,35 @@ def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
         cfg = compose(config_name="config", overrides=list(overrides))
     check_known_keys(cfg)
     return cfg
+
+
+def to_object(node: DictConfig) -> Any:
+    """The dataclass instance of a composed node, its swap points built from their
+    ``_target_`` (``db.features`` becomes an ``XFeatConfig`` or ``OrbConfig``).
+
+    Args:
+        node: a typed node of a composed config, e.g. ``cfg.db``.
+
+    Returns:
+        The dataclass instance; its ``__post_init__`` checks have run.
+
+    Raises:
+        ValueError: a setting out of range, as the settings class raised it (Hydra's
+            ``InstantiationException`` wrapper is removed, so the message is the class's own).
+
+    Example:
+        >>> to_object(compose_config(["features=orb"]).db).features.kind
+        'orb'
+    """
+    try:
+        return instantiate(node, _convert_="object")
+    except InstantiationException as exc:
+        cause = exc.__cause__
+        while isinstance(cause, InstantiationException) and cause.__cause__ is not None:
+            cause = cause.__cause__
+        if isinstance(cause, ValueError):
+            raise cause from None
+        raise
 
 
 class UnknownKeyError(ValueError):
@@ -201,11 +271,7 @@ def check_known_keys(cfg: DictConfig) -> None:
         UnknownKeyError: the first unknown key, with the known key of the same name if there
             is one (``scene.trajectory.max_frames``) or close field names of its node.
     """
-    typed = [
-        (path, node, [f.name for f in dataclasses.fields(OmegaConf.get_type(node))])
-        for path, node in _walk(cfg, "")
-        if dataclasses.is_dataclass(OmegaConf.get_type(node))
-    ]
+    typed = [(path, node, fields) for path, node in _walk(cfg, "") if (fields := _fields(node))]
     for path, node, fields in typed:
         for key in node.keys():
             if key in fields:
@@ -218,10 +284,27 @@ def check_known_keys(cfg: DictConfig) -> None:
                 if same_name or close
                 else f"the keys of {path or 'the root'} are {', '.join(fields)}"
             )
-            schema = OmegaConf.get_type(node).__name__
+            schema = _schema_class(node).__name__
             raise UnknownKeyError(
                 f"unknown config key {unknown}: {schema} has no field {key!r} ({advice})"
             )
+
+
+def _schema_class(node: DictConfig) -> type | None:
+    """The dataclass that types ``node``: its ``_target_`` if it has one, else its schema."""
+    if "_target_" in node:
+        return get_class(node._target_)
+    return OmegaConf.get_type(node)
+
+
+def _fields(node: DictConfig) -> list[str]:
+    """The keys a node may hold: the fields of its dataclass (and ``_target_`` if it is one
+    of a swap point); empty for a node no dataclass types."""
+    cls = _schema_class(node)
+    if not dataclasses.is_dataclass(cls):
+        return []
+    names = [f.name for f in dataclasses.fields(cls)]
+    return ["_target_", *names] if "_target_" in node else names
 
 
 def _join(path: str, key: object) -> str:

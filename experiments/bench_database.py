@@ -43,7 +43,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from diffloc.config import compose_config
+from diffloc.config import compose_config, to_object
 from diffloc.database.builder import ASSOCIATIONS, BuilderConfig
 from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.build_map import build_maps
@@ -59,7 +59,7 @@ def ensure_mapped(root: Path) -> None:
     if not (root / "dataset.json").is_file():
         simulate_dataset(OmegaConf.to_object(cfg.scene), root, show_progress=True)
     if not (root / "map" / "surfel_map.ply").is_file():
-        build_maps(root, OmegaConf.to_object(cfg.task.build_map), OmegaConf.to_object(cfg.surfel))
+        build_maps(root, OmegaConf.to_object(cfg.task.build_map), to_object(cfg.map))
 
 
 def main() -> None:

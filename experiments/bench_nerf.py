@@ -310,7 +310,7 @@ def _add_sampling_comparison(record: dict, markdown_path: str | None) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default="/work/main/data/indoor_seed0")
+    parser.add_argument("--data", default="data/indoor_seed0")
     parser.add_argument("--budget-s", type=float, default=600.0)
     parser.add_argument("--clock", choices=("wall", "cpu"), default="wall")
     parser.add_argument("--sampling-md", help="write the grid-vs-uniform table (Markdown) here")

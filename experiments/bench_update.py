@@ -47,7 +47,7 @@ import torch
 from culling_diagnostic import culling_diagnostic
 from omegaconf import OmegaConf
 
-from diffloc.config import compose_config
+from diffloc.config import compose_config, to_object
 from diffloc.database.database import VisualDatabase
 from diffloc.eval.tables import Column, markdown_table
 from diffloc.geometry.se3 import invert
@@ -113,7 +113,7 @@ def ensure_mapped(root: Path, cfg) -> None:
     if not (root / "dataset.json").is_file():
         simulate_dataset(OmegaConf.to_object(cfg.scene), root, show_progress=True)
     if not (root / "map" / "surfel_map.ply").is_file():
-        build_maps(root, OmegaConf.to_object(cfg.task.build_map), OmegaConf.to_object(cfg.surfel))
+        build_maps(root, OmegaConf.to_object(cfg.task.build_map), to_object(cfg.map))
 
 
 def git_commit() -> str:
@@ -154,7 +154,7 @@ def main() -> None:
         ],
     )
     ensure_mapped(data, compose_config([f"scene={args.scene}", "task=main", *args.overrides]))
-    db_cfg = OmegaConf.to_object(cfg.db)
+    db_cfg = to_object(cfg.db)
     result: dict = {
         "command": " ".join([Path(sys.executable).name, *sys.argv]),
         "commit": git_commit(),
@@ -175,7 +175,7 @@ def main() -> None:
     }
     result["update"]["update_ms_per_image"] = updated["update_ms_per_image"]
     result["update"]["features_ms_per_image"] = updated["features_ms_per_image"]
-    culling = OmegaConf.to_object(cfg.db).builder.culling
+    culling = to_object(cfg.db).builder.culling
     result["diagnostic"] = {
         which: culling_diagnostic(data, VisualDatabase.load(record["database"]), sources, culling)
         for which, record, sources in (
@@ -186,7 +186,7 @@ def main() -> None:
     truth = read_sequence(data, args.query).T_wc[:: args.query_stride]
     rows, correct, covered = [], {}, None
     for which in (BUILT, f"{UPDATED_PREFIX}{args.update}"):
-        reloc = OmegaConf.to_object(cfg.reloc)
+        reloc = to_object(cfg.reloc)
         reloc.database = which
         out = data / "bench_update" / which
         results = relocalize_dataset(data, db_cfg, reloc, out)

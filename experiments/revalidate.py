@@ -18,9 +18,9 @@ from pathlib import Path
 
 import yaml
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
 from diffloc.cli import CONF_DIR
+from diffloc.config import to_object
 from diffloc.eval.sweeps import load_jobs
 from diffloc.pipeline.revalidate import revalidate_run
 from diffloc.reloc.validation import ValidationConfig
@@ -32,7 +32,7 @@ def validation_config(job: Path, extra: list[str]) -> ValidationConfig:
     overrides = [x for x in lines if not x.lstrip("+~").startswith("hydra.")] + extra
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
-    return OmegaConf.to_object(cfg.reloc).validation
+    return to_object(cfg.reloc).validation
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -46,7 +46,7 @@ def load_jobs(sweep: Path) -> list[tuple[str, dict]]:
     for results_path in sorted(sweep.glob("*/results.json")):
         overrides_path = results_path.parent / ".hydra" / "overrides.yaml"
         overrides = yaml.safe_load(overrides_path.read_text()) if overrides_path.is_file() else []
-        shown = [o for o in overrides if not o.startswith(("hydra.", "task="))]
+        shown = [o for o in overrides if not o.startswith(("hydra.", "task=", "+experiment="))]
         jobs.append(
             (" ".join(shown) or results_path.parent.name, json.loads(results_path.read_text()))
         )

@@ -14,31 +14,79 @@ import json
 import multiprocessing
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
-from diffloc.pipeline.database_stage import DatabaseConfig, build_database, database_dir
-from tests.conftest import FINE_SURFELS
+from diffloc.pipeline.database_select import updated_dir
+from diffloc.pipeline.database_stage import (
+    DatabaseConfig,
+    build_database,
+    database_dir,
+    optimize_database,
+)
+from diffloc.pipeline.update_stage import UpdateTaskConfig, update_database
+from diffloc.sim.dataset import simulate_dataset
+from tests.conftest import FINE_SURFELS, TINY, scene_config
+
+_NOISY = DatabaseConfig(noise_sigma=0.05)
+NOISY_DB = replace(
+    _NOISY,
+    optim=replace(_NOISY.optim, min_pairs=5),
+    optim_check=replace(_NOISY.optim_check, accept="always"),
+)
+"""A database with noisy poses whose optimisation runs on the tiny scene (few surfel pairs)."""
+
+UPDATE_TASK = UpdateTaskConfig(sequence="query_lane")
 
 STAGE_CONFIGS = {
     "build_map": BuildMapConfig(point_maps=["tls_map"], preview_frames=1),
-    "build_db": DatabaseConfig(noise_sigma=0.05),
+    "build_db": NOISY_DB,
+    "optimize_db": NOISY_DB,
+    "update_db": NOISY_DB,
+    "simulate": TINY + ["scene=indoor"],
 }
-"""The stage runs that are killed: a map with a coloured point map, a noisy database."""
+"""The stage runs that are killed: a map with a coloured point map, a noisy database, its
+optimisation, its update with ``query_lane``, the tiny indoor dataset (its overrides; ``root``
+is then the dataset folder to write)."""
+
+PREREQUISITES = {"optimize_db": "build_db", "update_db": "build_db"}
+"""The stage each killed stage needs to have run first (on the same settings)."""
 
 
-def run_stage(stage: str, root: Path) -> dict:
-    """Run ``stage`` (a key of :data:`STAGE_CONFIGS`) on ``root``; its record."""
+def run_stage(stage: str, root: Path) -> dict | Path:
+    """Run ``stage`` (a key of :data:`STAGE_CONFIGS`) on ``root``; its record (the dataset
+    folder for ``simulate``)."""
+    config = STAGE_CONFIGS[stage]
     if stage == "build_map":
-        return build_maps(root, STAGE_CONFIGS[stage], FINE_SURFELS, show_progress=False)
-    return build_database(root, STAGE_CONFIGS[stage], show_progress=False)
+        return build_maps(root, config, FINE_SURFELS, show_progress=False)
+    if stage == "simulate":
+        return simulate_dataset(scene_config(config), root, show_progress=False)
+    if stage == "optimize_db":
+        return optimize_database(root, config, show_progress=False)
+    if stage == "update_db":
+        return update_database(root, config, UPDATE_TASK, show_progress=False)
+    return build_database(root, config, show_progress=False)
 
 
 def stage_folder(stage: str, root: Path) -> Path:
     """The folder ``stage`` writes into."""
     if stage == "build_map":
         return root / "map"
+    if stage == "simulate":
+        return root
+    if stage == "update_db":
+        return updated_dir(root, STAGE_CONFIGS[stage], UPDATE_TASK.sequence)
     return database_dir(root, STAGE_CONFIGS[stage])
+
+
+def folder_files(folder: Path) -> dict[str, bytes]:
+    """The bytes of every file under ``folder`` (hidden lock files left out), by path."""
+    return {
+        p.relative_to(folder).as_posix(): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != ".diffloc.lock"
+    }
 
 
 _FORK_SERVER = multiprocessing.get_context("forkserver")
@@ -53,7 +101,9 @@ def _run_in_child(stage: str, root: str) -> None:
         sys.exit(1)
 
 
-def killed_run(stage: str, root: Path, delay_s: float | None) -> tuple[bool, float]:
+def killed_run(
+    stage: str, root: Path, delay_s: float | None, *, after_glob: str | None = None
+) -> tuple[bool, float]:
     """Run ``stage`` on ``root`` in a child process, SIGKILLed after ``delay_s`` seconds.
 
     The child is forked from the fork server, which has imported everything already, so the
@@ -64,6 +114,10 @@ def killed_run(stage: str, root: Path, delay_s: float | None) -> tuple[bool, flo
         stage: a key of :data:`STAGE_CONFIGS`.
         root: the dataset folder.
         delay_s: seconds to let it run before the kill; ``None``: let it finish.
+        after_glob: start the ``delay_s`` clock only once a path matching this pattern exists
+            beside ``root`` (polled every 2 ms), e.g. the stage's temporary folder; the kill
+            then lands while that path is being written, however the machine's load shifts
+            the stage's timing.
 
     Returns:
         ``(killed, seconds until it exited or was killed)``.
@@ -74,6 +128,9 @@ def killed_run(stage: str, root: Path, delay_s: float | None) -> tuple[bool, flo
     child = _FORK_SERVER.Process(target=_run_in_child, args=(stage, str(root)))
     child.start()  # returns once the child is forked (the server is up)
     start = time.perf_counter()
+    if after_glob is not None:
+        while child.is_alive() and not any(Path(root).parent.glob(after_glob)):
+            time.sleep(0.002)
     child.join(delay_s)
     if child.exitcode is None:
         child.kill()

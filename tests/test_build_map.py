@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from diffloc.cli import run
+from diffloc.config import to_object
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.pointcloud import PointMap
 from diffloc.maps.surfel import SurfelMap
@@ -64,7 +64,7 @@ def test_build_map_task_from_the_command_line_config(built: Path, tmp_path: Path
     )
     summary = run(cfg)
     assert summary["surfels"] > 1000
-    assert OmegaConf.to_object(cfg.surfel).mean_radius_m == 0.03
+    assert to_object(cfg.map).mean_radius_m == 0.03
     assert "point_map" not in summary
 
 

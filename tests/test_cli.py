@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError, ValidationError
 
 from diffloc.cli import TASKS, _show_warning, run
-from diffloc.config import CONF_DIR, UnknownKeyError, register_configs
+from diffloc.config import CONF_DIR, UnknownKeyError, register_configs, to_object
 from diffloc.pipeline.hints import MissingStageError
 from diffloc.sim.config import IndoorSceneConfig, OutdoorSceneConfig
 from tests.conftest import TINY, compose_config
@@ -89,7 +89,8 @@ def test_misspelt_key_is_refused():
     ("override", "advice"),
     [
         ("+scene.max_frames=5", "scene.trajectory.max_frames"),
-        ("+db.xfeat.max_keypoint=500", "db.xfeat.max_keypoints"),
+        ("+db.features.max_keypoint=500", "db.features.max_keypoints"),
+        ("+reloc.retriever.cluster=64", "reloc.retriever.clusters"),
         ("+scene.sequences.1.speed=2", "speed_mps"),
         ("+task.outdir=x", "task.out_dir"),
         ("++scene.camera.widht=100", "scene.camera.width"),
@@ -144,7 +145,7 @@ def test_console_script_simulates_a_dataset(tmp_path):
 )
 @pytest.mark.parametrize("scene", ["indoor", "outdoor"])
 def test_every_task_config_composes_into_typed_objects(task, scene):
-    cfg = OmegaConf.to_object(compose_config([f"task={task}", f"scene={scene}"]))
+    cfg = to_object(compose_config([f"task={task}", f"scene={scene}"]))
     assert cfg.task.name == task
     assert cfg.reloc.validation.theta_in == 15
     assert cfg.reloc.validation.theta_dist_m == (0.3 if scene == "indoor" else 0.8)

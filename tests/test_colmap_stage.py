@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import shutil
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -10,13 +12,18 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
-from omegaconf import OmegaConf
 
+from diffloc.config import to_object
 from diffloc.database.colmap import reprojection_errors
 from diffloc.database.database import VisualDatabase
 from diffloc.geometry.se3 import invert
+from diffloc.io.ply import read_point_cloud, write_point_cloud
+from diffloc.maps._storage import EXACT_COLOR_PROPERTIES
 from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
+from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
+from diffloc.pipeline.hints import Command, StaleStageError
+from diffloc.pipeline.stage import open_stage, verified_record
 from tests.conftest import compose_config, copy_dataset, run_task
 
 
@@ -32,14 +39,14 @@ def _export(root: Path, *overrides: str) -> dict:
 
 
 def test_task_config_composes_with_documented_defaults():
-    cfg = OmegaConf.to_object(compose_config(["task=export_colmap"]))
+    cfg = to_object(compose_config(["task=export_colmap"]))
     assert cfg.task == ExportColmapTaskConfig()
     assert (cfg.task.database, cfg.task.out_dir, cfg.task.overwrite) == ("database", "", False)
 
 
 def test_unknown_database_name_is_refused():
     with pytest.raises(ValueError, match="database must be"):
-        OmegaConf.to_object(compose_config(["task=export_colmap", "task.database=best"]))
+        to_object(compose_config(["task=export_colmap", "task.database=best"]))
 
 
 def test_export_task_writes_the_built_database_as_a_colmap_model(built: Path):
@@ -81,18 +88,105 @@ def test_export_of_a_database_not_made_says_which_task_to_run(built: Path):
         _export(built, "task.database=optimized")
 
 
-def test_points_take_the_colours_of_their_anchor_surfels(built: Path, tmp_path: Path):
-    root = tmp_path / "coloured"
-    shutil.copytree(built, root)
-    surfel_path = root / "map" / "surfel_map.ply"
-    surfels = SurfelMap.load(surfel_path)
+def _recommit(folder: Path, stage: str, rel: str, write: Callable[[Path], None]) -> None:
+    """Commit a new output ``rel`` of ``stage`` in ``folder`` through the stage framework,
+    under the record's key and with its other outputs (as a stage that wrote it would)."""
+    record = verified_record(folder, stage, Command(stage))
+    with open_stage(folder, stage, Command(stage)) as run:
+        for other in record["stage"]["outputs"]:
+            if other != rel:
+                copy = shutil.copytree if (folder / other).is_dir() else shutil.copy
+                copy(folder / other, run.workdir() / other)
+        write(run.workdir() / rel)
+        summary = {k: v for k, v in record.items() if k != "stage"}
+        run.commit(record["stage"]["key"], summary, list(record["stage"]["outputs"]))
+
+
+def _coloured(surfels: SurfelMap) -> SurfelMap:
     rgb = torch.rand(surfels.centers.shape[0], 3, generator=torch.Generator().manual_seed(0))
-    replace(surfels, colors=rgb).save(surfel_path)
+    return replace(surfels, colors=rgb)
+
+
+def test_points_take_the_colours_of_their_anchor_surfels(
+    built: Path, tmp_path_factory: pytest.TempPathFactory
+):
+    root = copy_dataset(built, tmp_path_factory, "coloured")
+    surfel_path = root / "map" / "surfel_map.ply"
+    surfels = _coloured(SurfelMap.load(surfel_path))
+    _recommit(root / "map", "build_map", "surfel_map.ply", surfels.save)
+    run_task("build_db", root)  # on the coloured map
     summary = _export(root, "task.overwrite=true")  # the copy holds the first export
     assert summary["colors"] == f"anchor surfels of {surfel_path}"
     db = VisualDatabase.load(summary["database"])
     model = pycolmap.Reconstruction(summary["model"])
     for point_id, point in model.points3D.items():
         anchor = int(db.point_surfels[point_id - 1])
-        expected = np.rint(rgb[anchor].double().numpy() * 255) if anchor >= 0 else [128] * 3
+        expected = (
+            np.rint(surfels.colors[anchor].double().numpy() * 255) if anchor >= 0 else [128] * 3
+        )
         np.testing.assert_array_equal(point.color, expected)
+
+
+def test_a_surfel_map_edited_after_its_record_is_refused(
+    built: Path, tmp_path_factory: pytest.TempPathFactory
+):
+    root = copy_dataset(built, tmp_path_factory, "edited_map")
+    path = root / "map" / "surfel_map.ply"
+    _coloured(SurfelMap.load(path)).save(path)
+    with pytest.raises(StaleStageError, match=r"surfel_map\.ply is not the file .*build_map"):
+        _export(root, "task.overwrite=true")
+
+
+def test_a_surfel_map_built_again_after_the_database_is_refused(
+    built: Path, tmp_path_factory: pytest.TempPathFactory
+):
+    """The anchors index the map the database was built on: another map's colours would be
+    the wrong ones."""
+    root = copy_dataset(built, tmp_path_factory, "newer_map")
+    path = root / "map" / "surfel_map.ply"
+    _recommit(root / "map", "build_map", "surfel_map.ply", _coloured(SurfelMap.load(path)).save)
+    with pytest.raises(StaleStageError, match=r"built on another surfel map .*task=build_db"):
+        _export(root, "task.overwrite=true")
+
+
+def test_nan_surfel_colours_are_refused_naming_the_file_and_field(
+    built: Path, tmp_path_factory: pytest.TempPathFactory
+):
+    root = copy_dataset(built, tmp_path_factory, "nan_colours")
+    path = root / "map" / "surfel_map.ply"
+    cloud = read_point_cloud(path)
+    n = cloud.points.shape[0]
+    colours = np.full((n, 3), 0.5, dtype=np.float32)
+    colours[0, 1] = np.nan
+    extra = {**cloud.extra, **dict(zip(EXACT_COLOR_PROPERTIES, colours.T, strict=True))}
+
+    def write(target: Path) -> None:
+        write_point_cloud(target, cloud.points, cloud.normals, extra=extra)
+
+    _recommit(root / "map", "build_map", "surfel_map.ply", write)
+    with pytest.raises(ValueError, match=rf"{path}: .*colors"):
+        _export(root, "task.overwrite=true")
+
+
+def test_anchor_ids_outside_the_surfel_map_are_refused_naming_the_field(
+    built: Path, tmp_path_factory: pytest.TempPathFactory
+):
+    root = copy_dataset(built, tmp_path_factory, "bad_anchor")
+    folder = database_dir(root, DatabaseConfig())
+    db = VisualDatabase.load(folder / "database")
+    db.point_surfels[0] = SurfelMap.load(root / "map" / "surfel_map.ply").centers.shape[0] + 3
+    _recommit(folder, "build_db", "database", db.save)
+    with pytest.raises(ValueError, match=r"database/arrays\.npz: field 'point_surfels'"):
+        _export(root, "task.overwrite=true")
+
+
+def test_a_keyframe_beyond_its_sequence_is_refused_naming_the_record(
+    built: Path, tmp_path_factory: pytest.TempPathFactory
+):
+    root = copy_dataset(built, tmp_path_factory, "bad_frame")
+    record_path = database_dir(root, DatabaseConfig()) / "build_db.json"
+    record = json.loads(record_path.read_text())
+    record["keyframe_frames"][0] = 10_000
+    record_path.write_text(json.dumps(record))
+    with pytest.raises(ValueError, match=r"build_db\.json: keyframe frame 10000 of sequence"):
+        _export(root, "task.overwrite=true")

@@ -59,7 +59,7 @@ def test_render_batch_zero_is_refused_before_the_map_is_written(
     root = copy_dataset(tiny_indoor_mapped, tmp_path_factory, "batch")
     before = _map_files(root)
     with pytest.raises(ValueError, match=r"task\.render_batch"):
-        run_task("build_map", root, "task.render_batch=0", "surfel.voxel_size_m=0.05")
+        run_task("build_map", root, "task.render_batch=0", "map.voxel_size_m=0.05")
     assert _map_files(root) == before
 
 
@@ -117,3 +117,64 @@ def test_reloc_ranges_are_refused_before_any_stage_runs(
 def test_a_misspelt_sequence_is_refused_before_relocalisation(tiny_indoor_dataset: Path):
     with pytest.raises(FileNotFoundError, match=r"query_sam.*query_same"):
         run_task("relocalize", tiny_indoor_dataset, "reloc.sequences=[query_sam]")
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ("db.features.max_keypoints=0", r"^db\.features\.max_keypoints must be a positive int"),
+        ("db.optim.min_pairs=-1", r"^db\.optim\.min_pairs must be >= 0"),
+        ("map.voxel_size_m=-1", r"^map\.voxel_size_m must be a positive finite number"),
+        ("db.noise_sigma=-0.1", r"^db\.noise_sigma must be a finite number >= 0"),
+        ("db.noise_sigma=nan", r"^db\.noise_sigma must be a finite number >= 0"),
+        ("db.radius_px_per_prior_m=-1", r"^db\.radius_px_per_prior_m must be a finite number"),
+        ("db.point_gate_m_per_prior_m=-1", r"^db\.point_gate_m_per_prior_m must be a finite"),
+    ],
+)
+def test_a_bad_nested_value_is_named_by_its_full_key_before_any_work(
+    tiny_indoor_mapped: Path, setting: str, message: str
+):
+    """A nested schema's check does not know where it sits (``max_keypoints must be ...``):
+    the error names the full key, so the user can find the setting; nothing is written."""
+    before = sorted(p.relative_to(tiny_indoor_mapped) for p in tiny_indoor_mapped.rglob("*"))
+    with pytest.raises(ValueError, match=message):
+        run_task("build_db", tiny_indoor_mapped, setting)
+    assert (
+        sorted(p.relative_to(tiny_indoor_mapped) for p in tiny_indoor_mapped.rglob("*")) == before
+    )
+
+
+@pytest.mark.parametrize(
+    ("task", "setting", "message"),
+    [
+        ("relocalize", "retriever=bow reloc.retriever.words=0", r"^reloc\.retriever\.words must"),
+        ("relocalize", "reloc.retriever.clusters=0", r"^reloc\.retriever\.clusters must be a p"),
+        ("train_nerf", "nerf.epochs=0", r"^nerf\.epochs must be an integer >= 1"),
+        ("train_nerf", "nerf.submap=-1", r"^nerf\.submap must be an integer >= 0"),
+        ("simulate", "scene.camera.width=0", r"^scene\.camera\.width must be a positive int"),
+        ("simulate", "scene.camera.hfov_deg=200", r"^scene\.camera\.hfov_deg must be in"),
+        ("simulate", "scene.lidar.rate_hz=0", r"^scene\.lidar\.rate_hz must be a finite number"),
+    ],
+)
+def test_task_ranges_are_refused_before_anything_is_written(
+    tiny_indoor_mapped: Path, tmp_path: Path, task: str, setting: str, message: str
+):
+    """Until now these surfaced only in the middle of the task (an empty vocabulary, a
+    training of no epochs that wrote its run folder, a simulation that had taken its lock)."""
+    before = sorted(p.relative_to(tiny_indoor_mapped) for p in tiny_indoor_mapped.rglob("*"))
+    out = tmp_path / "out"
+    where = {"simulate": f"out_dir={out}", "relocalize": f"task.out_dir={out}"}
+    with pytest.raises(ValueError, match=message):
+        run_task(
+            task, tiny_indoor_mapped, *setting.split(), *([where[task]] if task in where else [])
+        )
+    assert (
+        sorted(p.relative_to(tiny_indoor_mapped) for p in tiny_indoor_mapped.rglob("*")) == before
+    )
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_cloud_named_twice_is_refused(tiny_indoor_mapped: Path):
+    """It was accepted and the cloud's points went into the surfel input twice."""
+    with pytest.raises(ValueError, match=r"task\.clouds names \['tls_map'\] more than once"):
+        run_task("build_map", tiny_indoor_mapped, "task.clouds=[lidar_map,tls_map,tls_map]")

@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 from torch.testing import assert_close
 
+from diffloc.config import to_object
 from diffloc.database.builder import BuilderConfig
 from diffloc.database.database import VisualDatabase
+from diffloc.features.local import OrbConfig
 from diffloc.geometry.rig import SensorRig
 from diffloc.geometry.se3 import invert, se3_exp
 from diffloc.io.calib import read_calib, write_calib
@@ -22,6 +23,7 @@ from diffloc.maps.surfel import SurfelMap
 from diffloc.optim.rig_calibration import calibrate_rig
 from diffloc.optim.surfel_cost import replace_map_points
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.pipeline.config_record import config_record
 from diffloc.pipeline.database_stage import (
     DatabaseConfig,
     OptimisationRejectedWarning,
@@ -100,7 +102,8 @@ def test_stage_reuse_needs_the_same_pose_prior(mapped: Path):
     cfg = DatabaseConfig(noise_sigma=0.05, pose_prior_sigma_m=0.1)
     summary = database_dir(mapped, cfg) / "build_db.json"
     assert built["pose_prior_sigma_m"] == 0.1
-    assert built["stage"]["key"]["config"] == json.loads(json.dumps(asdict(cfg)))
+    assert built["stage"]["key"]["config"] == json.loads(json.dumps(config_record(cfg)))
+    assert built["config"]["features"]["_target_"] == "diffloc.features.local.XFeatConfig"
     before = summary.stat().st_mtime_ns
     assert _run("build_db", mapped, *overrides) == built
     assert summary.stat().st_mtime_ns == before
@@ -153,7 +156,7 @@ def test_an_optimisation_that_drifts_is_rejected_and_the_built_poses_kept(mapped
     assert "pose_prior_sigma_m" in optimized["check_reason"]
     for key in ("check_inlier_fraction_before", "check_inlier_fraction_after"):
         assert 0.0 <= optimized[key] <= 1.0
-    folder = database_dir(mapped, OmegaConf.to_object(compose_config([*overrides]).db))
+    folder = database_dir(mapped, to_object(compose_config([*overrides]).db))
     kept, as_built = (VisualDatabase.load(folder / name) for name in ("optimized", "database"))
     assert torch.equal(kept.T_wc, as_built.T_wc)
     # the map points are re-placed at the built poses, not at the rejected ones
@@ -226,16 +229,16 @@ def test_missing_inputs_are_clear_errors(tmp_path: Path, mapped: Path, tiny_indo
 
 
 def test_orb_databases_live_beside_the_xfeat_ones(mapped: Path):
-    built = _run("build_db", mapped, "db.local_features=orb")
-    folder = database_dir(mapped, DatabaseConfig(local_features="orb"))
+    built = _run("build_db", mapped, "features=orb")
+    folder = database_dir(mapped, DatabaseConfig(features=OrbConfig()))
     assert built["database"] == str(folder / "database")
     db = VisualDatabase.load(folder / "database")
     assert db.metric == "hamming" and db.descriptors.dtype == torch.uint8
 
 
-def test_unknown_local_features_are_refused():
-    with pytest.raises(ValueError, match="local_features"):
-        DatabaseConfig(local_features="superpoint")
+def test_features_that_are_no_extractor_config_are_refused():
+    with pytest.raises(ValueError, match="db.features must be a local feature config"):
+        DatabaseConfig(features="superpoint")
 
 
 def _commit_built_database(folder: Path, db: VisualDatabase) -> None:

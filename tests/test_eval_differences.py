@@ -29,12 +29,12 @@ def correct(points: str, retriever: str) -> list[bool]:
 
 def ablation_sweep(root: Path, seeds=(1, 2), points=("naive", "F", "FN")) -> Path:
     """``diffloc -m task=relocalize scene.seed=1,2 reloc.method.points=naive,F,FN
-    reloc.retriever=netvlad,bow``."""
+    retriever=netvlad,bow``."""
     sweep = root / "ablation"
     write_multirun(
         sweep,
         ["task=relocalize", "scene.seed=" + ",".join(map(str, seeds))]
-        + ["reloc.method.points=" + ",".join(points), "reloc.retriever=netvlad,bow"],
+        + ["reloc.method.points=" + ",".join(points), "retriever=netvlad,bow"],
     )
     i = 0
     for seed in seeds:
@@ -44,7 +44,7 @@ def ablation_sweep(root: Path, seeds=(1, 2), points=("naive", "F", "FN")) -> Pat
                 write_job(
                     sweep / str(i),
                     ["task=relocalize", f"scene.seed={seed}"]
-                    + [f"reloc.method.points={p}", f"reloc.retriever={r}"],
+                    + [f"reloc.method.points={p}", f"retriever={r}"],
                     {s: sequence_entry(queries=Q) for s in SEQUENCES},
                     {s: query_list(outcomes, t0=100.0 * seed) for s in SEQUENCES},
                 )
@@ -74,18 +74,18 @@ def test_known_differences_and_verdicts(tmp_path: Path) -> None:
     rows = difference_rows(jobs, COMPARISONS, resamples=2000)
     # 2 comparisons x 2 retrievers x (pooled + 2 sequences).
     assert len(rows) == 12
-    fn_f = find(rows, "FN - F", "reloc.retriever=netvlad")
+    fn_f = find(rows, "FN - F", "retriever=netvlad")
     assert fn_f["queries"] == 2 * len(SEQUENCES) * Q and fn_f["strata"] == 4
     assert fn_f["seeds"] == [1, 2] and fn_f["difference"] == pytest.approx(0.3)
     assert 0.2 < fn_f["low"] < 0.3 < fn_f["high"] < 0.4 and fn_f["ordering_holds"] == "yes"
-    per_sequence = find(rows, "FN - F", "reloc.retriever=bow", "changed")
+    per_sequence = find(rows, "FN - F", "retriever=bow", "changed")
     assert per_sequence["queries"] == 2 * Q and per_sequence["strata"] == 2
     # Identical outcomes: the interval is the point 0.
-    same = find(rows, "F - naive", "reloc.retriever=netvlad")
+    same = find(rows, "F - naive", "retriever=netvlad")
     assert (same["difference"], same["low"], same["high"]) == (0.0, 0.0, 0.0)
     assert same["ordering_holds"] == "no (interval holds 0)"
     # Same success rate on different queries: zero difference with a wide interval.
-    swapped = find(rows, "F - naive", "reloc.retriever=bow")
+    swapped = find(rows, "F - naive", "retriever=bow")
     assert swapped["difference"] == pytest.approx(0.0) and swapped["low"] < -0.05
     assert swapped["high"] > 0.05 and swapped["ordering_holds"] == "no (interval holds 0)"
     reversed_rows = difference_rows(jobs, [Comparison.parse("reloc.method.points=F,FN")])
@@ -133,7 +133,7 @@ def test_unpairable_runs_raise(tmp_path: Path) -> None:
     fewer = [
         j
         for j in jobs
-        if not (j.settings["reloc.method.points"] == "F" and j.settings["reloc.retriever"] == "bow")
+        if not (j.settings["reloc.method.points"] == "F" and j.settings["retriever"] == "bow")
     ]
     with pytest.raises(ValueError, match="only one side"):
         difference_rows(fewer, COMPARISONS[:1])

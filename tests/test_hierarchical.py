@@ -29,7 +29,7 @@ from diffloc.reloc.retrieval import load_retriever
 from diffloc.reloc.validation import ValidationConfig
 from tests.conftest import TINY, compose_config
 
-FINE = ["surfel.voxel_size_m=0.02", "surfel.mean_radius_m=0.02", "surfel.normal_radius_m=0.08"]
+FINE = ["map.voxel_size_m=0.02", "map.mean_radius_m=0.02", "map.normal_radius_m=0.08"]
 
 
 def test_clusters_are_connected_components_ordered_by_their_best_keyframe():

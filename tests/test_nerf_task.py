@@ -6,29 +6,28 @@ import dataclasses
 from pathlib import Path
 
 import pytest
-from omegaconf import OmegaConf
 
-from diffloc.config import compose_config
+from diffloc.config import compose_config, to_object
 from diffloc.maps.nerf.export import load_field
 from diffloc.maps.nerf.field import FieldConfig
 from diffloc.maps.nerf.sampler import SamplerConfig
 from diffloc.maps.nerf.submaps import load_submaps
 from diffloc.pipeline import nerf_stage
-from diffloc.pipeline.nerf_config import TrainNerfTaskConfig
+from diffloc.pipeline.nerf_config import TrainNerfConfig
 from diffloc.pipeline.nerf_stage import train_nerf_submap
 
 
 def test_task_config_composes_with_overrides() -> None:
-    cfg = OmegaConf.to_object(
-        compose_config(["task=train_nerf", "task.submap=3", "task.train.field.encoding=hashgrid"])
+    cfg = to_object(
+        compose_config(["task=train_nerf", "nerf.submap=3", "nerf.train.field.encoding=hashgrid"])
     )
-    assert isinstance(cfg.task, TrainNerfTaskConfig)
-    assert cfg.task.submap == 3 and cfg.task.train.field.encoding == "hashgrid"
-    assert cfg.task.train.loss.depth_sigma_m == 0.01
+    assert isinstance(cfg.nerf, TrainNerfConfig) and cfg.task.name == "train_nerf"
+    assert cfg.nerf.submap == 3 and cfg.nerf.train.field.encoding == "hashgrid"
+    assert cfg.nerf.train.loss.depth_sigma_m == 0.01
 
 
-def _tiny(tmp_path: Path, **changes) -> TrainNerfTaskConfig:
-    cfg = TrainNerfTaskConfig(out_dir=str(tmp_path / "nerf"), epochs=1)
+def _tiny(tmp_path: Path, **changes) -> TrainNerfConfig:
+    cfg = TrainNerfConfig(out_dir=str(tmp_path / "nerf"), epochs=1)
     cfg.submaps.num_submaps = 2
     cfg.data.holdout_every = 0
     cfg.data.lidar_stride = 8
@@ -77,7 +76,7 @@ def test_a_second_run_reuses_the_committed_field_and_a_failed_one_keeps_it(
 
 
 def test_bad_submaps_are_clear_errors(tiny_indoor_dataset: Path, tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="task.submap=5"):
+    with pytest.raises(ValueError, match="nerf.submap=5"):
         train_nerf_submap(tiny_indoor_dataset, _tiny(tmp_path, submap=5), False)
     single = _tiny(tmp_path)
     single.submaps.num_submaps = 5

@@ -10,6 +10,7 @@ mesh-albedo database.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -28,10 +29,13 @@ from diffloc.geometry.se3 import se3_exp
 from diffloc.io.dataset import read_sequence
 from diffloc.io.mesh_obj import read_textured_mesh_obj
 from diffloc.reloc.rendered import (
+    RenderedCandidate,
     RenderedDatabaseLocalizer,
     RenderedLocalizerConfig,
+    accept_pose,
     lift_keypoints,
 )
+from diffloc.reloc.validation import ValidationConfig
 from diffloc.render.point_sizes import PointSizes
 
 SMALL_DB = DatabaseConfig(netvlad_clusters=4, samples_per_image=50)
@@ -110,7 +114,7 @@ def test_point_cloud_database_localizes_a_query_rendered_from_the_cloud(scene):
 
 def test_bag_of_words_retrieval_and_top_k_fallback(scene, mesh_database):
     mesh_map, mapping = scene
-    config = RenderedLocalizerConfig(retriever="bow", top_k=3)
+    config = RenderedLocalizerConfig(retriever="bow", top_k=3, select="first")
     result = RenderedDatabaseLocalizer(mesh_database, config).localize(
         mesh_map.render((mapping.T_wc[3] @ se3_exp(OFFSET))[None], mapping.camera).rgb[0],
         mapping.camera,
@@ -164,11 +168,11 @@ def test_matches_without_depth_give_no_points_and_no_pose(scene, mesh_database):
     )
     T_query = mapping.T_wc[1] @ se3_exp(OFFSET)
     image = mesh_map.render(T_query[None], mapping.camera).rgb[0]
-    result = RenderedDatabaseLocalizer(no_depth, RenderedLocalizerConfig()).localize(
-        image, mapping.camera
-    )
+    config = RenderedLocalizerConfig(top_k=3, select="most_inliers")
+    result = RenderedDatabaseLocalizer(no_depth, config).localize(image, mapping.camera)
     assert result.num_matches > 0 and result.num_points == 0
-    assert not result.success and result.num_inliers == 0
+    assert not result.success and not result.accepted and result.num_inliers == 0
+    assert len(result.candidates) == 3 and not any(c.success for c in result.candidates)
 
 
 def test_end_to_end_simulated_queries_in_the_mesh_database(tiny_indoor_dataset, localizer):
@@ -224,8 +228,128 @@ def test_bad_configs_are_rejected():
         RenderedLocalizerConfig(min_points=3)
     with pytest.raises(ValueError, match="min_confidence"):
         RenderedLocalizerConfig(min_confidence=math.inf)
+    with pytest.raises(ValueError, match="stop_inliers"):
+        RenderedLocalizerConfig(stop_inliers=0)
+    with pytest.raises(ValueError, match="single-image"):
+        RenderedLocalizerConfig(validation=ValidationConfig(temporal=True))
 
 
 def test_localizer_needs_a_database():
     with pytest.raises(TypeError, match="RenderedDatabase"):
         RenderedDatabaseLocalizer([], RenderedLocalizerConfig())
+
+
+def _near_frame_2(scene) -> tuple[torch.Tensor, torch.Tensor]:
+    mesh_map, mapping = scene
+    T_query = mapping.T_wc[2] @ se3_exp(OFFSET)
+    return mesh_map.render(T_query[None], mapping.camera).rgb[0], T_query
+
+
+def test_reranking_keeps_the_candidate_with_the_most_inliers(scene, mesh_database):
+    """References tried in the order 0, 4, 2: the query lies 16 cm from image 2, which gives
+    the most inliers, so re-ranking answers with image 2 while "first" keeps the first
+    reference that localises."""
+    _, mapping = scene
+    image, T_query = _near_frame_2(scene)
+    order = torch.tensor([0, 4, 2])
+    config = RenderedLocalizerConfig(select="most_inliers", stop_inliers=None, validation=None)
+    result = RenderedDatabaseLocalizer(mesh_database, config).localize(image, mapping.camera, order)
+    inliers = [c.num_inliers for c in result.candidates]
+    assert [c.reference for c in result.candidates] == [0, 4, 2]
+    assert result.reference == 2 and result.num_inliers == max(inliers) > max(inliers[:2])
+    assert _errors(result.T_wc, T_query)[0] < 0.05
+    first = RenderedDatabaseLocalizer(mesh_database, replace(config, select="first")).localize(
+        image, mapping.camera, order
+    )
+    first_success = next(c.reference for c in result.candidates if c.success)
+    assert first.reference == first_success and len(first.candidates) <= 3
+
+
+def test_reranking_stops_once_a_candidate_has_enough_inliers(scene, mesh_database):
+    _, mapping = scene
+    image, _ = _near_frame_2(scene)
+    config = RenderedLocalizerConfig(stop_inliers=20, validation=None)
+    result = RenderedDatabaseLocalizer(mesh_database, config).localize(
+        image, mapping.camera, torch.tensor([2, 0, 4])
+    )
+    assert result.num_inliers >= 20 and len(result.candidates) == 1
+
+
+def test_validation_accepts_the_right_pose_and_rejects_a_repeated_place(scene, mesh_database):
+    """Image 2 appended again 5 m away (a repeated place): the query matches both equally
+    well, so the two poses disagree and neither is accepted; without the copy it is."""
+    _, mapping = scene
+    image, T_query = _near_frame_2(scene)
+    db = mesh_database
+    moved = db.T_wc[2].clone()
+    moved[:3, 3] += torch.tensor([5.0, 0.0, 0.0], dtype=torch.float64)
+    repeated = RenderedDatabase(
+        torch.cat([db.T_wc, moved[None]]),
+        torch.cat([db.rgb, db.rgb[2:3]]),
+        torch.cat([db.depth, db.depth[2:3]]),
+        db.camera,
+        (*db.features, db.features[2]),
+        torch.cat([db.global_descriptors, db.global_descriptors[2:3]]),
+        db.netvlad,
+    )
+    config = RenderedLocalizerConfig(stop_inliers=None)
+    right = RenderedDatabaseLocalizer(db, config).localize(image, mapping.camera, torch.tensor([2]))
+    assert right.accepted and _errors(right.T_wc, T_query)[0] < 0.05
+    ambiguous = RenderedDatabaseLocalizer(repeated, config).localize(
+        image, mapping.camera, torch.tensor([2, db.num_images])
+    )
+    assert all(c.success for c in ambiguous.candidates)
+    assert ambiguous.success and not ambiguous.accepted
+
+
+T_EYE = torch.eye(4, dtype=torch.float64)
+CHECK = ValidationConfig(
+    theta_in=20,
+    theta_dist_m=1.0,
+    temporal=False,
+    min_inlier_ratio=0.3,
+    min_coverage=0.25,
+    ambiguity_ratio=0.5,
+)
+GOOD = RenderedCandidate(0, T_EYE, True, 120, 100, 60, 0.75, 1.2)
+
+
+def _at(x_m: float) -> torch.Tensor:
+    T = T_EYE.clone()
+    T[0, 3] = x_m
+    return T
+
+
+@pytest.mark.parametrize(
+    ("best", "others", "accepted"),
+    [
+        (GOOD, (), True),
+        (GOOD, (RenderedCandidate(5, _at(0.4), True, 90, 80, 50, 0.5, 1.0),), True),
+        (GOOD, (RenderedCandidate(5, _at(5.0), True, 90, 80, 29, 0.5, 1.0),), True),
+        (GOOD, (RenderedCandidate(5, _at(5.0), True, 90, 80, 30, 0.5, 1.0),), False),
+        (GOOD, (RenderedCandidate(5, _at(5.0), False, 90, 80, 50, 0.0, math.nan),), True),
+        (RenderedCandidate(0, T_EYE, True, 120, 100, 19, 0.75, 1.2), (), False),
+        (RenderedCandidate(0, T_EYE, True, 300, 250, 60, 0.75, 1.2), (), False),
+        (RenderedCandidate(0, T_EYE, True, 120, 100, 60, 0.1875, 1.2), (), False),
+        (RenderedCandidate.none(0, 120, 100, 3), (), False),
+    ],
+    ids=[
+        "supported",
+        "agreeing-rival",
+        "weak-rival-far",
+        "strong-rival-far",
+        "failed-rival",
+        "few-inliers",
+        "low-inlier-ratio",
+        "low-coverage",
+        "no-pose",
+    ],
+)
+def test_validation_rules_on_constructed_candidates(best, others, accepted):
+    assert accept_pose(best, (best, *others), CHECK) is accepted
+
+
+def test_without_validation_every_found_pose_is_accepted():
+    weak = RenderedCandidate(0, T_EYE, True, 120, 100, 6, 0.0625, 3.0)
+    assert accept_pose(weak, (weak,), None)
+    assert not accept_pose(RenderedCandidate.none(), (), None)

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from diffloc.database.database import VisualDatabase
+from diffloc.features.local import OrbConfig
 from diffloc.io.dataset import read_sequence
 from diffloc.pipeline.database_select import check_database_name, select_database, updated_dir
 from diffloc.pipeline.database_stage import DatabaseConfig, db_overrides, perturb_positions
@@ -121,11 +122,11 @@ def test_database_names_are_validated():
             RelocStageConfig(database=name)
     with pytest.raises(ValueError, match="task.sequence"):
         UpdateTaskConfig(sequence="")
-    orb = DatabaseConfig(local_features="orb", pose_prior_sigma_m=0.2)
+    orb = DatabaseConfig(features=OrbConfig(), pose_prior_sigma_m=0.2)
     assert db_overrides("d", orb) == (
         "dataset=d",
         "db.pose_prior_sigma_m=0.2",
-        "db.local_features=orb",
+        "features=orb",
     )
 
 

@@ -47,7 +47,7 @@ def test_a_retriever_cache_of_another_size_is_not_trusted(built: Path):
     """Finding 4: a cached retriever with the configured settings that ranks fewer keyframes
     than the database holds (written newer than the database, as a stale cache would be) used
     to be loaded and used."""
-    settings = ("reloc.retriever=bow", "reloc.database=database", "reloc.sequences=[query_same]")
+    settings = ("retriever=bow", "reloc.database=database", "reloc.sequences=[query_same]")
     run_task("relocalize", built, *settings, f"task.out_dir={built / 'reloc_a'}")
     folder = database_dir(built, DatabaseConfig())
     db = VisualDatabase.load(folder / "database")

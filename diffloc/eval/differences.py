@@ -3,7 +3,7 @@
 A :class:`Comparison` names one override key and two of its values, the one claimed better
 first (e.g. ``reloc.method.points=FN,F`` for "FN >= F", ``task.optimize=true,false`` for
 "optimised > raw"). Jobs that set the key to either value are paired when everything else in
-their variant (the *context*, e.g. ``reloc.retriever=bow`` or ``db.noise_sigma=0.2``) and the
+their variant (the *context*, e.g. ``retriever=bow`` or ``db.noise_sigma=0.2``) and the
 scene seed agree; inside a pair, queries are paired by (sequence, query index), and their
 timestamps must agree.
 

@@ -7,8 +7,9 @@ folder (``diffloc -m ... hydra.sweep.dir=DIR``) holds ``multirun.yaml`` and one 
 folder per job.
 
 Every job has a *scene seed* (``scene.seed=N`` in its overrides, else ``scene.seed`` of its
-``.hydra/config.yaml``) and a *variant*: its overrides without ``hydra.*``, ``task=`` and
-``scene.seed``, so the same variant on several seeds groups together, across sweep folders.
+``.hydra/config.yaml``) and a *variant*: its overrides without ``hydra.*``, ``task=``,
+``+experiment=`` and ``scene.seed``, so the same variant on several seeds groups together,
+across sweep folders.
 
 Reading is strict: an empty or half-finished sweep (fewer finished jobs than ``multirun.yaml``
 describes, or job folders without ``results.json``), two jobs of one variant on the same seed,
@@ -40,8 +41,9 @@ __all__ = [
 ]
 
 _SEED_KEY = "scene.seed"
-_NOT_VARIANT = ("task", _SEED_KEY)
-"""Override keys that do not make a variant (besides ``hydra.*``)."""
+_NOT_VARIANT = ("task", "experiment", _SEED_KEY)
+"""Override keys that do not make a variant (besides ``hydra.*``): the task, the named setup
+(``+experiment=NAME``, the same for every job of its sweep) and the scene seed."""
 
 
 def _parse_overrides(lines: Sequence[str], where: Path) -> list[Override]:

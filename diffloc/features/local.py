@@ -30,6 +30,7 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -119,6 +120,7 @@ class XFeatConfig:
         device: torch device of the network; images and outputs live there.
     """
 
+    kind: ClassVar[str] = "xfeat"
     max_keypoints: int = 4096
     detection_threshold: float = 0.05
     keypoint_size: float = 8.0
@@ -159,6 +161,7 @@ class OrbConfig:
             level 0; level ``l`` keypoints have size ``patch_size * scale_factor**l``).
     """
 
+    kind: ClassVar[str] = "orb"
     max_keypoints: int = 1000
     scale_factor: float = 1.2
     levels: int = 8
@@ -193,6 +196,7 @@ class SiftConfig:
         sigma: blur of the first octave.
     """
 
+    kind: ClassVar[str] = "sift"
     max_keypoints: int = 2000
     octave_layers: int = 3
     contrast_threshold: float = 0.04
@@ -220,6 +224,7 @@ class AkazeConfig:
         octave_layers: sublevels per octave.
     """
 
+    kind: ClassVar[str] = "akaze"
     max_keypoints: int = 2000
     threshold: float = 0.001
     octaves: int = 4
@@ -233,7 +238,8 @@ class AkazeConfig:
 
 
 LocalFeatureConfig = XFeatConfig | OrbConfig | SiftConfig | AkazeConfig
-"""Any backend's config; :func:`make_extractor` picks the backend from the type."""
+"""Any backend's config; :func:`make_extractor` picks the backend from the type, and its
+``kind`` class attribute names it (``"xfeat"``, ``"orb"``, ``"sift"``, ``"akaze"``)."""
 
 
 def _check_positive(value: object, name: str) -> None:

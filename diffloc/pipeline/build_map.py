@@ -36,7 +36,7 @@ from diffloc.maps.lidar_source import lidar_points_with_origins
 from diffloc.maps.pointcloud import ColorizeConfig, PointMap
 from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
 from diffloc.pipeline.hints import Command
-from diffloc.pipeline.stage import open_stage, stage_key
+from diffloc.pipeline.stage import LockLevel, open_stage, stage_key
 from diffloc.progress import progress
 from diffloc.render.surfel_render import render_surfel_index
 
@@ -204,12 +204,18 @@ def _colour_cloud(
 
 
 def _check_names(names: list[str], setting: str) -> None:
-    """Every name of a list setting is a point-cloud map of :data:`MAP_FILES`."""
+    """Every name of a list setting is a point-cloud map of :data:`MAP_FILES`, named once."""
     unknown = [name for name in names if name not in POINT_CLOUD_MAPS]
     if unknown:
         raise ValueError(
             f"task.{setting} names unknown map clouds {unknown}; choose from "
             f"{list(POINT_CLOUD_MAPS)} (an absent one is skipped and recorded as skipped)"
+        )
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise ValueError(
+            f"task.{setting} names {repeated} more than once (a cloud would be used twice); "
+            "name each cloud once"
         )
 
 
@@ -217,9 +223,9 @@ def check_build_map_config(cfg: BuildMapConfig) -> None:
     """Reject an unusable map-stage configuration before any work starts.
 
     Raises:
-        ValueError: an unknown cloud name in ``clouds``/``point_maps``, ``render_batch`` or
-            ``preview_frames`` below 1, ``image_scale`` not in (0, 1], or an empty sequence
-            name; the message names the setting.
+        ValueError: an unknown or repeated cloud name in ``clouds``/``point_maps``,
+            ``render_batch`` or ``preview_frames`` below 1, ``image_scale`` not in (0, 1], or
+            an empty sequence name; the message names the setting.
     """
     _check_names(list(cfg.clouds), "clouds")
     _check_names(list(cfg.point_maps), "point_maps")
@@ -285,7 +291,7 @@ def build_maps(
     existing = map_paths(root)
     used = [key for key in dict.fromkeys([*cfg.clouds, *cfg.point_maps]) if key in existing]
     command = Command("build_map", (f"dataset={dataset}",))
-    with open_stage(out, STAGE, command) as stage:
+    with open_stage(out, STAGE, command, LockLevel.MAP) as stage:
         inputs = {"sequence": identity(root / cfg.sequence)}
         inputs.update({key: identity(existing[key]) for key in used})
         key = stage_key(config, inputs)

@@ -7,7 +7,13 @@ select) and writes it with :func:`~diffloc.database.colmap.write_colmap_text`:
 - image names are the keyframes' image files relative to the dataset folder (e.g.
   ``mapping/rgb/000012.png``), so ``image_dir=<dataset>`` works for hloc and COLMAP;
 - map point colours are those of their anchor surfels when ``<dataset>/map/surfel_map.ply``
-  has colours and holds every anchor id, else grey.
+  has colours, else grey (also when there is no surfel map).
+
+What it reads is checked first, each error naming the file and field: the surfel map through
+its verified ``build_map`` record (a map changed since is refused), made before the database
+(the database's record names the surfel map it was built on; a map built again since is
+refused), every anchor id (``point_surfels``) in ``[-1, surfels)``, every keyframe's frame
+in its sequence.
 
 Usage (on a dataset whose database is built; ``diffloc task=export_colmap`` does this)::
 
@@ -24,10 +30,21 @@ import numpy as np
 from diffloc.database.colmap import write_colmap_text
 from diffloc.database.database import VisualDatabase
 from diffloc.io.dataset import read_sequence
-from diffloc.maps.surfel import SurfelMap
-from diffloc.pipeline.database_select import BUILT, check_database_name, select_database
-from diffloc.pipeline.database_stage import DatabaseConfig, database_dir, db_overrides
-from diffloc.pipeline.hints import Command, ExistingOutputError
+from diffloc.io.json_record import read_json_record
+from diffloc.pipeline.database_select import (
+    BUILT,
+    SelectedDatabase,
+    check_database_name,
+    select_database,
+)
+from diffloc.pipeline.database_stage import (
+    DatabaseConfig,
+    database_dir,
+    db_overrides,
+    read_surfel_map,
+)
+from diffloc.pipeline.hints import Command, ExistingOutputError, StaleStageError
+from diffloc.pipeline.stage import output_identity
 
 __all__ = ["ExportColmapTaskConfig", "export_colmap"]
 
@@ -52,22 +69,61 @@ class ExportColmapTaskConfig:
         check_database_name(self.database)
 
 
-def _point_colors(dataset: Path, db: VisualDatabase) -> tuple[np.ndarray | None, str]:
-    """(P, 3) uint8 colours of the anchor surfels, or ``None``; and where they came from."""
+def _point_colors(
+    dataset: Path, db: VisualDatabase, selected: SelectedDatabase, rebuild: Command
+) -> tuple[np.ndarray | None, str]:
+    """(P, 3) uint8 colours of the anchor surfels, or ``None``; and where they came from.
+
+    ``rebuild`` is the command that builds the database again (for messages).
+
+    Raises:
+        StaleStageError: the surfel map is not the one its record or the database's names.
+        ValueError: an anchor id outside the surfel map (the message names the field).
+    """
     path = dataset / "map" / "surfel_map.ply"
     if not path.is_file():
         return None, "grey (no surfel map)"
-    surfels = SurfelMap.load(path)
+    map_record, surfels = read_surfel_map(dataset)
+    used = read_json_record(selected.record)["stage"]["key"]["inputs"].get("surfel_map")
+    if used != output_identity(map_record, "surfel_map.ply"):
+        raise StaleStageError(
+            f"{selected.path} (record {selected.record}) was built on another surfel map than "
+            f"{path} (the map was built again since): build the database again",
+            rebuild,
+        )
     anchors = db.point_surfels
+    count = surfels.centers.shape[0]
+    if bool(((anchors < -1) | (anchors >= count)).any()):
+        raise ValueError(
+            f"{selected.path / 'arrays.npz'}: field 'point_surfels' holds surfel ids outside "
+            f"[-1, {count}) of {path}; the database is corrupt: build it again"
+        )
     if surfels.colors is None:
         return None, "grey (the surfel map has no colours)"
-    if bool((anchors >= surfels.centers.shape[0]).any()):
-        return None, "grey (the database's anchor surfels are not in the surfel map)"
     colors = np.full((db.num_points, 3), 128, dtype=np.uint8)
     has = (anchors >= 0).numpy()
     rgb = surfels.colors[anchors[anchors >= 0]].double().numpy()
     colors[has] = np.rint(rgb * 255.0).astype(np.uint8)
     return colors, f"anchor surfels of {path}"
+
+
+def _image_names(dataset: Path, selected: SelectedDatabase) -> list[str]:
+    """The keyframes' image files relative to ``dataset``, in keyframe order.
+
+    Raises:
+        ValueError: a keyframe's frame is not in its sequence (the message names the record).
+    """
+    sequences = {name: read_sequence(dataset, name) for name, _ in selected.keyframe_sources}
+    names = []
+    for name, frame in selected.keyframe_sources:
+        paths = sequences[name].rgb_paths
+        if frame >= len(paths):
+            raise ValueError(
+                f"{selected.record}: keyframe frame {frame} of sequence {name!r} is beyond its "
+                f"{len(paths)} images (the sequence changed since): build the database again"
+            )
+        names.append(paths[frame].resolve().relative_to(dataset.resolve()).as_posix())
+    return names
 
 
 def export_colmap(
@@ -86,18 +142,19 @@ def export_colmap(
 
     Raises:
         MissingStageError: the database was not made; the message names the command to run.
+        StaleStageError: the surfel map changed since its record, or since the database was
+            built (the message names the files and the command).
+        ValueError: anchor ids outside the surfel map, keyframe frames outside their sequence
+            (the message names the file and field).
         ExistingOutputError: ``out_dir`` is not empty and ``task.overwrite`` is false; the
             message names the command with ``task.overwrite=true``.
     """
     dataset = Path(dataset)
     selected = select_database(dataset, db_cfg, task.database)
     db = VisualDatabase.load(selected.path)
-    sequences = {name: read_sequence(dataset, name) for name, _ in selected.keyframe_sources}
-    names = [
-        sequences[name].rgb_paths[frame].resolve().relative_to(dataset.resolve()).as_posix()
-        for name, frame in selected.keyframe_sources
-    ]
-    colors, color_source = _point_colors(dataset, db)
+    names = _image_names(dataset, selected)
+    rebuild = Command("build_db", db_overrides(dataset, db_cfg))
+    colors, color_source = _point_colors(dataset, db, selected, rebuild)
     default = database_dir(dataset, db_cfg) / "colmap" / task.database
     out = Path(task.out_dir) if task.out_dir else default
     try:

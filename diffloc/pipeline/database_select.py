@@ -37,7 +37,13 @@ from diffloc.pipeline.database_stage import (
     read_built_record,
 )
 from diffloc.pipeline.hints import Command, MissingStageError
-from diffloc.pipeline.stage import check_made_from, output_identity, read_lock, verified_record
+from diffloc.pipeline.stage import (
+    LockLevel,
+    check_made_from,
+    output_identity,
+    read_lock,
+    verified_record,
+)
 
 __all__ = [
     "BUILT",
@@ -138,10 +144,14 @@ def select_database(dataset: str | Path, db_cfg: DatabaseConfig, which: str) -> 
     build = Command(BUILD_STAGE, where)
     if not (folder / f"{BUILD_STAGE}.json").is_file():
         raise MissingStageError(folder / f"{BUILD_STAGE}.json", build)
-    with read_lock(folder):
+    if which.startswith(UPDATED_PREFIX):
+        # Not under the database folder's lock: an updated database is locked alone (the lock
+        # order takes upstream folders inside downstream ones, never the reverse).
+        with read_lock(folder, LockLevel.DATABASE):
+            built = read_built_record(dataset, db_cfg)
+        return _select_updated(dataset, db_cfg, which, built)
+    with read_lock(folder, LockLevel.DATABASE):
         built = read_built_record(dataset, db_cfg)
-        if which.startswith(UPDATED_PREFIX):
-            return _select_updated(dataset, db_cfg, which, built)
         sources = _sources(
             [[db_cfg.sequence, frame] for frame in built.get("keyframe_frames", ())],
             folder / f"{BUILD_STAGE}.json",
@@ -176,7 +186,7 @@ def _select_updated(
     path = stage / UPDATE_RECORD
     if not (path.is_file() and (stage / BUILT).is_dir()):
         raise MissingStageError(stage, command)
-    with read_lock(stage):
+    with read_lock(stage, LockLevel.UPDATED):
         record = verified_record(stage, UPDATE_STAGE, command)
     check_made_from(record, path, "database", built, BUILT, command)
     sources = _sources(record.get("keyframe_sources"), path)

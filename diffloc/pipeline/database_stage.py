@@ -23,14 +23,15 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import torch
 
 from diffloc.database.builder import BuilderConfig, DatabaseBuilder
 from diffloc.database.database import VisualDatabase
-from diffloc.features.local import OrbConfig, XFeatConfig, make_extractor
+from diffloc.features.local import LocalFeatureConfig, XFeatConfig, make_extractor
 from diffloc.io.dataset import read_sequence
 from diffloc.io.identity import identity
 from diffloc.maps.surfel import SurfelMap
@@ -41,16 +42,16 @@ from diffloc.optim.holdout import (
 )
 from diffloc.optim.robust import RobustKernel
 from diffloc.optim.surfel_cost import SurfelOptimConfig, replace_map_points
+from diffloc.pipeline.config_record import config_record
 from diffloc.pipeline.hints import Command, MissingStageError
 from diffloc.pipeline.stage import (
+    LockLevel,
     open_stage,
     output_identity,
     read_lock,
     stage_key,
     verified_record,
 )
-
-LOCAL_FEATURES = ("xfeat", "orb")
 
 __all__ = [
     "BUILD_STAGE",
@@ -83,9 +84,10 @@ class DatabaseConfig:
             simulation of a badly registered database, read by nothing else (the builder's
             gates follow ``pose_prior_sigma_m``).
         noise_seed: seed of that noise.
-        local_features: ``"xfeat"`` or ``"orb"``: which extractor makes the keypoints.
-        xfeat: XFeat settings.
-        orb: ORB settings (ORB-SLAM-style grid and pyramid).
+        features: the local feature extractor's settings, a
+            :data:`~diffloc.features.local.LocalFeatureConfig` (XFeat, ORB, ...): its type
+            picks the extractor (``features=xfeat|orb`` on the command line, whose ``_target_``
+            is the class) and its ``kind`` names the database folder.
         builder: matching, fusion and culling thresholds of the builder.
         pose_prior_sigma_m: the user's belief of the per-axis position error (metres, one
             standard deviation) of the database poses, e.g. the registration accuracy of their
@@ -123,9 +125,7 @@ class DatabaseConfig:
     sequence: str = "mapping"
     noise_sigma: float = 0.0
     noise_seed: int = 0
-    local_features: str = "xfeat"
-    xfeat: XFeatConfig = field(default_factory=lambda: XFeatConfig(max_keypoints=1000))
-    orb: OrbConfig = field(default_factory=lambda: OrbConfig(max_keypoints=1000))
+    features: Any = field(default_factory=lambda: XFeatConfig(max_keypoints=1000))
     builder: BuilderConfig = field(default_factory=BuilderConfig)
     pose_prior_sigma_m: float = 0.0
     radius_px_per_prior_m: float = 110.0
@@ -138,21 +138,22 @@ class DatabaseConfig:
     optim_check: HoldoutCheckConfig = field(default_factory=HoldoutCheckConfig)
 
     def __post_init__(self) -> None:
-        if self.local_features not in LOCAL_FEATURES:
+        if not isinstance(self.features, LocalFeatureConfig):
             raise ValueError(
-                f"local_features must be one of {LOCAL_FEATURES}, got {self.local_features!r}"
+                "db.features must be a local feature config (XFeatConfig, OrbConfig, SiftConfig "
+                f"or AkazeConfig; on the command line features=xfeat|orb), got {self.features!r}"
             )
         prior = self.pose_prior_sigma_m
-        number = isinstance(prior, int | float) and not isinstance(prior, bool)
-        if not (number and math.isfinite(prior) and prior >= 0):
+        if not _finite_at_least_zero(prior):
             raise ValueError(
                 "db.pose_prior_sigma_m (the believed per-axis position error of the database "
                 f"poses, metres) must be a finite number >= 0, got {prior!r}"
             )
-
-    def extractor_config(self) -> XFeatConfig | OrbConfig:
-        """The settings of the chosen local feature extractor."""
-        return self.xfeat if self.local_features == "xfeat" else self.orb
+        for name in ("noise_sigma", "radius_px_per_prior_m", "point_gate_m_per_prior_m"):
+            if not _finite_at_least_zero(getattr(self, name)):
+                raise ValueError(
+                    f"db.{name} must be a finite number >= 0, got {getattr(self, name)!r}"
+                )
 
     def builder_config(self) -> BuilderConfig:
         """``builder`` with its pose-dependent gates widened by ``pose_prior_sigma_m``:
@@ -166,12 +167,17 @@ class DatabaseConfig:
         return replace(self.builder, guided_radius_px=radius, epipolar=epipolar)
 
 
+def _finite_at_least_zero(value: object) -> bool:
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    return number and math.isfinite(value) and value >= 0
+
+
 def database_dir(dataset: str | Path, cfg: DatabaseConfig) -> Path:
-    """``<dataset>/db/<local_features>_sigma_<noise_sigma>_prior_<pose_prior_sigma_m>[_epipolar]``
+    """``<dataset>/db/<features.kind>_sigma_<noise_sigma>_prior_<pose_prior_sigma_m>[_epipolar]``
     (e.g. ``xfeat_sigma_0.2_prior_0.4_epipolar``): where the database stages of one feature
     type, noise level, pose prior and association write."""
     suffix = "_epipolar" if cfg.builder.association == "epipolar" else ""
-    name = f"{cfg.local_features}_sigma_{cfg.noise_sigma:g}_prior_{cfg.pose_prior_sigma_m:g}"
+    name = f"{cfg.features.kind}_sigma_{cfg.noise_sigma:g}_prior_{cfg.pose_prior_sigma_m:g}"
     return Path(dataset) / "db" / f"{name}{suffix}"
 
 
@@ -190,8 +196,8 @@ def db_overrides(dataset: str | Path, db_cfg: DatabaseConfig) -> tuple[str, ...]
         words.append(f"db.noise_sigma={db_cfg.noise_sigma:g}")
     if db_cfg.pose_prior_sigma_m != default.pose_prior_sigma_m:
         words.append(f"db.pose_prior_sigma_m={db_cfg.pose_prior_sigma_m:g}")
-    if db_cfg.local_features != default.local_features:
-        words.append(f"db.local_features={db_cfg.local_features}")
+    if db_cfg.features.kind != default.features.kind:
+        words.append(f"features={db_cfg.features.kind}")
     if db_cfg.builder.association != default.builder.association:
         words.append(f"db.builder.association={db_cfg.builder.association}")
     return tuple(words)
@@ -254,7 +260,7 @@ def database_builder(cfg: DatabaseConfig, surfel_map: SurfelMap) -> DatabaseBuil
     Returns:
         A :class:`~diffloc.database.builder.DatabaseBuilder` with an empty database.
     """
-    return DatabaseBuilder(cfg.builder_config(), surfel_map, make_extractor(cfg.extractor_config()))
+    return DatabaseBuilder(cfg.builder_config(), surfel_map, make_extractor(cfg.features))
 
 
 def keyframe_position_rmse(T_wc: torch.Tensor, T_wc_true: torch.Tensor) -> float:
@@ -303,7 +309,7 @@ def read_surfel_map(dataset: str | Path) -> tuple[dict, SurfelMap]:
         StaleStageError: a record that does not describe the files beside it.
     """
     folder = Path(dataset) / "map"
-    with read_lock(folder):
+    with read_lock(folder, LockLevel.MAP):
         record = verified_record(folder, MAP_STAGE, map_command(dataset))
         return record, SurfelMap.load(folder / "surfel_map.ply")
 
@@ -342,13 +348,14 @@ def build_database(
         raise MissingStageError(root / "map" / f"{MAP_STAGE}.json", map_command(dataset))
     seq = read_sequence(root, cfg.sequence)
     out = database_dir(root, cfg)
-    with open_stage(out, BUILD_STAGE, Command(BUILD_STAGE, db_overrides(root, cfg))) as stage:
+    command = Command(BUILD_STAGE, db_overrides(root, cfg))
+    with open_stage(out, BUILD_STAGE, command, LockLevel.DATABASE) as stage:
         map_record, surfels = read_surfel_map(root)
         inputs = {
             "surfel_map": output_identity(map_record, "surfel_map.ply"),
             "sequence": identity(root / cfg.sequence),
         }
-        key = stage_key(asdict(cfg), inputs)
+        key = stage_key(config_record(cfg), inputs)
         previous = stage.reusable(key)
         if previous is not None and not rebuild:
             return previous
@@ -360,7 +367,7 @@ def build_database(
         truth = read_sequence(root, cfg.sequence).T_wc[frames]  # scoring only
         db.save(stage.workdir() / "database")
         summary = {
-            "config": asdict(cfg),
+            "config": config_record(cfg),
             "database": str(out / "database"),
             **db.stats(),
             "keyframe_frames": frames.tolist(),
@@ -446,14 +453,15 @@ def optimize_database(
     built_path = out / f"{BUILD_STAGE}.json"
     if not built_path.is_file():
         raise MissingStageError(built_path, Command(BUILD_STAGE, db_overrides(root, cfg)))
-    with open_stage(out, OPTIMIZE_STAGE, Command(OPTIMIZE_STAGE, db_overrides(root, cfg))) as stage:
+    command = Command(OPTIMIZE_STAGE, db_overrides(root, cfg))
+    with open_stage(out, OPTIMIZE_STAGE, command, LockLevel.DATABASE) as stage:
         built = read_built_record(root, cfg)
         map_record, surfels = read_surfel_map(root)
         inputs = {
             "database": output_identity(built, "database"),
             "surfel_map": output_identity(map_record, "surfel_map.ply"),
         }
-        key = stage_key(asdict(cfg), inputs)
+        key = stage_key(config_record(cfg), inputs)
         record = None if rebuild else stage.reusable(key)
         if record is None:
             summary = _optimize(root, cfg, built, surfels, stage.workdir())
@@ -484,7 +492,7 @@ def _optimize(root: Path, cfg: DatabaseConfig, built: dict, surfels: SurfelMap, 
     truth = read_sequence(root, cfg.sequence).T_wc[torch.tensor(built["keyframe_frames"])]
     result = checked.result
     return {
-        "config": asdict(cfg),
+        "config": config_record(cfg),
         "database": str(out / "optimized"),
         **_check_summary(checked),
         "kf_pos_rmse_before_m": keyframe_position_rmse(T_wc_built, truth),

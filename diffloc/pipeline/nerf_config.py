@@ -1,4 +1,4 @@
-"""``task=train_nerf``: the settings of training one radiance-field submap."""
+"""The ``nerf`` node: the settings of training one radiance-field submap (``task=train_nerf``)."""
 
 from __future__ import annotations
 
@@ -8,12 +8,14 @@ from diffloc.maps.nerf.data import SubmapDataConfig
 from diffloc.maps.nerf.module import NerfTrainConfig
 from diffloc.maps.nerf.submaps import SubmapConfig
 
-__all__ = ["TrainNerfTaskConfig"]
+__all__ = ["TrainNerfConfig"]
 
 
 @dataclass
-class TrainNerfTaskConfig:
-    """``task=train_nerf``: cluster the mapping run into submaps and train submap ``submap``.
+class TrainNerfConfig:
+    """The root ``nerf`` node: cluster the mapping run into submaps and train submap ``submap``
+    (``diffloc task=train_nerf nerf.submap=3``; all of them with
+    ``diffloc -m task=train_nerf nerf.submap=0,1,2,3``).
 
     Attributes:
         submap: which submap to train (index into the clustering).
@@ -26,7 +28,6 @@ class TrainNerfTaskConfig:
         train: field, sampler, loss and optimiser settings.
     """
 
-    name: str = "train_nerf"
     submap: int = 0
     sequence: str = "mapping"
     out_dir: str = ""
@@ -35,3 +36,9 @@ class TrainNerfTaskConfig:
     submaps: SubmapConfig = field(default_factory=lambda: SubmapConfig(num_submaps=4))
     data: SubmapDataConfig = field(default_factory=SubmapDataConfig)
     train: NerfTrainConfig = field(default_factory=NerfTrainConfig)
+
+    def __post_init__(self) -> None:
+        for name, low in (("submap", 0), ("epochs", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"nerf.{name} must be an integer >= {low}, got {value!r}")

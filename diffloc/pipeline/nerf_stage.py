@@ -3,13 +3,13 @@
 Writes ``<out_dir>/submaps.json`` and ``submaps.png`` (the clustered trajectory), and for
 submap k ``submap_<k>/`` with Lightning's CSV logs and checkpoints and the exported field
 (``submap_<k>/field/``: safetensors + JSON). Runs of different submaps share nothing but the
-clustering, which is deterministic, so ``diffloc -m task=train_nerf task.submap=0,1,2,3``
+clustering, which is deterministic, so ``diffloc -m task=train_nerf nerf.submap=0,1,2,3``
 trains them in parallel processes under a parallel Hydra launcher.
 
 Each submap is a stage (:mod:`diffloc.pipeline.stage`) writing into ``submap_<k>/``: the field
-and its record ``train_nerf.json`` appear together, keyed on the task settings and the content
+and its record ``train_nerf.json`` appear together, keyed on the ``nerf`` settings and the content
 of the mapping sequence, so a rerun with the same settings reuses the field and any change
-trains again (resuming from the last checkpoint when ``task.resume``; the checkpoints are the
+trains again (resuming from the last checkpoint when ``nerf.resume``; the checkpoints are the
 training's own state, kept beside the committed field).
 """
 
@@ -26,14 +26,14 @@ from diffloc.maps.nerf.export import export_field
 from diffloc.maps.nerf.submaps import cluster_trajectory, plot_submaps, save_submaps
 from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline.hints import Command
-from diffloc.pipeline.nerf_config import TrainNerfTaskConfig
-from diffloc.pipeline.stage import open_stage, stage_key
+from diffloc.pipeline.nerf_config import TrainNerfConfig
+from diffloc.pipeline.stage import LockLevel, open_stage, stage_key
 
 __all__ = ["train_nerf_submap"]
 
 
 def train_nerf_submap(
-    dataset: str | os.PathLike, config: TrainNerfTaskConfig, show_progress: bool = True
+    dataset: str | os.PathLike, config: TrainNerfConfig, show_progress: bool = True
 ) -> dict:
     """Cluster the mapping run and train (or resume, or reuse) one submap's field.
 
@@ -56,7 +56,7 @@ def train_nerf_submap(
     submaps = cluster_trajectory(seq.T_wc, config.submaps)
     if not 0 <= config.submap < len(submaps):
         raise ValueError(
-            f"task.submap={config.submap} but the clustering made {len(submaps)} submaps "
+            f"nerf.submap={config.submap} but the clustering made {len(submaps)} submaps "
             f"(0..{len(submaps) - 1})"
         )
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -65,8 +65,8 @@ def train_nerf_submap(
     submap = submaps[config.submap]
     run_dir = out_dir / f"submap_{config.submap}"
     key = stage_key(asdict(config), {"sequence": identity(dataset / config.sequence)})
-    command = Command("train_nerf", (f"dataset={dataset}", f"task.submap={config.submap}"))
-    with open_stage(run_dir, "train_nerf", command) as stage:
+    command = Command("train_nerf", (f"dataset={dataset}", f"nerf.submap={config.submap}"))
+    with open_stage(run_dir, "train_nerf", command, LockLevel.DATABASE) as stage:
         if (record := stage.reusable(key)) is not None:
             return record
         name = f"submap {config.submap} of {dataset}"

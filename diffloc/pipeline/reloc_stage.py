@@ -32,6 +32,7 @@ import statistics
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -56,7 +57,9 @@ from diffloc.io.dataset import read_sequence
 from diffloc.io.identity import identity
 from diffloc.io.trajectory import write_tum
 from diffloc.maps.surfel import SurfelMap
+from diffloc.pipeline.config_record import config_record
 from diffloc.pipeline.database_select import (
+    UPDATED_PREFIX,
     SelectedDatabase,
     check_database_name,
     keyframe_images,
@@ -65,7 +68,7 @@ from diffloc.pipeline.database_select import (
 )
 from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.hints import Command, StaleStageError
-from diffloc.pipeline.stage import open_stage, stage_key
+from diffloc.pipeline.stage import LockLevel, open_stage, stage_key
 from diffloc.progress import progress
 from diffloc.reloc.hierarchical import (
     Candidate,
@@ -99,31 +102,32 @@ class RelocStageConfig:
         sequences: query sequences to relocalise.
         database: ``"optimized"`` (after ``task=optimize_db``), ``"database"`` (as built) or
             ``"updated_<sequence>"`` (after ``task=update_db task.sequence=<sequence>``).
-        retriever: ``"netvlad"`` or ``"bow"``.
+        retriever: the keyframe retriever's settings, :class:`NetVLADConfig` or
+            :class:`BowConfig`: the type picks the retriever (``retriever=netvlad|bow`` on the
+            command line, whose ``_target_`` is the class).
         query_stride: use every n-th query frame.
         max_trans_m: position threshold of a correct pose (seed 1: 0.3 m).
         max_rot_deg: rotation threshold of ``recall_rot`` (degrees).
         method: the hierarchical relocaliser.
         validation: pose validation thresholds.
-        netvlad: NetVLAD retriever settings.
-        bow: bag-of-words retriever settings.
     """
 
     sequences: list[str] = field(default_factory=lambda: ["query_same", "changed"])
     database: str = "optimized"
-    retriever: str = "netvlad"
+    retriever: Any = field(default_factory=NetVLADConfig)
     query_stride: int = 1
     max_trans_m: float = 0.3
     max_rot_deg: float = 5.0
     method: RelocConfig = field(default_factory=RelocConfig)
     validation: ValidationConfig = field(default_factory=ValidationConfig)
-    netvlad: NetVLADConfig = field(default_factory=NetVLADConfig)
-    bow: BowConfig = field(default_factory=BowConfig)
 
     def __post_init__(self) -> None:
         check_database_name(self.database)
-        if self.retriever not in ("netvlad", "bow"):
-            raise ValueError(f"retriever must be 'netvlad' or 'bow', got {self.retriever!r}")
+        if not isinstance(self.retriever, NetVLADConfig | BowConfig):
+            raise ValueError(
+                "reloc.retriever must be a NetVLADConfig or BowConfig (on the command line "
+                f"retriever=netvlad|bow), got {self.retriever!r}"
+            )
         if self.query_stride < 1:
             raise ValueError(f"query_stride must be >= 1, got {self.query_stride}")
         for name in ("max_trans_m", "max_rot_deg"):
@@ -146,7 +150,7 @@ def _retriever_inputs(
 ) -> dict:
     """What a retriever is fitted on: the keyframe images' sequences (NetVLAD) or the
     keyframes' local descriptors (bag of words)."""
-    if cfg.retriever == "bow":
+    if isinstance(cfg.retriever, BowConfig):
         digest = hashlib.sha256(db.keypoint_offsets.numpy().tobytes())
         digest.update(db.descriptors.contiguous().numpy().tobytes())
         return {"descriptors": {"kind": "arrays", "sha256": digest.hexdigest()}}
@@ -162,21 +166,22 @@ def _retriever(
 ) -> NetVLADRetriever | BowRetriever:
     """Load the cached retriever of this database's keyframes (same settings, same images or
     descriptors: :mod:`diffloc.pipeline.stage`), or fit and cache it."""
-    name = f"retriever_{cfg.retriever}"
-    settings = asdict(cfg.netvlad if cfg.retriever == "netvlad" else cfg.bow)
+    name = f"retriever_{cfg.retriever.kind}"
+    settings = asdict(cfg.retriever)
     config = {"settings": settings, "keyframe_sources": selected.keyframe_sources}
     command = Command("relocalize", (f"dataset={dataset}",))
-    with open_stage(selected.retriever_root, name, command) as stage:
+    level = LockLevel.UPDATED if selected.name.startswith(UPDATED_PREFIX) else LockLevel.DATABASE
+    with open_stage(selected.retriever_root, name, command, level) as stage:
         key = stage_key(config, _retriever_inputs(dataset, cfg, db, selected))
         if stage.reusable(key) is not None:
             retriever = load_retriever(selected.retriever_root / name)
         else:
-            if cfg.retriever == "bow":
+            if isinstance(cfg.retriever, BowConfig):
                 slices = [db.keyframe_slice(k) for k in range(db.num_keyframes)]
-                retriever = BowRetriever.fit([db.descriptors[s] for s in slices], cfg.bow)
+                retriever = BowRetriever.fit([db.descriptors[s] for s in slices], cfg.retriever)
             else:
                 images = keyframe_images(dataset, selected.keyframe_sources)
-                retriever = NetVLADRetriever.fit(images, cfg.netvlad)
+                retriever = NetVLADRetriever.fit(images, cfg.retriever)
             retriever.save(stage.workdir() / name)
             stage.commit(key, {"config": config}, [name])
     if retriever.num_keyframes != db.num_keyframes:
@@ -464,12 +469,12 @@ def relocalize_dataset(
         path = Path(surfel_map) if surfel_map else dataset / "map" / "surfel_map.ply"
         centers = SurfelMap.load(path).centers
     relocalizer = HierarchicalRelocalizer(db, retriever, cfg.method, centers)
-    extractor = make_extractor(db_cfg.extractor_config())
+    extractor = make_extractor(db_cfg.features)
     results: dict = {"sequences": {}}
     rows = []
     T_wc_db_true = keyframe_true_poses(dataset, selected.keyframe_sources)
     command = Command("relocalize", (f"dataset={dataset}",))
-    with open_stage(out, "relocalize", command) as stage:
+    with open_stage(out, "relocalize", command, LockLevel.RESULTS) as stage:
         work = stage.workdir()
         for name in cfg.sequences:
             run = _relocalize_sequence(dataset, name, cfg, extractor, relocalizer, show_progress)
@@ -481,12 +486,12 @@ def relocalize_dataset(
         for key in ("recall", "mATE_m", "queries", "median_reloc_ms"):
             results[key] = headline[key]
         results["database"] = str(selected.path)
-        results["config"] = asdict(cfg)
+        results["config"] = config_record(cfg)
         table = markdown_table(rows, RESULT_COLUMNS)
         results["table"] = table
         atomic_write_text(work / "results.md", table + "\n")
         atomic_write_text(work / "results.json", json.dumps(results, indent=2) + "\n")
-        key = stage_key({"reloc": asdict(cfg), "database": str(selected.path)}, {})
+        key = stage_key({"reloc": config_record(cfg), "database": str(selected.path)}, {})
         outputs = [*cfg.sequences, "results.md", "results.json"]
         stage.commit(key, {"sequences": list(cfg.sequences)}, outputs)
     return results

@@ -58,7 +58,7 @@ from diffloc.pipeline.database_stage import (
     read_surfel_map,
 )
 from diffloc.pipeline.hints import Command, MissingStageError
-from diffloc.pipeline.stage import open_stage, output_identity, stage_key
+from diffloc.pipeline.stage import LockLevel, open_stage, output_identity, stage_key
 
 STAGE = "rig_calibration"
 """The stage name: its record is ``<database_dir>/rig_calibration.json``."""
@@ -103,7 +103,7 @@ def calibrate_database_rig(
     if not built_path.is_file():
         raise MissingStageError(built_path, Command(BUILD_STAGE, db_overrides(root, db_cfg)))
     command = Command("calibrate_rig", db_overrides(root, db_cfg))
-    with open_stage(out, STAGE, command) as stage:
+    with open_stage(out, STAGE, command, LockLevel.DATABASE) as stage:
         built = read_built_record(root, db_cfg)
         map_record, surfels = read_surfel_map(root)
         inputs = {

@@ -57,11 +57,12 @@ from pathlib import Path
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.identity import identity
 from diffloc.io.json_record import read_json_record
-from diffloc.io.lock import folder_lock, remove_temporaries
+from diffloc.io.lock import LockLevel, ReadOnlyFolderError, folder_lock, remove_temporaries
 from diffloc.pipeline.hints import Command, MissingStageError, StaleStageError
 
 __all__ = [
     "STAGE_FORMAT_VERSION",
+    "LockLevel",
     "StageRun",
     "check_made_from",
     "open_stage",
@@ -187,12 +188,17 @@ def check_made_from(
 
 
 @contextlib.contextmanager
-def read_lock(folder: str | os.PathLike) -> Iterator[None]:
-    """Hold ``folder``'s lock shared while reading a stage's outputs (no-op if it is missing)."""
+def read_lock(folder: str | os.PathLike, level: LockLevel) -> Iterator[None]:
+    """Hold ``folder``'s lock shared while reading a stage's outputs (no-op if it is missing).
+
+    Args:
+        folder: the stage folder.
+        level: its place in the lock order (:class:`LockLevel`).
+    """
     if not Path(folder).is_dir():
         yield
         return
-    with folder_lock(folder, shared=True):
+    with folder_lock(folder, shared=True, level=level):
         yield
 
 
@@ -205,11 +211,21 @@ class StageRun:
         command: the command that runs the stage, for messages.
     """
 
-    def __init__(self, folder: Path, name: str, command: Command) -> None:
+    def __init__(
+        self, folder: Path, name: str, command: Command, read_only: str | None = None
+    ) -> None:
         self.folder = folder
         self.name = name
         self.command = command
+        self.read_only = read_only
         self._workdir: Path | None = None
+
+    def _refuse_write(self) -> ReadOnlyFolderError:
+        return ReadOnlyFolderError(
+            f"{self.read_only}, and it holds no result of `diffloc task={self.command.task}` "
+            "with these settings and inputs to reuse: copy the dataset to a folder you can "
+            "write and run there (or make the folder writable)"
+        )
 
     @property
     def record_path(self) -> Path:
@@ -220,15 +236,29 @@ class StageRun:
         """The record of a complete earlier run with the same key, else ``None``.
 
         A missing, corrupt or half-written result is not reusable (it is made again).
+
+        Raises:
+            ReadOnlyFolderError: the folder cannot be written and holds no reusable result
+                (the message names the folder and what to do).
         """
         try:
             record = verified_record(self.folder, self.name, self.command)
         except (MissingStageError, StaleStageError):
-            return None
-        return record if record["stage"]["key"] == key else None
+            record = None
+        if record is not None and record["stage"]["key"] == key:
+            return record
+        if self.read_only is not None:
+            raise self._refuse_write()
+        return None
 
     def workdir(self) -> Path:
-        """A fresh hidden folder next to the outputs to write them into (made once per run)."""
+        """A fresh hidden folder next to the outputs to write them into (made once per run).
+
+        Raises:
+            ReadOnlyFolderError: the folder cannot be written.
+        """
+        if self.read_only is not None:
+            raise self._refuse_write()
         if self._workdir is None:
             self._workdir = Path(tempfile.mkdtemp(dir=self.folder, prefix=f".tmp-{self.name}-"))
         return self._workdir
@@ -323,23 +353,41 @@ def _replace(source: Path, target: Path) -> None:
 
 
 @contextlib.contextmanager
-def open_stage(folder: str | os.PathLike, name: str, command: Command) -> Iterator[StageRun]:
+def open_stage(
+    folder: str | os.PathLike,
+    name: str,
+    command: Command,
+    level: LockLevel = LockLevel.RESULTS,
+) -> Iterator[StageRun]:
     """Run stage ``name`` into ``folder``: lock it, complete a commit a killed run left
     journaled, clear killed runs' temporaries, clean up.
+
+    A folder this run cannot write (read-only mount, another user's) is opened for reuse only:
+    it is locked shared (:func:`diffloc.io.lock.folder_lock`), nothing in it is changed, and
+    :meth:`StageRun.reusable` returns a complete result with the same key or raises
+    :class:`~diffloc.io.lock.ReadOnlyFolderError` saying what to do.
 
     Args:
         folder: the output folder (created if missing).
         name: the stage name.
         command: the command that runs the stage, for messages.
+        level: the folder's place in the lock order (:class:`LockLevel`).
 
     Yields:
         The :class:`StageRun`; its work folder is removed when the block ends, committed or not.
     """
     folder = Path(folder)
-    with folder_lock(folder):
-        _complete_commits(folder)
-        remove_temporaries(folder)
-        run = StageRun(folder, name, command)
+    with contextlib.ExitStack() as locks:
+        try:
+            locks.enter_context(folder_lock(folder, level=level))
+            read_only = None
+        except ReadOnlyFolderError as exc:
+            read_only = str(exc)
+            locks.enter_context(read_lock(folder, level))
+        if read_only is None:
+            _complete_commits(folder)
+            remove_temporaries(folder)
+        run = StageRun(folder, name, command, read_only)
         try:
             yield run
         finally:

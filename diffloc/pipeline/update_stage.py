@@ -39,6 +39,7 @@ from diffloc.io.dataset import read_sequence
 from diffloc.io.identity import identity
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.surfel import SurfelMap
+from diffloc.pipeline.config_record import config_record
 from diffloc.pipeline.database_select import (
     BUILT,
     UPDATE_STAGE,
@@ -54,7 +55,7 @@ from diffloc.pipeline.database_stage import (
     read_surfel_map,
 )
 from diffloc.pipeline.hints import Command, StaleStageError
-from diffloc.pipeline.stage import open_stage, output_identity, stage_key
+from diffloc.pipeline.stage import LockLevel, open_stage, output_identity, stage_key
 
 __all__ = ["UpdateTaskConfig", "update_database"]
 
@@ -129,14 +130,14 @@ def update_database(
     stage_dir = updated_dir(root, db_cfg, cfg.sequence)
     command = Command(UPDATE_STAGE, db_overrides(root, db_cfg), (f"task.sequence={cfg.sequence}",))
     sequence = read_sequence(root, cfg.sequence)
-    with open_stage(stage_dir, UPDATE_STAGE, command) as stage:
+    with open_stage(stage_dir, UPDATE_STAGE, command, LockLevel.UPDATED) as stage:
         map_record, surfels = read_surfel_map(root)
         inputs = {
             "database": base.identity,
             "surfel_map": output_identity(map_record, "surfel_map.ply"),
             "sequence": identity(root / cfg.sequence),
         }
-        key = stage_key({"db": asdict(db_cfg), "task": asdict(cfg)}, inputs)
+        key = stage_key({"db": config_record(db_cfg), "task": asdict(cfg)}, inputs)
         previous = stage.reusable(key)
         if previous is not None and not rebuild:
             return previous
@@ -170,7 +171,7 @@ def _update(
     generator = torch.Generator().manual_seed(cfg.noise_seed)
     sequence.T_wc = perturb_positions(sequence.T_wc, db_cfg.noise_sigma, generator)
     builder = DatabaseBuilder(
-        db_cfg.builder_config(), surfels, make_extractor(db_cfg.extractor_config()), database=db
+        db_cfg.builder_config(), surfels, make_extractor(db_cfg.features), database=db
     )
     before = _counts(db.num_keyframes, db.num_points)
     loaded = time.perf_counter()
@@ -184,7 +185,7 @@ def _update(
     images = len(sequence)
     stage = updated_dir(root, db_cfg, cfg.sequence)
     return {
-        "config": {"db": asdict(db_cfg), "task": asdict(cfg)},
+        "config": {"db": config_record(db_cfg), "task": asdict(cfg)},
         "base_database": str(base.path),
         "database": str(stage / BUILT),
         "sequence": cfg.sequence,

