@@ -15,13 +15,28 @@ from torch import nn
 
 from diffloc.checks import check_shape
 
-__all__ = ["SceneNormalisation", "contract", "uncontract"]
+__all__ = ["SceneNormalisation", "contract", "contract_pullback", "uncontract"]
 
 
 def contract(x: torch.Tensor) -> torch.Tensor:
     """mip-NeRF 360 contraction with the L-infinity norm: (..., 3) -> (..., 3) in [-2, 2]."""
     norm = x.abs().amax(dim=-1, keepdim=True).clamp_min(1e-9)
     return torch.where(norm <= 1.0, x, (2.0 - 1.0 / norm) * x / norm)
+
+
+def contract_pullback(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``J^T v`` of :func:`contract` at (N, 3) points ``x`` for (N, 3) vectors ``v``.
+
+    Beyond the unit cube ``y = (2 / n - 1 / n^2) x`` with ``n = |x_k|`` the largest
+    coordinate magnitude, so ``J^T v = (2 / n - 1 / n^2) v + (2 / n^3 - 2 / n^2) (x . v)
+    sign(x_k) e_k``; inside, ``J`` is the identity.
+    """
+    norm = x.abs().amax(dim=-1, keepdim=True).clamp_min(1e-9)
+    axis = (x.abs() == norm).to(x.dtype) * torch.sign(x)
+    axis = axis / axis.abs().sum(dim=-1, keepdim=True).clamp_min(1.0)  # ties share, like amax
+    radial = (2.0 / norm**3 - 2.0 / norm**2) * (x * v).sum(dim=-1, keepdim=True)
+    outer = (2.0 / norm - 1.0 / norm**2) * v + radial * axis
+    return torch.where(norm <= 1.0, v, outer)
 
 
 class SceneNormalisation(nn.Module):
@@ -55,6 +70,17 @@ class SceneNormalisation(nn.Module):
         if self.contracted:
             return contract(x) / 2.0, torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device)
         return x, (x.abs() <= 1.0).all(dim=-1)
+
+    def pullback(self, points_world: torch.Tensor, grad_xyz: torch.Tensor) -> torch.Tensor:
+        """Gradient with respect to the world points of a function of the cube coordinates:
+        ``J^T grad_xyz`` with J the Jacobian of :meth:`forward` at (N, 3) ``points_world``,
+        ``grad_xyz`` (N, 3) -> (N, 3). Differentiable (no autograd needed to form it)."""
+        check_shape(points_world, "N,3", "points_world")
+        check_shape(grad_xyz, "N,3", "grad_xyz")
+        if not self.contracted:
+            return grad_xyz / self.half_extent
+        x = (points_world - self.centre) / self.half_extent
+        return contract_pullback(x, grad_xyz / 2.0) / self.half_extent
 
     def inverse(self, xyz: torch.Tensor) -> torch.Tensor:
         """World points of (..., 3) cube coordinates (the inverse of :meth:`forward`)."""

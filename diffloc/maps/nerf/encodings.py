@@ -1,11 +1,13 @@
 """Grid encodings of points in the normalised cube ``[-1, 1]^3``: tri-plane and hash grid.
 
 Both interpolate learnable feature tables, with ``grid_sample`` where the table is a dense
-grid and explicit gathers where it is hashed; both are twice differentiable in the positions
-(the rendered normal is the negative density gradient and the normal loss, Eq. 7,
-back-propagates through it). The gathers also serve as the slow reference of the fast path.
-Vertex convention is ``align_corners=True``: coordinate ``-1`` is vertex 0, ``+1`` vertex
-``R - 1``.
+grid and explicit gathers where it is hashed; both are twice differentiable in the positions.
+The gathers also serve as the slow reference of the fast path. ``forward_with_jacobian``
+returns the features and their analytic derivatives with respect to the position from the
+cell corners of one lookup: the rendered normal (the negative density gradient, Eq. 7) then
+costs no second evaluation and no double backward, since the derivatives are ordinary
+differentiable functions of the corner features and the fractional offsets. Vertex
+convention is ``align_corners=True``: coordinate ``-1`` is vertex 0, ``+1`` vertex ``R - 1``.
 """
 
 from __future__ import annotations
@@ -19,7 +21,14 @@ from torch import nn
 
 from diffloc.checks import check_shape
 
-__all__ = ["HashGridEncoding", "TriplaneEncoding", "bilinear_gather", "trilinear_gather"]
+__all__ = [
+    "HashGridEncoding",
+    "TriplaneEncoding",
+    "bilinear_gather",
+    "multilinear",
+    "multilinear_with_gradient",
+    "trilinear_gather",
+]
 
 # Spatial hash primes of Instant-NGP (Mueller et al. 2022), one per axis.
 _PRIMES = (1, 2654435761, 805459861)
@@ -31,6 +40,62 @@ def _cell(coords: torch.Tensor, resolution: int) -> tuple[torch.Tensor, torch.Te
     u = (coords.clamp(-1.0, 1.0) + 1.0) * (0.5 * (resolution - 1))
     lower = u.detach().floor().clamp(0, resolution - 2)
     return lower.long(), u - lower
+
+
+def _corners(dims: int, device: torch.device) -> torch.Tensor:
+    """(2**dims, dims) 0/1 offsets of a cell's corners: corner c is ``(c >> a) & 1`` along a."""
+    return torch.tensor(
+        [[(c >> a) & 1 for a in range(dims)] for c in range(2**dims)], device=device
+    )
+
+
+def multilinear(rows: torch.Tensor, frac: torch.Tensor) -> torch.Tensor:
+    """Multilinear interpolation of a cell's corner features.
+
+    Args:
+        rows: (N, 2**D, C) features at the corners (order of :func:`_corners`).
+        frac: (N, D) fractional offsets in the cell, in [0, 1].
+
+    Returns:
+        (N, C) interpolated features.
+
+    Example:
+        >>> multilinear(torch.tensor([[[0.0], [1.0], [2.0], [3.0]]]), torch.tensor([[0.5, 0.5]]))
+        tensor([[1.5000]])
+    """
+    for axis in reversed(range(frac.shape[-1])):  # the last axis is the corners' top bit
+        half = rows.shape[1] // 2
+        lo, hi = rows[:, :half], rows[:, half:]
+        rows = lo + frac[:, axis, None, None] * (hi - lo)
+    return rows[:, 0]
+
+
+def multilinear_with_gradient(
+    rows: torch.Tensor, frac: torch.Tensor, coords: torch.Tensor, resolution: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`multilinear` and its derivative with respect to the coordinates in [-1, 1].
+
+    Along each axis the derivative is the difference of the two faces of the cell,
+    interpolated over the other axes, times the cells per coordinate unit.
+
+    Args:
+        rows: (N, 2**D, C) corner features.
+        frac: (N, D) fractional offsets in the cell.
+        coords: (N, D) the coordinates (zero derivative where they are clamped, beyond +-1).
+        resolution: vertices per axis R (a coordinate step of 2 / (R - 1) crosses one cell).
+
+    Returns:
+        ``(value, gradient)``: (N, C) and (N, C, D).
+    """
+    dims = frac.shape[-1]
+    slopes: list[torch.Tensor] = [rows] * dims
+    for axis in reversed(range(dims)):
+        half = rows.shape[1] // 2
+        lo, hi = rows[:, :half], rows[:, half:]
+        slopes[axis] = multilinear(hi - lo, frac[:, :axis])
+        rows = lo + frac[:, axis, None, None] * (hi - lo)
+    scale = 0.5 * (resolution - 1) * ((coords >= -1.0) & (coords <= 1.0)).to(frac.dtype)
+    return rows[:, 0], torch.stack(slopes, dim=-1) * scale[:, None]
 
 
 def bilinear_gather(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> torch.Tensor:
@@ -47,11 +112,9 @@ def bilinear_gather(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> t
     """
     check_shape(uv, "N,2", "uv")
     lower, frac = _cell(uv, resolution)
-    corners = torch.tensor([[0, 0], [1, 0], [0, 1], [1, 1]], device=uv.device)
-    vertex = lower[:, None] + corners
-    w = torch.where(corners.bool(), frac[:, None], 1 - frac[:, None]).prod(dim=-1)
+    vertex = lower[:, None] + _corners(2, uv.device)
     rows = table.index_select(0, (vertex[..., 1] * resolution + vertex[..., 0]).reshape(-1))
-    return (w[..., None] * rows.view(len(uv), 4, -1)).sum(dim=1)
+    return multilinear(rows.view(len(uv), 4, -1), frac)
 
 
 def _vertex_index(vertex: torch.Tensor, resolution: int, table_size: int) -> torch.Tensor:
@@ -77,21 +140,29 @@ def trilinear_gather(table: torch.Tensor, xyz: torch.Tensor, resolution: int) ->
         (N, C) interpolated features.
     """
     check_shape(xyz, "N,3", "xyz")
+    rows, frac = _trilinear_corners(table, xyz, resolution)
+    return multilinear(rows, frac)
+
+
+def _trilinear_corners(
+    table: torch.Tensor, xyz: torch.Tensor, resolution: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Corner rows (N, 8, C) and fractional offsets (N, 3) of (N, 3) points in one level."""
     lower, frac = _cell(xyz, resolution)
-    corners = torch.tensor([[(c >> a) & 1 for a in range(3)] for c in range(8)], device=xyz.device)
-    vertex = (lower[:, None] + corners).reshape(-1, 3)
-    w = torch.where(corners.bool(), frac[:, None], 1 - frac[:, None]).prod(dim=-1)
+    vertex = (lower[:, None] + _corners(3, xyz.device)).reshape(-1, 3)
     rows = table.index_select(0, _vertex_index(vertex, resolution, len(table)))
-    return (w[..., None] * rows.view(len(xyz), 8, -1)).sum(dim=1)
+    return rows.view(len(xyz), 8, -1), frac
 
 
-def _grid_sample(volume: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+def _grid_sample(
+    volume: torch.Tensor, coords: torch.Tensor, mode: str = "bilinear"
+) -> torch.Tensor:
     """``grid_sample`` with the gathers' conventions: volume (B, C, *R) with the first
     coordinate along the last axis, coords (B, N, D) -> (B, N, C)."""
     grid = coords.clamp(-1.0, 1.0).reshape(
         len(coords), -1, *([1] * (coords.shape[-1] - 1)), coords.shape[-1]
     )
-    out = F.grid_sample(volume, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    out = F.grid_sample(volume, grid, mode=mode, padding_mode="border", align_corners=True)
     return out.reshape(len(coords), volume.shape[1], -1).transpose(1, 2)
 
 
@@ -116,12 +187,41 @@ class TriplaneEncoding(nn.Module):
             nn.Parameter(1.0 + init_std * torch.randn(3, channels, r, r)) for r in self.resolutions
         )
         self.out_dim = channels * len(self.resolutions)
+        # (3, 6): axis a of the point <- coordinate k of plane p (column 2 p + k)
+        pair_axes = torch.zeros(3, 2 * len(self.PAIRS))
+        for plane, pair in enumerate(self.PAIRS):
+            for k, axis in enumerate(pair):
+                pair_axes[axis, 2 * plane + k] = 1.0
+        self.register_buffer("_pair_axes", pair_axes, persistent=False)
 
     def forward(self, xyz: torch.Tensor) -> torch.Tensor:
         """Features of (N, 3) points in [-1, 1]^3 -> (N, out_dim)."""
         check_shape(xyz, "N,3", "xyz")
         coords = torch.stack([xyz[:, pair] for pair in self.PAIRS])
         return torch.cat([_grid_sample(p, coords).prod(dim=0) for p in self.planes], dim=-1)
+
+    def forward_with_jacobian(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Features (N, out_dim) of (N, 3) points in [-1, 1]^3 and their derivatives
+        (N, out_dim, 3) with respect to the points, from the four corners of each point's cell
+        on each plane (``grid_sample`` at the vertices, nearest): one lookup, no autograd."""
+        check_shape(xyz, "N,3", "xyz")
+        n = len(xyz)
+        coords = torch.stack([xyz[:, pair] for pair in self.PAIRS]).reshape(3 * n, 2)
+        features, jacobians = [], []
+        for planes, r in zip(self.planes, self.resolutions, strict=True):
+            lower, frac = _cell(coords, r)
+            vertex = (lower[:, None] + _corners(2, xyz.device)).to(xyz.dtype) * (2 / (r - 1)) - 1
+            rows = _grid_sample(planes, vertex.reshape(3, 4 * n, 2), mode="nearest")
+            rows = rows.reshape(3 * n, 4, -1)
+            value, slope = multilinear_with_gradient(rows, frac, coords, r)
+            value, slope = value.reshape(3, n, -1), slope.reshape(3, n, -1, 2)
+            # product rule: d(v0 v1 v2) = sum_p (prod_{q != p} v_q) dv_p, dv_p on its pair
+            others = torch.stack((value[1] * value[2], value[0] * value[2], value[0] * value[1]))
+            terms = (others[..., None] * slope).permute(0, 3, 1, 2).reshape(6, -1)
+            jacobian = (self._pair_axes.to(terms.dtype) @ terms).reshape(3, n, -1)
+            features.append(value.prod(dim=0))
+            jacobians.append(jacobian.permute(1, 2, 0))
+        return torch.cat(features, dim=-1), torch.cat(jacobians, dim=1)
 
     def forward_reference(self, xyz: torch.Tensor) -> torch.Tensor:
         """:meth:`forward` with explicit gathers (slow reference for tests)."""
@@ -183,6 +283,19 @@ class HashGridEncoding(nn.Module):
             else:
                 levels.append(trilinear_gather(table, xyz, r))
         return torch.cat(levels, dim=-1)
+
+    def forward_with_jacobian(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Features (N, out_dim) of (N, 3) points in [-1, 1]^3 and their derivatives
+        (N, out_dim, 3) with respect to the points, from each level's eight cell corners
+        (gathers on every level): one lookup, no autograd."""
+        check_shape(xyz, "N,3", "xyz")
+        features, jacobians = [], []
+        for table, r in zip(self.tables, self.resolutions, strict=True):
+            rows, frac = _trilinear_corners(table, xyz, r)
+            value, slope = multilinear_with_gradient(rows, frac, xyz, r)
+            features.append(value)
+            jacobians.append(slope)
+        return torch.cat(features, dim=-1), torch.cat(jacobians, dim=1)
 
     def forward_reference(self, xyz: torch.Tensor) -> torch.Tensor:
         """:meth:`forward` with explicit gathers on every level (slow reference for tests)."""

@@ -3,7 +3,8 @@
 ``density(x)`` depends on position only; ``colour(x, d, image)`` adds the view direction
 (real spherical harmonics up to degree 2) and a learnt appearance code of the image
 (NeRF-W, Martin-Brualla et al. 2021), so that lighting that changes between runs is explained
-by the code rather than by geometry. Normals are the normalised negative density gradient.
+by the code rather than by geometry. Normals are the normalised negative density gradient,
+formed analytically in the same evaluation as the density.
 """
 
 from __future__ import annotations
@@ -148,17 +149,39 @@ class RadianceField(nn.Module):
         """Volume density (N,) in 1/m of (N, 3) world points (zero outside the field)."""
         return self.geometry(points_world)[0]
 
-    def normals(self, points_world: torch.Tensor) -> torch.Tensor:
-        """Unit normals ``-grad(density) / |grad(density)|`` (N, 3) of (N, 3) world points.
-        Differentiable when grad is enabled (the graph is kept for the normal loss)."""
+    def geometry_and_normals(
+        self, points_world: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`geometry` and the unit normals ``-grad(density) / |grad(density)|`` of (N, 3)
+        world points in one evaluation.
+
+        The density gradient is formed analytically (chain rule through the encoding's corner
+        features, the ReLU MLP, ``exp`` and the normalisation), so the normals cost no second
+        density evaluation, work without autograd, and back-propagate (the normal loss,
+        Eq. 7) by first-order autograd only.
+
+        Returns:
+            ``(density, geo, normals)``: (N,), (N, geo_features) and (N, 3); the normal is zero
+            where the gradient vanishes (outside a bounded field).
+        """
         check_shape(points_world, "N,3", "points_world")
-        keep_graph = torch.is_grad_enabled()
-        with torch.enable_grad():
-            if not points_world.requires_grad:
-                points_world = points_world.detach().requires_grad_(True)
-            density = self.density(points_world)
-            (grad,) = torch.autograd.grad(density.sum(), points_world, create_graph=keep_graph)
-        return -grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        xyz, inside = self.normalise(points_world)
+        features, jacobian = self.encoding.forward_with_jacobian(xyz)
+        first, second = self.density_mlp[0], self.density_mlp[2]
+        hidden = first(features)
+        h = second(torch.relu(hidden))
+        raw = h[:, 0] + self.config.density_bias
+        density = torch.exp(raw.clamp(max=15.0)) * inside
+        d_logit = (second.weight[0] * (hidden > 0)) @ first.weight  # (N, features)
+        grad_xyz = (d_logit[..., None] * jacobian).sum(dim=1)
+        scale = density * (raw <= 15.0)
+        grad = scale[:, None] * self.normalise.pullback(points_world, grad_xyz)
+        return density, h[:, 1:], -grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+
+    def normals(self, points_world: torch.Tensor) -> torch.Tensor:
+        """Unit normals ``-grad(density) / |grad(density)|`` (N, 3) of (N, 3) world points
+        (:meth:`geometry_and_normals`); differentiable when grad is enabled."""
+        return self.geometry_and_normals(points_world)[2]
 
     def colour(
         self, geo: torch.Tensor, directions: torch.Tensor, appearance: torch.Tensor
@@ -188,7 +211,9 @@ class RadianceField(nn.Module):
         Returns:
             The per-sample :class:`FieldOutputs`.
         """
-        density, geo = self.geometry(points_world)
-        rgb = self.colour(geo, directions, appearance)
-        normal = self.normals(points_world) if with_normals else None
-        return FieldOutputs(density, rgb, normal)
+        normal = None
+        if with_normals:
+            density, geo, normal = self.geometry_and_normals(points_world)
+        else:
+            density, geo = self.geometry(points_world)
+        return FieldOutputs(density, self.colour(geo, directions, appearance), normal)

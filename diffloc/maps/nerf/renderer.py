@@ -59,7 +59,8 @@ def render_rays(
 
     Only samples worth it are evaluated (``grid.config``): density where the density grid
     is occupied (and always within 3 ``depth_sigma`` of a lidar range, which the depth loss
-    supervises), colour and normals where the Eq. 5 weight exceeds ``min_weight``; the others
+    supervises), colour and normals where the Eq. 5 weight exceeds ``min_weight`` (normals
+    from the same evaluation as the density, :meth:`RadianceField.geometry_and_normals`); the others
     count as zero, which changes the result by at most those thresholds. With grad enabled,
     a no-grad pre-pass finds the weights first and only samples above ``grad_min_weight``
     (and the lidar window) are differentiable; the others enter as constants.
@@ -100,7 +101,10 @@ def render_rays(
             live = render_weights(fixed.reshape(r, s), deltas).reshape(-1)
         live = (live > grid.config.grad_min_weight) | window
         evaluated = evaluated[live[evaluated]]
-    density, geo = field.geometry(points[evaluated])
+    if with_normals:
+        density, geo, normals = field.geometry_and_normals(points[evaluated])
+    else:
+        density, geo = field.geometry(points[evaluated])
     weights = render_weights(fixed.index_copy(0, evaluated, density).reshape(r, s), deltas)
     seen = weights.detach().reshape(-1)[evaluated] > grid.config.min_weight
     visible, ray = evaluated[seen], evaluated[seen] // s
@@ -109,8 +113,7 @@ def render_rays(
         colour = field.colour(geo[seen], directions[ray], appearance[ray])
         rgb = composite(weights, _scatter(colour, visible, r * s).reshape(r, s, 3))
     if with_normals:
-        normals = _scatter(field.normals(points[visible]), visible, r * s).reshape(r, s, 3)
-        normal = composite(weights, normals)
+        normal = composite(weights, _scatter(normals[seen], visible, r * s).reshape(r, s, 3))
         normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-9)
     return RenderedRays(
         rgb=rgb,

@@ -158,9 +158,14 @@ class DensityGrid(nn.Module):
         ``skip_density`` is 0."""
         if not bool(self.refreshed) or self.config.skip_density <= 0:
             return torch.ones(xyz.shape[:-1], dtype=torch.bool, device=xyz.device)
+        return self._occupied_cells().view(-1).take(self._cell_index(xyz))
+
+    def _cell_index(self, xyz: torch.Tensor) -> torch.Tensor:
+        """Flat index (...) into the (g, g, g) grid of the cells holding (..., 3) cube points
+        (clamped to the grid)."""
         g = self.config.grid_resolution
-        cell = ((xyz + 1.0) * (g / 2.0)).long().clamp(0, g - 1)
-        return self._occupied_cells()[cell[..., 0], cell[..., 1], cell[..., 2]]
+        u = ((xyz + 1.0) * (g / 2.0)).clamp(0, g - 1).floor_()
+        return ((u[..., 0] * g + u[..., 1]) * g + u[..., 2]).long()
 
     def _occupied_cells(self) -> torch.Tensor:
         """(g, g, g) bool: cells whose 3x3x3 block stores at least ``skip_density``. Cached
@@ -174,9 +179,7 @@ class DensityGrid(nn.Module):
 
     def lookup(self, xyz: torch.Tensor) -> torch.Tensor:
         """Stored density of the cells holding (..., 3) cube points -> (...)."""
-        g = self.config.grid_resolution
-        cell = ((xyz + 1.0) * (g / 2.0)).long().clamp(0, g - 1)
-        return self.density[cell[..., 0], cell[..., 1], cell[..., 2]]
+        return self.density.view(-1).take(self._cell_index(xyz))
 
     @torch.no_grad()
     def sample(
