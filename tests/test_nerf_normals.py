@@ -55,17 +55,18 @@ def _autograd_normals(field: RadianceField, x: torch.Tensor) -> torch.Tensor:
 
 def test_multilinear_gradient_of_a_bilinear_cell() -> None:
     # corners (0,0)=0, (1,0)=1, (0,1)=2, (1,1)=4: f = a + 2 b + a b on the unit cell
-    rows = torch.tensor([[[0.0], [1.0], [2.0], [4.0]]], dtype=torch.float64)
-    frac = torch.tensor([[0.25, 0.5]], dtype=torch.float64)
-    assert_close(multilinear(rows, frac), torch.tensor([[0.25 + 1.0 + 0.125]], dtype=torch.float64))
-    coords = torch.zeros(1, 2, dtype=torch.float64)
+    rows = torch.tensor([[0.0], [1.0], [2.0], [4.0]], dtype=torch.float64)
+    frac = torch.tensor([[0.25], [0.5]], dtype=torch.float64)
+    expected = torch.tensor([0.25 + 1.0 + 0.125], dtype=torch.float64)
+    assert_close(multilinear(rows, frac), expected)
+    coords = torch.zeros(2, 1, dtype=torch.float64)
     # resolution 3: one cell spans 1 coordinate unit, so d/dcoord = d/dfrac
     value, slope = multilinear_with_gradient(rows, frac, coords, 3)
-    assert_close(value, multilinear(rows, frac))
-    assert_close(slope, torch.tensor([[[1.5, 2.25]]], dtype=torch.float64))
-    outside = torch.tensor([[1.5, 0.0]], dtype=torch.float64)
+    assert_close(value, expected)
+    assert_close(slope, torch.tensor([[1.5], [2.25]], dtype=torch.float64))
+    outside = torch.tensor([[1.5], [0.0]], dtype=torch.float64)
     _, clamped = multilinear_with_gradient(rows, frac, outside, 3)
-    assert_close(clamped, torch.tensor([[[0.0, 2.25]]], dtype=torch.float64))
+    assert_close(clamped, torch.tensor([[0.0], [2.25]], dtype=torch.float64))
 
 
 @pytest.mark.parametrize("kind", ["triplane", "hashgrid"])
@@ -151,7 +152,7 @@ def test_normals_gradcheck_in_the_encoding_and_mlp_parameters() -> None:
     gradcheck(fn, [base[name].detach() for name in names])
 
 
-def test_render_rays_evaluates_each_sample_once_and_matches_the_autograd_normals() -> None:
+def test_render_rays_with_grad_evaluates_each_sample_once_and_matches_autograd_normals() -> None:
     field = _field("triplane", False)
     grid = DensityGrid(SamplerConfig(grid_resolution=6, coarse_samples=16, importance_samples=8))
     grid.refresh(field.density, field.normalise, torch.Generator().manual_seed(0))
@@ -167,6 +168,15 @@ def test_render_rays_evaluates_each_sample_once_and_matches_the_autograd_normals
             return _method(xyz)
 
         setattr(field.encoding, name, counted)
+    with torch.no_grad():
+        rendered = render_rays(field, grid, origins, directions, None, with_normals=True)
+    assert calls == {"forward": 2, "forward_with_jacobian": 0}  # no grad: again if visible
+    calls.update(forward=0, forward_with_jacobian=0)
+    assert_close(
+        render_rays(field, grid, origins, directions, None, with_normals=True).normal,
+        rendered.normal,
+    )
+    calls.update(forward=0, forward_with_jacobian=0)
     out = render_rays(field, grid, origins, directions, g, with_normals=True)
     assert calls == {"forward": 0, "forward_with_jacobian": 1}
     r, s = out.t.shape

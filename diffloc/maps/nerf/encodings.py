@@ -50,24 +50,25 @@ def _corners(dims: int, device: torch.device) -> torch.Tensor:
 
 
 def multilinear(rows: torch.Tensor, frac: torch.Tensor) -> torch.Tensor:
-    """Multilinear interpolation of a cell's corner features.
+    """Multilinear interpolation of cell corner features (corners first, so that each corner
+    is a contiguous block).
 
     Args:
-        rows: (N, 2**D, C) features at the corners (order of :func:`_corners`).
-        frac: (N, D) fractional offsets in the cell, in [0, 1].
+        rows: (2**D, ...) features at the corners (order of :func:`_corners`).
+        frac: (D, ...) fractional offsets in the cell, in [0, 1], broadcastable to ``rows[0]``.
 
     Returns:
-        (N, C) interpolated features.
+        (...) interpolated features.
 
     Example:
-        >>> multilinear(torch.tensor([[[0.0], [1.0], [2.0], [3.0]]]), torch.tensor([[0.5, 0.5]]))
-        tensor([[1.5000]])
+        >>> multilinear(torch.tensor([[0.0], [1.0], [2.0], [3.0]]), torch.tensor([[0.5], [0.5]]))
+        tensor([1.5000])
     """
-    for axis in reversed(range(frac.shape[-1])):  # the last axis is the corners' top bit
-        half = rows.shape[1] // 2
-        lo, hi = rows[:, :half], rows[:, half:]
-        rows = lo + frac[:, axis, None, None] * (hi - lo)
-    return rows[:, 0]
+    for axis in reversed(range(len(frac))):  # the last axis is the corners' top bit
+        half = len(rows) // 2
+        lo, hi = rows[:half], rows[half:]
+        rows = lo + frac[axis] * (hi - lo)
+    return rows[0]
 
 
 def multilinear_with_gradient(
@@ -79,23 +80,22 @@ def multilinear_with_gradient(
     interpolated over the other axes, times the cells per coordinate unit.
 
     Args:
-        rows: (N, 2**D, C) corner features.
-        frac: (N, D) fractional offsets in the cell.
-        coords: (N, D) the coordinates (zero derivative where they are clamped, beyond +-1).
+        rows: (2**D, ...) corner features.
+        frac: (D, ...) fractional offsets in the cell.
+        coords: (D, ...) the coordinates (zero derivative where they are clamped, beyond +-1).
         resolution: vertices per axis R (a coordinate step of 2 / (R - 1) crosses one cell).
 
     Returns:
-        ``(value, gradient)``: (N, C) and (N, C, D).
+        ``(value, gradient)``: (...) and (D, ...).
     """
-    dims = frac.shape[-1]
-    slopes: list[torch.Tensor] = [rows] * dims
-    for axis in reversed(range(dims)):
-        half = rows.shape[1] // 2
-        lo, hi = rows[:, :half], rows[:, half:]
-        slopes[axis] = multilinear(hi - lo, frac[:, :axis])
-        rows = lo + frac[:, axis, None, None] * (hi - lo)
+    slopes = [rows[0]] * len(frac)
+    for axis in reversed(range(len(frac))):
+        half = len(rows) // 2
+        lo, diff = rows[:half], rows[half:] - rows[:half]
+        slopes[axis] = multilinear(diff, frac[:axis])
+        rows = lo + frac[axis] * diff
     scale = 0.5 * (resolution - 1) * ((coords >= -1.0) & (coords <= 1.0)).to(frac.dtype)
-    return rows[:, 0], torch.stack(slopes, dim=-1) * scale[:, None]
+    return rows[0], torch.stack(slopes) * scale
 
 
 def bilinear_gather(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> torch.Tensor:
@@ -114,7 +114,7 @@ def bilinear_gather(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> t
     lower, frac = _cell(uv, resolution)
     vertex = lower[:, None] + _corners(2, uv.device)
     rows = table.index_select(0, (vertex[..., 1] * resolution + vertex[..., 0]).reshape(-1))
-    return multilinear(rows.view(len(uv), 4, -1), frac)
+    return multilinear(rows.view(len(uv), 4, -1).transpose(0, 1), frac.T[..., None])
 
 
 def _vertex_index(vertex: torch.Tensor, resolution: int, table_size: int) -> torch.Tensor:
@@ -140,18 +140,17 @@ def trilinear_gather(table: torch.Tensor, xyz: torch.Tensor, resolution: int) ->
         (N, C) interpolated features.
     """
     check_shape(xyz, "N,3", "xyz")
-    rows, frac = _trilinear_corners(table, xyz, resolution)
-    return multilinear(rows, frac)
+    return multilinear(*_trilinear_corners(table, xyz, resolution))
 
 
 def _trilinear_corners(
     table: torch.Tensor, xyz: torch.Tensor, resolution: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Corner rows (N, 8, C) and fractional offsets (N, 3) of (N, 3) points in one level."""
+    """Corner rows (8, N, C) and fractional offsets (3, N, 1) of (N, 3) points in one level."""
     lower, frac = _cell(xyz, resolution)
     vertex = (lower[:, None] + _corners(3, xyz.device)).reshape(-1, 3)
     rows = table.index_select(0, _vertex_index(vertex, resolution, len(table)))
-    return rows.view(len(xyz), 8, -1), frac
+    return rows.view(len(xyz), 8, -1).transpose(0, 1), frac.T[..., None]
 
 
 def _grid_sample(
@@ -206,22 +205,23 @@ class TriplaneEncoding(nn.Module):
         on each plane (``grid_sample`` at the vertices, nearest): one lookup, no autograd."""
         check_shape(xyz, "N,3", "xyz")
         n = len(xyz)
-        coords = torch.stack([xyz[:, pair] for pair in self.PAIRS]).reshape(3 * n, 2)
+        coords = torch.stack([xyz[:, pair] for pair in self.PAIRS])  # (3, N, 2)
+        at = coords.permute(2, 0, 1)[:, :, None]  # (2, 3, 1, N): per plane axis
+        corners = _corners(2, xyz.device)[:, None, None]
         features, jacobians = [], []
         for planes, r in zip(self.planes, self.resolutions, strict=True):
             lower, frac = _cell(coords, r)
-            vertex = (lower[:, None] + _corners(2, xyz.device)).to(xyz.dtype) * (2 / (r - 1)) - 1
-            rows = _grid_sample(planes, vertex.reshape(3, 4 * n, 2), mode="nearest")
-            rows = rows.reshape(3 * n, 4, -1)
-            value, slope = multilinear_with_gradient(rows, frac, coords, r)
-            value, slope = value.reshape(3, n, -1), slope.reshape(3, n, -1, 2)
+            vertex = (lower + corners).to(xyz.dtype) * (2 / (r - 1)) - 1  # (4, 3, N, 2)
+            grid = vertex.transpose(0, 1).reshape(3, 4 * n, 2)
+            rows = _grid_sample(planes, grid, mode="nearest").transpose(1, 2)  # (3, C, 4 N)
+            rows = rows.reshape(3, -1, 4, n).permute(2, 0, 1, 3)  # (4, 3, C, N)
+            value, slope = multilinear_with_gradient(rows, frac.permute(2, 0, 1)[:, :, None], at, r)
             # product rule: d(v0 v1 v2) = sum_p (prod_{q != p} v_q) dv_p, dv_p on its pair
             others = torch.stack((value[1] * value[2], value[0] * value[2], value[0] * value[1]))
-            terms = (others[..., None] * slope).permute(0, 3, 1, 2).reshape(6, -1)
-            jacobian = (self._pair_axes.to(terms.dtype) @ terms).reshape(3, n, -1)
-            features.append(value.prod(dim=0))
-            jacobians.append(jacobian.permute(1, 2, 0))
-        return torch.cat(features, dim=-1), torch.cat(jacobians, dim=1)
+            terms = (others * slope).transpose(0, 1).reshape(6, -1)  # row 2 p + k
+            jacobians.append((self._pair_axes.to(terms.dtype) @ terms).reshape(3, -1, n))
+            features.append(value.prod(dim=0))  # (C, N)
+        return torch.cat(features).T, torch.cat(jacobians, dim=1).permute(2, 1, 0)
 
     def forward_reference(self, xyz: torch.Tensor) -> torch.Tensor:
         """:meth:`forward` with explicit gathers (slow reference for tests)."""
@@ -292,9 +292,9 @@ class HashGridEncoding(nn.Module):
         features, jacobians = [], []
         for table, r in zip(self.tables, self.resolutions, strict=True):
             rows, frac = _trilinear_corners(table, xyz, r)
-            value, slope = multilinear_with_gradient(rows, frac, xyz, r)
+            value, slope = multilinear_with_gradient(rows, frac, xyz.T[..., None], r)
             features.append(value)
-            jacobians.append(slope)
+            jacobians.append(slope.permute(1, 2, 0))
         return torch.cat(features, dim=-1), torch.cat(jacobians, dim=1)
 
     def forward_reference(self, xyz: torch.Tensor) -> torch.Tensor:

@@ -59,8 +59,9 @@ def render_rays(
 
     Only samples worth it are evaluated (``grid.config``): density where the density grid
     is occupied (and always within 3 ``depth_sigma`` of a lidar range, which the depth loss
-    supervises), colour and normals where the Eq. 5 weight exceeds ``min_weight`` (normals
-    from the same evaluation as the density, :meth:`RadianceField.geometry_and_normals`); the others
+    supervises), colour and normals where the Eq. 5 weight exceeds ``min_weight`` (with grad,
+    normals from the same evaluation as the density, :meth:`RadianceField.geometry_and_normals`,
+    so that the normal loss needs no second evaluation nor double backward); the others
     count as zero, which changes the result by at most those thresholds. With grad enabled,
     a no-grad pre-pass finds the weights first and only samples above ``grad_min_weight``
     (and the lidar window) are differentiable; the others enter as constants.
@@ -101,7 +102,11 @@ def render_rays(
             live = render_weights(fixed.reshape(r, s), deltas).reshape(-1)
         live = (live > grid.config.grad_min_weight) | window
         evaluated = evaluated[live[evaluated]]
-    if with_normals:
+    # With grad (training), normals come from the same evaluation as the density; without
+    # (rendering), the density gradient is formed only at the visible samples, usually a small
+    # part of the evaluated ones (RadianceField.normals).
+    joint = with_normals and torch.is_grad_enabled()
+    if joint:
         density, geo, normals = field.geometry_and_normals(points[evaluated])
     else:
         density, geo = field.geometry(points[evaluated])
@@ -113,7 +118,8 @@ def render_rays(
         colour = field.colour(geo[seen], directions[ray], appearance[ray])
         rgb = composite(weights, _scatter(colour, visible, r * s).reshape(r, s, 3))
     if with_normals:
-        normal = composite(weights, _scatter(normals[seen], visible, r * s).reshape(r, s, 3))
+        normals = normals[seen] if joint else field.normals(points[visible])
+        normal = composite(weights, _scatter(normals, visible, r * s).reshape(r, s, 3))
         normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-9)
     return RenderedRays(
         rgb=rgb,
