@@ -165,6 +165,12 @@ def _grid_sample(
     return out.reshape(len(coords), volume.shape[1], -1).transpose(1, 2)
 
 
+def _product(planes: torch.Tensor) -> torch.Tensor:
+    """Product of the three planes' features (3, ...) -> (...), as two multiplications: the
+    backward of ``prod`` tests for zeros and divides, about 8 % of a training step."""
+    return planes[0] * planes[1] * planes[2]
+
+
 class TriplaneEncoding(nn.Module):
     """Multi-resolution tri-plane (EG3D / K-Planes style): three axis-aligned feature planes
     per resolution (xy, xz, yz), the per-plane features multiplied (K-Planes' Hadamard
@@ -197,7 +203,7 @@ class TriplaneEncoding(nn.Module):
         """Features of (N, 3) points in [-1, 1]^3 -> (N, out_dim)."""
         check_shape(xyz, "N,3", "xyz")
         coords = torch.stack([xyz[:, pair] for pair in self.PAIRS])
-        return torch.cat([_grid_sample(p, coords).prod(dim=0) for p in self.planes], dim=-1)
+        return torch.cat([_product(_grid_sample(p, coords)) for p in self.planes], dim=-1)
 
     def forward_with_jacobian(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Features (N, out_dim) of (N, 3) points in [-1, 1]^3 and their derivatives
@@ -220,7 +226,7 @@ class TriplaneEncoding(nn.Module):
             others = torch.stack((value[1] * value[2], value[0] * value[2], value[0] * value[1]))
             terms = (others * slope).transpose(0, 1).reshape(6, -1)  # row 2 p + k
             jacobians.append((self._pair_axes.to(terms.dtype) @ terms).reshape(3, -1, n))
-            features.append(value.prod(dim=0))  # (C, N)
+            features.append(_product(value))  # (C, N)
         return torch.cat(features).T, torch.cat(jacobians, dim=1).permute(2, 1, 0)
 
     def forward_reference(self, xyz: torch.Tensor) -> torch.Tensor:
