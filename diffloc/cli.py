@@ -43,14 +43,15 @@ from diffloc.benchmark import peak_rss_mb
 from diffloc.config import CONF_DIR, check_known_keys, register_configs, to_object
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.lock import lock_config
-from diffloc.pipeline.build_map import build_maps
+from diffloc.pipeline.build_map import MapSummary, build_maps
 from diffloc.pipeline.colmap_stage import export_colmap
 from diffloc.pipeline.database_stage import build_database, optimize_database
+from diffloc.pipeline.database_summary import BuiltDatabase, OptimizedDatabase
 from diffloc.pipeline.hints import Command, CommandHint, MissingStageError, override_key
-from diffloc.pipeline.nerf_stage import train_nerf_submap
+from diffloc.pipeline.nerf_stage import NerfSummary, train_nerf_submap
 from diffloc.pipeline.reloc_stage import relocalize_dataset
-from diffloc.pipeline.rig_stage import calibrate_database_rig
-from diffloc.pipeline.update_stage import update_database
+from diffloc.pipeline.rig_stage import RigCalibrationSummary, calibrate_database_rig
+from diffloc.pipeline.update_stage import UpdateSummary, update_database
 from diffloc.sim.dataset import simulate_dataset, validate_scene_config
 
 
@@ -65,7 +66,7 @@ def run_simulate(cfg: DictConfig) -> Path:
     return out_dir
 
 
-def run_build_map(cfg: DictConfig) -> dict:
+def run_build_map(cfg: DictConfig) -> MapSummary:
     """``task=build_map``: surfel map, coloured point maps and preview under ``dataset/map``."""
     summary = build_maps(
         Path(cfg.dataset),
@@ -73,46 +74,47 @@ def run_build_map(cfg: DictConfig) -> dict:
         to_object(cfg.map),
         show_progress=cfg.progress,
     )
-    print(f"surfels: {summary['surfels']} from {summary['source']}")
-    for key in ("surfel_map", "point_map", "tls_point_map", "preview"):
-        if key in summary:
-            print(f"{key}: {summary[key]}")
+    print(f"surfels: {summary.surfels} from {summary.source}")
+    print(f"surfel_map: {summary.surfel_map}")
+    for name, point_map in summary.point_maps.items():
+        print(f"{name}: {point_map['path']}")
+    print(f"preview: {summary.preview}")
     return summary
 
 
-def run_build_db(cfg: DictConfig) -> dict:
+def run_build_db(cfg: DictConfig) -> BuiltDatabase:
     """``task=build_db``: the visual database of ``dataset`` (noisy poses if ``db.noise_sigma``)."""
     summary = build_database(Path(cfg.dataset), to_object(cfg.db), cfg.progress)
     print(
-        f"database: {summary['database']} ({summary['keyframes']} keyframes, "
-        f"{summary['map_points']} map points, keyframe position RMSE "
-        f"{summary['kf_pos_rmse_m']:.3f} m)"
+        f"database: {summary.database} ({summary.keyframes} keyframes, "
+        f"{summary.map_points} map points, keyframe position RMSE "
+        f"{summary.kf_pos_rmse_m:.3f} m)"
     )
     return summary
 
 
-def run_optimize_db(cfg: DictConfig) -> dict:
+def run_optimize_db(cfg: DictConfig) -> OptimizedDatabase:
     """``task=optimize_db``: surfel reprojection optimisation of the ``build_db`` database."""
     summary = optimize_database(Path(cfg.dataset), to_object(cfg.db), cfg.progress)
-    verdict = "accepted" if summary["accepted"] else "NOT accepted, built poses kept"
+    verdict = "accepted" if summary.accepted else "NOT accepted, built poses kept"
     print(
-        f"optimized: {summary['database']} ({verdict}: {summary['check_reason']}; keyframe "
-        f"position RMSE {summary['kf_pos_rmse_before_m']:.3f} m -> "
-        f"{summary['kf_pos_rmse_after_m']:.3f} m)"
+        f"optimized: {summary.database} ({verdict}: {summary.check_reason}; keyframe "
+        f"position RMSE {summary.kf_pos_rmse_before_m:.3f} m -> "
+        f"{summary.kf_pos_rmse_after_m:.3f} m)"
     )
     return summary
 
 
-def run_update_db(cfg: DictConfig) -> dict:
+def run_update_db(cfg: DictConfig) -> UpdateSummary:
     """``task=update_db``: add the frames of ``task.sequence`` to the ``build_db`` database."""
     summary = update_database(
         Path(cfg.dataset), to_object(cfg.db), OmegaConf.to_object(cfg.task), cfg.progress
     )
-    before, added, after = summary["before"], summary["after_adding"], summary["after_culling"]
-    culled = summary["culled"]
+    before, added, after = summary.before, summary.after_adding, summary.after_culling
+    culled = summary.culled
     print(
-        f"updated: {summary['database']} with {summary['images']} images of "
-        f"{summary['sequence']}: keyframes {before['keyframes']} -> {added['keyframes']} -> "
+        f"updated: {summary.database} with {summary.images} images of "
+        f"{summary.sequence}: keyframes {before['keyframes']} -> {added['keyframes']} -> "
         f"{after['keyframes']} ({culled['keyframes']} culled), map points "
         f"{before['map_points']} -> {added['map_points']} -> {after['map_points']} "
         f"({culled['points_unconfirmed']} unconfirmed, {culled['points_of_culled_keyframes']} "
@@ -121,21 +123,21 @@ def run_update_db(cfg: DictConfig) -> dict:
     return summary
 
 
-def run_calibrate_rig(cfg: DictConfig) -> dict:
+def run_calibrate_rig(cfg: DictConfig) -> RigCalibrationSummary:
     """``task=calibrate_rig``: the camera extrinsic and time offset of the ``build_db`` database."""
     summary = calibrate_database_rig(
         Path(cfg.dataset), to_object(cfg.db), OmegaConf.to_object(cfg.task.calibration)
     )
-    std_cm = 100.0 * math.sqrt(sum(s * s for s in summary["std"][:3]))
+    std_cm = 100.0 * math.sqrt(sum(s * s for s in summary.std[:3]))
     print(
-        f"rig calibration: extrinsic correction {summary['correction_cm']:.2f} cm / "
-        f"{summary['correction_deg']:.3f} deg (translation std {std_cm:.2f} cm), time offset "
-        f"{summary['dt_s'] * 1e3:.2f} ms, {summary['num_pairs']} surfel pairs, "
-        f"{summary['iterations']} iterations ({summary['reason']})"
+        f"rig calibration: extrinsic correction {summary.correction_cm:.2f} cm / "
+        f"{summary.correction_deg:.3f} deg (translation std {std_cm:.2f} cm), time offset "
+        f"{summary.dt_s * 1e3:.2f} ms, {summary.num_pairs} surfel pairs, "
+        f"{summary.iterations} iterations ({summary.reason})"
     )
-    print(f"results: {Path(summary['database']).parent / 'rig_calibration.json'}")
-    if "urdf" in summary:
-        print(f"corrected rig: {summary['urdf']}")
+    print(f"results: {Path(summary.database).parent / 'rig_calibration.json'}")
+    if summary.urdf is not None:
+        print(f"corrected rig: {summary.urdf}")
     return summary
 
 
@@ -210,11 +212,11 @@ def run_main(cfg: DictConfig) -> dict:
     return results
 
 
-def run_train_nerf(cfg: DictConfig) -> dict:
+def run_train_nerf(cfg: DictConfig) -> NerfSummary:
     """``task=train_nerf``: train one radiance-field submap under ``<dataset>/nerf``."""
     summary = train_nerf_submap(Path(cfg.dataset), to_object(cfg.nerf), cfg.progress)
-    print(f"submap {summary['submap']} of {summary['submaps']}: {summary['steps']} steps")
-    print(f"field: {summary['field']}")
+    print(f"submap {summary.submap} of {summary.submaps}: {summary.steps} steps")
+    print(f"field: {summary.field}")
     return summary
 
 

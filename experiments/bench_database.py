@@ -90,37 +90,35 @@ def main() -> None:
         )
         built = build_database(args.data, cfg, show_progress=True, rebuild=True)
         optimized = optimize_database(args.data, cfg, show_progress=True, rebuild=True)
-        build_ms.append(built["build_ms_per_image"])
-        optimize_ms.append(optimized["optimize_ms_per_image"])
-        before, after = optimized["kf_pos_rmse_before_m"], optimized["kf_pos_rmse_after_m"]
-        result.setdefault("keyframes", built["keyframes"])
-        result.setdefault("map_points", built["map_points"])
-        result.setdefault("features_ms_per_image", round(built["features_ms_per_image"], 1))
+        build_ms.append(built.build_ms_per_image)
+        optimize_ms.append(optimized.optimize_ms_per_image)
+        before, after = optimized.kf_pos_rmse_before_m, optimized.kf_pos_rmse_after_m
+        result.setdefault("keyframes", built.keyframes)
+        result.setdefault("map_points", built.map_points)
+        result.setdefault("features_ms_per_image", round(built.features_ms_per_image, 1))
         result.update(
             {
                 f"kf_pos_rmse_before_sigma_{sigma:g}": round(before, 4),
                 f"kf_pos_rmse_after_sigma_{sigma:g}": round(after, 4),
                 f"kf_pos_rmse_reduction_sigma_{sigma:g}": round(1 - after / before, 3),
-                f"accepted_sigma_{sigma:g}": optimized["accepted"],
+                f"accepted_sigma_{sigma:g}": optimized.accepted,
                 f"kf_pos_rmse_optimized_sigma_{sigma:g}": round(
-                    optimized["kf_pos_rmse_optimized_m"], 4
+                    optimized.kf_pos_rmse_optimized_m, 4
                 ),
                 f"check_inliers_before_sigma_{sigma:g}": round(
-                    optimized["check_inlier_fraction_before"], 3
+                    optimized.check_inlier_fraction_before, 3
                 ),
                 f"check_inliers_after_sigma_{sigma:g}": round(
-                    optimized["check_inlier_fraction_after"], 3
+                    optimized.check_inlier_fraction_after, 3
                 ),
-                f"check_rms_move_m_sigma_{sigma:g}": round(optimized["check_rms_move_m"], 3),
-                f"check_max_move_m_sigma_{sigma:g}": round(optimized["check_max_move_m"], 3),
-                f"build_ms_per_image_sigma_{sigma:g}": round(built["build_ms_per_image"], 1),
-                f"optimize_ms_per_image_sigma_{sigma:g}": round(
-                    optimized["optimize_ms_per_image"], 1
-                ),
-                f"guided_radius_px_sigma_{sigma:g}": built["guided_radius_px"],
-                f"keyframes_sigma_{sigma:g}": built["keyframes"],
-                f"map_points_sigma_{sigma:g}": built["map_points"],
-                f"optimize_iterations_sigma_{sigma:g}": optimized["iterations"],
+                f"check_rms_move_m_sigma_{sigma:g}": round(optimized.check_rms_move_m, 3),
+                f"check_max_move_m_sigma_{sigma:g}": round(optimized.check_max_move_m, 3),
+                f"build_ms_per_image_sigma_{sigma:g}": round(built.build_ms_per_image, 1),
+                f"optimize_ms_per_image_sigma_{sigma:g}": round(optimized.optimize_ms_per_image, 1),
+                f"guided_radius_px_sigma_{sigma:g}": built.guided_radius_px,
+                f"keyframes_sigma_{sigma:g}": built.keyframes,
+                f"map_points_sigma_{sigma:g}": built.map_points,
+                f"optimize_iterations_sigma_{sigma:g}": optimized.iterations,
             }
         )
     result["load_average_1min_after"] = os.getloadavg()[0]

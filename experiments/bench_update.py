@@ -168,19 +168,19 @@ def main() -> None:
     }
     built = build_database(data, db_cfg, rebuild=True)
     updated = update_database(data, db_cfg, OmegaConf.to_object(cfg.task), rebuild=True)
-    result["build_ms_per_image"] = built["build_ms_per_image"]
+    result["build_ms_per_image"] = built.build_ms_per_image
     result["update"] = {
-        key: updated[key]
+        key: getattr(updated, key)
         for key in ("images", "before", "after_adding", "after_culling", "culled", "redundancy")
     }
-    result["update"]["update_ms_per_image"] = updated["update_ms_per_image"]
-    result["update"]["features_ms_per_image"] = updated["features_ms_per_image"]
+    result["update"]["update_ms_per_image"] = updated.update_ms_per_image
+    result["update"]["features_ms_per_image"] = updated.features_ms_per_image
     culling = to_object(cfg.db).builder.culling
     result["diagnostic"] = {
-        which: culling_diagnostic(data, VisualDatabase.load(record["database"]), sources, culling)
+        which: culling_diagnostic(data, VisualDatabase.load(record.database), sources, culling)
         for which, record, sources in (
-            (BUILT, built, [(db_cfg.sequence, f) for f in built["keyframe_frames"]]),
-            (f"{UPDATED_PREFIX}{args.update}", updated, updated["keyframe_sources"]),
+            (BUILT, built, [(db_cfg.sequence, f) for f in built.keyframe_frames]),
+            (f"{UPDATED_PREFIX}{args.update}", updated, updated.keyframe_sources),
         )
     }
     truth = read_sequence(data, args.query).T_wc[:: args.query_stride]
@@ -246,10 +246,10 @@ def main() -> None:
             Column("covered_recall", "covered recall [%]", ".1f", scale=100),
         ],
     )
-    before, added = updated["before"], updated["after_adding"]
-    after, culled = updated["after_culling"], updated["culled"]
+    before, added = updated.before, updated.after_adding
+    after, culled = updated.after_culling, updated.culled
     summary = (
-        f"Update of `{data}` with `{args.update}` ({updated['images']} images), queries "
+        f"Update of `{data}` with `{args.update}` ({updated.images} images), queries "
         f"`{args.query}`: keyframes {before['keyframes']} -> {added['keyframes']} (added) -> "
         f"{after['keyframes']} (culled {culled['keyframes']}, {culled['keyframes_of_base']} of "
         f"them from the original database); map points {before['map_points']} -> "

@@ -101,10 +101,12 @@ def main() -> None:
     parser.add_argument("--kind", choices=("ablation", "noise", "runtime"), required=True)
     parser.add_argument("--command", required=True, help="the command that made the sweep")
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
+    parser.add_argument("--note", default="", help="a paragraph printed under the command")
     args = parser.parse_args()
     rows, columns = rows_and_columns(load_jobs(args.sweep), args.kind)
     table = markdown_table(rows, columns)
-    text = f"Made by:\n\n```bash\n{args.command}\n```\n\n{table}\n"
+    note = f"{args.note}\n\n" if args.note else ""
+    text = f"Made by:\n\n```bash\n{args.command}\n```\n\n{note}{table}\n"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out.with_suffix(".md"), text)
     keep = [{k: v for k, v in r.items() if k != "plots"} for r in rows]

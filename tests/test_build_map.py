@@ -63,9 +63,9 @@ def test_build_map_task_from_the_command_line_config(built: Path, tmp_path: Path
         TINY + ["task=build_map", f"dataset={root}", "task.point_maps=[]", "task.preview_frames=1"]
     )
     summary = run(cfg)
-    assert summary["surfels"] > 1000
+    assert summary.surfels > 1000
     assert to_object(cfg.map).mean_radius_m == 0.03
-    assert "point_map" not in summary
+    assert "point_map" not in summary.point_maps
 
 
 def test_a_dataset_without_lidar_is_a_clear_error(built: Path, tmp_path: Path):

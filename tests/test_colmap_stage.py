@@ -20,8 +20,10 @@ from diffloc.geometry.se3 import invert
 from diffloc.io.ply import read_point_cloud, write_point_cloud
 from diffloc.maps._storage import EXACT_COLOR_PROPERTIES
 from diffloc.maps.surfel import SurfelMap
+from diffloc.pipeline.build_map import MapSummary
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
 from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
+from diffloc.pipeline.database_summary import BuiltDatabase
 from diffloc.pipeline.hints import Command, StaleStageError
 from diffloc.pipeline.stage import open_stage, verified_record
 from tests.conftest import compose_config, copy_dataset, run_task
@@ -88,6 +90,9 @@ def test_export_of_a_database_not_made_says_which_task_to_run(built: Path):
         _export(built, "task.database=optimized")
 
 
+SUMMARIES = {"build_map": MapSummary, "build_db": BuiltDatabase}
+
+
 def _recommit(folder: Path, stage: str, rel: str, write: Callable[[Path], None]) -> None:
     """Commit a new output ``rel`` of ``stage`` in ``folder`` through the stage framework,
     under the record's key and with its other outputs (as a stage that wrote it would)."""
@@ -98,7 +103,7 @@ def _recommit(folder: Path, stage: str, rel: str, write: Callable[[Path], None])
                 copy = shutil.copytree if (folder / other).is_dir() else shutil.copy
                 copy(folder / other, run.workdir() / other)
         write(run.workdir() / rel)
-        summary = {k: v for k, v in record.items() if k != "stage"}
+        summary = SUMMARIES[stage].from_record(record)
         run.commit(record["stage"]["key"], summary, list(record["stage"]["outputs"]))
 
 

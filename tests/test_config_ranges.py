@@ -46,7 +46,7 @@ def test_point_maps_no_longer_asked_for_are_removed(
     root = copy_dataset(tiny_indoor_mapped, tmp_path_factory, "stale")
     cfg = BuildMapConfig(point_maps=["tls_map"], preview_frames=1)
     summary = build_maps(root, cfg, FINE_SURFELS, show_progress=False)
-    assert (root / "map" / "tls_point_map.ply").is_file() and "tls_point_map" in summary
+    assert (root / "map" / "tls_point_map.ply").is_file() and "tls_point_map" in summary.point_maps
     build_maps(root, BuildMapConfig(point_maps=[], preview_frames=1), FINE_SURFELS, False)
     assert not (root / "map" / "tls_point_map.ply").exists()
 

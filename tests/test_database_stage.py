@@ -32,7 +32,9 @@ from diffloc.pipeline.database_stage import (
     keyframe_position_rmse,
     perturb_positions,
 )
+from diffloc.pipeline.database_summary import BuiltDatabase, OptimizedDatabase
 from diffloc.pipeline.hints import Command
+from diffloc.pipeline.rig_stage import RigCalibrationSummary
 from diffloc.pipeline.stage import open_stage
 from diffloc.sim.dataset import simulate_dataset
 from tests.conftest import FINE_SURFELS, TINY, compose_config, copy_dataset, scene_config
@@ -56,10 +58,10 @@ def test_perturb_positions_moves_positions_only_by_the_requested_sigma():
 
 def test_build_db_without_noise_keeps_the_true_poses(mapped: Path):
     summary = _run("build_db", mapped)
-    assert summary["keyframes"] >= 2 and summary["map_points"] > 20
-    assert summary["kf_pos_rmse_m"] == 0.0
-    db = VisualDatabase.load(summary["database"])
-    truth = read_sequence(mapped, "mapping").T_wc[summary["keyframe_frames"]]
+    assert summary.keyframes >= 2 and summary.map_points > 20
+    assert summary.kf_pos_rmse_m == 0.0
+    db = VisualDatabase.load(summary.database)
+    truth = read_sequence(mapped, "mapping").T_wc[summary.keyframe_frames]
     assert torch.equal(db.T_wc, truth)
 
 
@@ -101,9 +103,10 @@ def test_stage_reuse_needs_the_same_pose_prior(mapped: Path):
     built = _run("build_db", mapped, *overrides)
     cfg = DatabaseConfig(noise_sigma=0.05, pose_prior_sigma_m=0.1)
     summary = database_dir(mapped, cfg) / "build_db.json"
-    assert built["pose_prior_sigma_m"] == 0.1
-    assert built["stage"]["key"]["config"] == json.loads(json.dumps(config_record(cfg)))
-    assert built["config"]["features"]["_target_"] == "diffloc.features.local.XFeatConfig"
+    assert built.pose_prior_sigma_m == 0.1
+    record = json.loads(summary.read_text())
+    assert record["stage"]["key"]["config"] == json.loads(json.dumps(config_record(cfg)))
+    assert built.config["features"]["_target_"] == "diffloc.features.local.XFeatConfig"
     before = summary.stat().st_mtime_ns
     assert _run("build_db", mapped, *overrides) == built
     assert summary.stat().st_mtime_ns == before
@@ -114,26 +117,28 @@ def test_stage_reuse_needs_the_same_pose_prior(mapped: Path):
 def test_build_then_optimize_with_noisy_poses(mapped: Path):
     overrides = ("db.noise_sigma=0.05", "db.builder.association=epipolar")
     built = _run("build_db", mapped, *overrides)
-    assert built["kf_pos_rmse_m"] > 0.01
+    assert built.kf_pos_rmse_m > 0.01
     # The user believes their poses exact (prior 0): the gates stay at the builder's floors.
     floor = BuilderConfig()
-    assert built["pose_prior_sigma_m"] == 0.0
-    assert built["guided_radius_px"] == floor.guided_radius_px
-    assert built["point_gate_m"] == floor.epipolar.max_point_distance_m
+    assert built.pose_prior_sigma_m == 0.0
+    assert built.guided_radius_px == floor.guided_radius_px
+    assert built.point_gate_m == floor.epipolar.max_point_distance_m
     with pytest.raises(ValueError, match="min_pairs"):  # a tiny database: few pairs each
         _run("optimize_db", mapped, *overrides, "db.optim.min_pairs=100000")
     overrides += ("db.optim.min_pairs=5",)
     with pytest.warns(OptimisationRejectedWarning):  # exact poses (prior 0) allow no move
         optimized = _run("optimize_db", mapped, *overrides)
-    assert not optimized["accepted"] and optimized["check_max_move_limit_m"] == 0.0
-    assert optimized["kf_pos_rmse_before_m"] == pytest.approx(built["kf_pos_rmse_m"])
-    assert optimized["kf_pos_rmse_after_m"] == optimized["kf_pos_rmse_before_m"]
-    assert torch.isfinite(torch.tensor(optimized["kf_pos_rmse_optimized_m"]))
+    assert not optimized.accepted and optimized.check_max_move_limit_m == 0.0
+    assert optimized.kf_pos_rmse_before_m == pytest.approx(built.kf_pos_rmse_m)
+    assert optimized.kf_pos_rmse_after_m == optimized.kf_pos_rmse_before_m
+    assert torch.isfinite(torch.tensor(optimized.kf_pos_rmse_optimized_m))
     cfg = DatabaseConfig(noise_sigma=0.05, builder=BuilderConfig(association="epipolar"))
     out = database_dir(mapped, cfg)
     assert out.name == "xfeat_sigma_0.05_prior_0_epipolar"
-    assert json.loads((out / "optimize_db.json").read_text()) == optimized
-    assert VisualDatabase.load(out / "optimized").num_keyframes == built["keyframes"]
+    assert OptimizedDatabase.from_record(json.loads((out / "optimize_db.json").read_text())) == (
+        optimized
+    )
+    assert VisualDatabase.load(out / "optimized").num_keyframes == built.keyframes
 
 
 def test_an_optimisation_that_drifts_is_rejected_and_the_built_poses_kept(mapped: Path):
@@ -151,11 +156,11 @@ def test_an_optimisation_that_drifts_is_rejected_and_the_built_poses_kept(mapped
     built = _run("build_db", mapped, *overrides)
     with pytest.warns(OptimisationRejectedWarning, match="db.optim_check.accept=always"):
         optimized = _run("optimize_db", mapped, *overrides)
-    assert not optimized["accepted"] and not optimized["check_improved"]
-    assert optimized["check_rms_move_m"] > optimized["check_rms_move_limit_m"]
-    assert "pose_prior_sigma_m" in optimized["check_reason"]
+    assert not optimized.accepted and not optimized.check_improved
+    assert optimized.check_rms_move_m > optimized.check_rms_move_limit_m
+    assert "pose_prior_sigma_m" in optimized.check_reason
     for key in ("check_inlier_fraction_before", "check_inlier_fraction_after"):
-        assert 0.0 <= optimized[key] <= 1.0
+        assert 0.0 <= getattr(optimized, key) <= 1.0
     folder = database_dir(mapped, to_object(compose_config([*overrides]).db))
     kept, as_built = (VisualDatabase.load(folder / name) for name in ("optimized", "database"))
     assert torch.equal(kept.T_wc, as_built.T_wc)
@@ -163,13 +168,13 @@ def test_an_optimisation_that_drifts_is_rejected_and_the_built_poses_kept(mapped
     surfels = SurfelMap.load(mapped / "map" / "surfel_map.ply")
     replaced = replace_map_points(as_built, surfels.centers.double(), surfels.normals.double())
     assert torch.equal(kept.point_positions, replaced.to(kept.point_positions.dtype))
-    assert optimized["kf_pos_rmse_after_m"] == built["kf_pos_rmse_m"]
+    assert optimized.kf_pos_rmse_after_m == built.kf_pos_rmse_m
     # Scoring only: ground truth agrees that the optimised poses were worse.
-    assert optimized["kf_pos_rmse_optimized_m"] > 2 * built["kf_pos_rmse_m"]
+    assert optimized.kf_pos_rmse_optimized_m > 2 * built.kf_pos_rmse_m
     with pytest.warns(OptimisationRejectedWarning, match="kept anyway"):
         forced = _run("optimize_db", mapped, *overrides, "db.optim_check.accept=always")
-    assert forced["accepted"] and not forced["check_improved"]
-    assert forced["kf_pos_rmse_after_m"] == forced["kf_pos_rmse_optimized_m"]
+    assert forced.accepted and not forced.check_improved
+    assert forced.kf_pos_rmse_after_m == forced.kf_pos_rmse_optimized_m
     assert not torch.equal(VisualDatabase.load(folder / "optimized").T_wc, as_built.T_wc)
 
 
@@ -206,11 +211,11 @@ def test_optimisation_of_a_noisy_database_is_accepted_and_cuts_the_rmse(
     )
     built = _run("build_db", corridor_and_corner, *overrides)
     optimized = _run("optimize_db", corridor_and_corner, *overrides)
-    assert optimized["accepted"] and optimized["check_improved"], optimized["check_reason"]
-    gain = optimized["check_inlier_fraction_after"] - optimized["check_inlier_fraction_before"]
+    assert optimized.accepted and optimized.check_improved, optimized.check_reason
+    gain = optimized.check_inlier_fraction_after - optimized.check_inlier_fraction_before
     assert gain > 0.3, f"held-out inlier fraction gain {gain:.3f}"
-    before, after = optimized["kf_pos_rmse_before_m"], optimized["kf_pos_rmse_after_m"]
-    assert before == built["kf_pos_rmse_m"] > 0.25
+    before, after = optimized.kf_pos_rmse_before_m, optimized.kf_pos_rmse_after_m
+    assert before == built.kf_pos_rmse_m > 0.25
     assert after <= before * 2 / 3, (
         f"keyframe position RMSE after optimisation {after:.3f} m is not a third below "
         f"{before:.3f} m"
@@ -231,7 +236,7 @@ def test_missing_inputs_are_clear_errors(tmp_path: Path, mapped: Path, tiny_indo
 def test_orb_databases_live_beside_the_xfeat_ones(mapped: Path):
     built = _run("build_db", mapped, "features=orb")
     folder = database_dir(mapped, DatabaseConfig(features=OrbConfig()))
-    assert built["database"] == str(folder / "database")
+    assert built.database == str(folder / "database")
     db = VisualDatabase.load(folder / "database")
     assert db.metric == "hamming" and db.descriptors.dtype == torch.uint8
 
@@ -245,7 +250,7 @@ def _commit_built_database(folder: Path, db: VisualDatabase) -> None:
     """Replace the built database of ``folder`` by ``db`` through the stage commit, as if
     ``build_db`` had made it (a stage trusts no database its record does not describe)."""
     record = json.loads((folder / "build_db.json").read_text())
-    summary = {k: v for k, v in record.items() if k != "stage"}
+    summary = BuiltDatabase.from_record(record)
     with open_stage(folder, "build_db", Command("build_db")) as stage:
         db.save(stage.workdir() / "database")
         stage.commit(record["stage"]["key"], summary, ["database"])
@@ -263,8 +268,9 @@ def test_calibrate_rig_stage_runs_the_calibration_and_writes_the_rig(mapped: Pat
     db.T_wc = db.T_wc @ E  # a wrong camera extrinsic
     _commit_built_database(folder, db)
     summary = _run("calibrate_rig", mapped, association)
-    assert summary["cost"] < summary["initial_cost"] and summary["num_pairs"] > 0
-    assert json.loads((folder / "rig_calibration.json").read_text()) == summary
+    assert summary.cost < summary.initial_cost and summary.num_pairs > 0
+    record = json.loads((folder / "rig_calibration.json").read_text())
+    assert RigCalibrationSummary.from_record(record) == summary
     seq = read_sequence(mapped, "mapping")
     T_bc = seq.T_body_camera.double()
     frames = torch.tensor(json.loads((folder / "build_db.json").read_text())["keyframe_frames"])
@@ -277,10 +283,10 @@ def test_calibrate_rig_stage_runs_the_calibration_and_writes_the_rig(mapped: Pat
         torch.as_tensor(seq.timestamps, dtype=torch.float64),
         frames,
     )
-    assert summary["T_correction"] == direct.T_correction.tolist()
-    assert summary["dt_s"] == direct.dt
-    rig = SensorRig.from_urdf(Path(summary["urdf"]).read_text())
-    corrected = torch.tensor(summary["T_body_camera_corrected"], dtype=torch.float64)
+    assert summary.T_correction == direct.T_correction.tolist()
+    assert summary.dt_s == direct.dt
+    rig = SensorRig.from_urdf(Path(summary.urdf).read_text())
+    corrected = torch.tensor(summary.T_body_camera_corrected, dtype=torch.float64)
     assert_close(corrected, T_bc @ direct.T_correction, rtol=0.0, atol=1e-12)
     assert_close(rig.T_body_sensor("camera").detach(), corrected, rtol=0.0, atol=1e-9)
 
@@ -311,8 +317,8 @@ def test_calibrate_rig_stage_takes_the_body_trajectory_from_the_noisy_poses(mapp
         )
 
     from_noisy, from_clean = fit(noisy), fit(seq.T_wc)
-    assert summary["T_correction"] == from_noisy.T_correction.tolist()
-    assert summary["dt_s"] == from_noisy.dt
+    assert summary.T_correction == from_noisy.T_correction.tolist()
+    assert summary.dt_s == from_noisy.dt
     assert from_clean.dt != from_noisy.dt
 
 

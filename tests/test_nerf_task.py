@@ -47,7 +47,7 @@ def test_train_nerf_writes_submaps_logs_and_a_loadable_field(
     tiny_indoor_dataset: Path, tmp_path: Path
 ) -> None:
     summary = train_nerf_submap(tiny_indoor_dataset, _tiny(tmp_path, submap=1), False)
-    assert summary["submaps"] == 2 and summary["steps"] == 2
+    assert summary.submaps == 2 and summary.steps == 2
     out = tmp_path / "nerf"
     submaps, _ = load_submaps(out / "submaps.json")
     assert len(submaps) == 2 and (out / "submaps.png").is_file()

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from diffloc.maps.surfel import SurfelMapConfig
-from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.pipeline.build_map import BuildMapConfig, MapSummary, build_maps
 from diffloc.pipeline.database_select import select_database
 from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
 from diffloc.pipeline.hints import StaleStageError
@@ -59,7 +59,7 @@ def test_a_failed_map_run_leaves_the_previous_map_and_record_intact(
     image.write_bytes(good)
     summary = build_maps(root, BuildMapConfig(point_maps=[], preview_frames=1), FINE_SURFELS, False)
     assert (root / "map" / "surfel_map.ply").read_bytes() == files["surfel_map.ply"]
-    assert summary == json.loads(files["build_map.json"])
+    assert summary == MapSummary.from_record(json.loads(files["build_map.json"]))
 
 
 @pytest.mark.filterwarnings("ignore::diffloc.pipeline.database_stage.OptimisationRejectedWarning")
@@ -80,5 +80,5 @@ def test_an_optimised_database_of_an_older_build_is_refused(
     with pytest.raises(ValueError, match=r"optimize_db\.json .*task=optimize_db"):
         run_task("relocalize", root, *noisy, "db.noise_seed=1", f"task.out_dir={root / 'r'}")
     optimized = run_task("optimize_db", root, *noisy, "db.noise_seed=1")
-    assert optimized["config"]["noise_seed"] == 1
+    assert optimized.config["noise_seed"] == 1
     assert select_database(root, cfg, "optimized").path == database_dir(root, cfg) / "optimized"

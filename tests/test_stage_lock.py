@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -19,10 +20,15 @@ from diffloc.io.lock import (
     folder_lock,
     lock_config,
 )
-from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.pipeline.build_map import BuildMapConfig, MapSummary, build_maps
 from diffloc.pipeline.hints import Command
-from diffloc.pipeline.stage import open_stage, stage_key, verified_record
+from diffloc.pipeline.stage import StageSummary, open_stage, stage_key, verified_record
 from tests.conftest import FINE_SURFELS, copy_dataset, run_task
+
+
+@dataclass(frozen=True)
+class ValueSummary(StageSummary):
+    value: str
 
 
 def test_a_second_run_waits_for_the_first_and_then_reuses_its_result(
@@ -47,7 +53,8 @@ def test_a_second_run_waits_for_the_first_and_then_reuses_its_result(
         assert waiting.wait(timeout=300), "the second run never said it was waiting"
         assert second.is_alive() and results == []  # it cannot go on while the lock is held
     second.join(timeout=300)
-    assert results and results[0] == verified_record(root / "map", "build_map", Command("x"))
+    record = verified_record(root / "map", "build_map", Command("x"))
+    assert results and results[0] == MapSummary.from_record(record)
     assert f"in use by process {os.getpid()}" in messages[0] and str(root / "map") in messages[0]
 
 
@@ -61,7 +68,7 @@ def test_two_writers_of_one_folder_commit_one_after_the_other(tmp_path: Path):
         with open_stage(tmp_path, "demo", Command("demo")) as stage:
             for name in ("a.txt", "b.txt"):
                 (stage.workdir() / name).write_text(value)
-            stage.commit(stage_key({"value": value}, {}), {"value": value}, ["a.txt", "b.txt"])
+            stage.commit(stage_key({"value": value}, {}), ValueSummary(value), ["a.txt", "b.txt"])
 
     threads = [threading.Thread(target=write, args=(v,)) for v in ("x" * 1000, "y" * 1000)]
     for thread in threads:

@@ -13,8 +13,9 @@ from pathlib import Path
 import pytest
 
 from diffloc.io.lock import LOCK_NAME, ReadOnlyFolderError, runtime_lock_path
-from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.pipeline.build_map import BuildMapConfig, MapSummary, build_maps
 from diffloc.pipeline.database_stage import DatabaseConfig, build_database, database_dir
+from diffloc.pipeline.database_summary import BuiltDatabase
 from diffloc.pipeline.hints import Command
 from diffloc.pipeline.stage import verified_record
 from tests.conftest import FINE_SURFELS, copy_dataset
@@ -38,8 +39,12 @@ def test_the_read_only_check_refuses_writes(built: Path):
 
 def test_complete_results_are_reused_without_writing(built: Path):
     db_folder = database_dir(built, DatabaseConfig())
-    expected_map = verified_record(built / "map", "build_map", Command("build_map"))
-    expected_db = verified_record(db_folder, "build_db", Command("build_db"))
+    expected_map = MapSummary.from_record(
+        verified_record(built / "map", "build_map", Command("build_map"))
+    )
+    expected_db = BuiltDatabase.from_record(
+        verified_record(db_folder, "build_db", Command("build_db"))
+    )
     before = snapshot(built)
     with read_only(built):
         assert build_maps(built, MAP_CFG, FINE_SURFELS, show_progress=False) == expected_map
@@ -57,7 +62,9 @@ def test_a_folder_without_lock_files_is_read_under_a_per_user_lock(
         path.unlink()
     runtime = tmp_path_factory.mktemp("runtime")
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
-    expected = verified_record(database_dir(root, DatabaseConfig()), "build_db", Command("x"))
+    expected = BuiltDatabase.from_record(
+        verified_record(database_dir(root, DatabaseConfig()), "build_db", Command("x"))
+    )
     with read_only(root):
         assert build_database(root, DatabaseConfig(), show_progress=False) == expected
     assert runtime_lock_path(root / "map").parent == runtime / f"diffloc-locks-{os.getuid()}"

@@ -10,8 +10,8 @@
   against the surfel map rendered into each image, so no ground-truth depth is needed and the
   stage runs the same on real data;
 - ``surfel_preview.png``: a few mapping images beside their rendered surfel index maps;
-- ``build_map.json``: the configuration, counts, clouds named but absent from the dataset
-  (``skipped_clouds``) and the stage manifest (:mod:`diffloc.pipeline.stage`): the identity
+- ``build_map.json``: the :class:`MapSummary` (configuration, counts, clouds named but absent
+  from the dataset) and the stage manifest (:mod:`diffloc.pipeline.stage`): the identity
   of every input read and of every output. A folder whose record verifies and holds the same
   configuration and inputs is reused, like hloc's cached stages.
 """
@@ -36,7 +36,7 @@ from diffloc.maps.lidar_source import lidar_points_with_origins
 from diffloc.maps.pointcloud import ColorizeConfig, PointMap
 from diffloc.maps.surfel import SurfelMap, SurfelMapConfig
 from diffloc.pipeline.hints import Command
-from diffloc.pipeline.stage import LockLevel, open_stage, stage_key
+from diffloc.pipeline.stage import LockLevel, StageSummary, open_stage, stage_key
 from diffloc.progress import progress
 from diffloc.render.surfel_render import render_surfel_index
 
@@ -45,6 +45,7 @@ __all__ = [
     "POINT_CLOUD_MAPS",
     "STAGE",
     "BuildMapConfig",
+    "MapSummary",
     "build_maps",
     "check_build_map_config",
     "render_views",
@@ -251,12 +252,42 @@ OWNED = (
 """Every file the map stage may write into ``map/``."""
 
 
+@dataclass(frozen=True)
+class MapSummary(StageSummary):
+    """What ``build_map`` made (the top level of ``map/build_map.json``).
+
+    Attributes:
+        config: the stage's settings (surfel settings under ``"surfel"``).
+        source: the lidar the surfels came from (e.g. ``"mapping sweeps + tls_map"``).
+        lidar_points: points given to the surfel construction.
+        surfels: surfels in ``surfel_map.ply``.
+        surfel_map: path of ``surfel_map.ply``.
+        surfel_coverage: share of the rendered pixels of the preview (or colouring) views that
+            a surfel covers.
+        point_maps: coloured point map file stem (``point_map``, ``tls_point_map``) ->
+            ``{"path": str, "points": int, "coloured_fraction": float}`` (share of the cloud's
+            points some view coloured; the others are left out of the map).
+        preview: path of ``surfel_preview.png``.
+        skipped_clouds: clouds named in ``clouds`` / ``point_maps`` that the dataset lacks.
+    """
+
+    config: dict
+    source: str
+    lidar_points: int
+    surfels: int
+    surfel_map: str
+    surfel_coverage: float
+    point_maps: dict[str, dict]
+    preview: str
+    skipped_clouds: list[str]
+
+
 def build_maps(
     dataset: str | Path,
     cfg: BuildMapConfig,
     surfel_cfg: SurfelMapConfig,
     show_progress: bool = True,
-) -> dict:
+) -> MapSummary:
     """Build the surfel map and coloured point maps of a dataset folder (module docstring).
 
     The stage commits as a whole (:mod:`diffloc.pipeline.stage`): outputs are written into a
@@ -271,8 +302,7 @@ def build_maps(
         show_progress: progress bars.
 
     Returns:
-        The record written to ``map/build_map.json``: paths, counts, the configuration and the
-        stage manifest.
+        The summary written to ``map/build_map.json`` (beside the stage manifest).
 
     Raises:
         FileNotFoundError: no such dataset or sequence, or no lidar data in it.
@@ -295,16 +325,15 @@ def build_maps(
         inputs = {"sequence": identity(root / cfg.sequence)}
         inputs.update({key: identity(existing[key]) for key in used})
         key = stage_key(config, inputs)
-        previous = stage.reusable(key)
+        previous = stage.reusable(key, MapSummary)
         if previous is not None and not cfg.overwrite:
             return previous
         summary, outputs = _build(
             root, seq, existing, cfg, surfel_cfg, stage.workdir(), show_progress
         )
-        summary["skipped_clouds"] = [
-            k for k in dict.fromkeys([*cfg.clouds, *cfg.point_maps]) if k not in existing
-        ]
-        return stage.commit(key, {"config": config, **summary}, outputs, OWNED)
+        skipped = [k for k in dict.fromkeys([*cfg.clouds, *cfg.point_maps]) if k not in existing]
+        summary = MapSummary(config=config, skipped_clouds=skipped, **summary)
+        return stage.commit(key, summary, outputs, OWNED)
 
 
 def _build(
@@ -316,7 +345,8 @@ def _build(
     work: Path,
     show_progress: bool,
 ) -> tuple[dict, list[str]]:
-    """Write the maps and preview into ``work``; their summary and file names."""
+    """Write the maps and preview into ``work``; their :class:`MapSummary` fields (all but
+    ``config`` and ``skipped_clouds``) and file names."""
     out = root / "map"
     clouds = [existing[key] for key in cfg.clouds if key in existing]
     points, origins, sources = lidar_points_with_origins(seq, cfg.use_sweeps, clouds, show_progress)
@@ -339,6 +369,7 @@ def _build(
         "surfels": len(surfels),
         "surfel_map": str(out / "surfel_map.ply"),
         "surfel_coverage": float((ids >= 0).float().mean()),
+        "point_maps": {},
     }
     for key in colour:
         name = _point_map_name(key)
@@ -347,9 +378,11 @@ def _build(
         )
         point_map.save(work / f"{name}.ply")
         outputs.append(f"{name}.ply")
-        summary[name] = str(out / f"{name}.ply")
-        summary[f"{name}_points"] = len(point_map)
-        summary[f"{name}_coloured_fraction"] = len(point_map) / max(total, 1)
+        summary["point_maps"][name] = {
+            "path": str(out / f"{name}.ply"),
+            "points": len(point_map),
+            "coloured_fraction": len(point_map) / max(total, 1),
+        }
     shown = np.searchsorted(views, frames)
     _write_preview(
         work / "surfel_preview.png",

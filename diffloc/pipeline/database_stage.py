@@ -43,6 +43,7 @@ from diffloc.optim.holdout import (
 from diffloc.optim.robust import RobustKernel
 from diffloc.optim.surfel_cost import SurfelOptimConfig, replace_map_points
 from diffloc.pipeline.config_record import config_record
+from diffloc.pipeline.database_summary import BuiltDatabase, OptimizedDatabase
 from diffloc.pipeline.hints import Command, MissingStageError
 from diffloc.pipeline.stage import (
     LockLevel,
@@ -327,7 +328,7 @@ def read_built_record(dataset: str | Path, cfg: DatabaseConfig) -> dict:
 
 def build_database(
     dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True, *, rebuild: bool = False
-) -> dict:
+) -> BuiltDatabase:
     """Build the visual database of ``dataset`` with ``cfg`` (module docstring).
 
     Needs ``<dataset>/map/surfel_map.ply`` (``diffloc task=build_map``). The stage commits as a
@@ -335,8 +336,9 @@ def build_database(
     and the sequence folder are unchanged (``rebuild=True`` builds anyway, e.g. to time it).
 
     Returns:
-        The record written to ``<database_dir>/build_db.json``: statistics, the frame index
-        of each keyframe, the keyframe position RMSE of the (noisy) database and the manifest.
+        The summary written to ``<database_dir>/build_db.json`` (beside the stage manifest):
+        statistics, the frame index of each keyframe, the keyframe position RMSE of the
+        (noisy) database.
 
     Raises:
         MissingStageError: no surfel map (the message names the command to run).
@@ -356,7 +358,7 @@ def build_database(
             "sequence": identity(root / cfg.sequence),
         }
         key = stage_key(config_record(cfg), inputs)
-        previous = stage.reusable(key)
+        previous = stage.reusable(key, BuiltDatabase)
         if previous is not None and not rebuild:
             return previous
         seq.T_wc = database_poses(seq.T_wc, cfg)
@@ -366,19 +368,19 @@ def build_database(
         frames = keyframe_frames(db, seq.T_wc)
         truth = read_sequence(root, cfg.sequence).T_wc[frames]  # scoring only
         db.save(stage.workdir() / "database")
-        summary = {
-            "config": config_record(cfg),
-            "database": str(out / "database"),
+        summary = BuiltDatabase(
+            config=config_record(cfg),
+            database=str(out / "database"),
             **db.stats(),
-            "keyframe_frames": frames.tolist(),
-            "kf_pos_rmse_m": keyframe_position_rmse(db.T_wc, truth),
-            "pose_prior_sigma_m": cfg.pose_prior_sigma_m,
-            "guided_radius_px": builder.config.guided_radius_px,
-            "point_gate_m": builder.config.epipolar.max_point_distance_m,
-            "images": images,
-            "features_ms_per_image": builder.timings_ms["features"] / images,
-            "build_ms_per_image": builder.timings_ms["database"] / images,
-        }
+            keyframe_frames=frames.tolist(),
+            kf_pos_rmse_m=keyframe_position_rmse(db.T_wc, truth),
+            pose_prior_sigma_m=cfg.pose_prior_sigma_m,
+            guided_radius_px=builder.config.guided_radius_px,
+            point_gate_m=builder.config.epipolar.max_point_distance_m,
+            images=images,
+            features_ms_per_image=builder.timings_ms["features"] / images,
+            build_ms_per_image=builder.timings_ms["database"] / images,
+        )
         return stage.commit(key, summary, ["database"])
 
 
@@ -387,7 +389,7 @@ class OptimisationRejectedWarning(UserWarning):
 
 
 def _check_summary(checked: CheckedOptimisation) -> dict:
-    """The check's figures for ``optimize_db.json`` (flat keys, JSON types)."""
+    """The check's fields of :class:`OptimizedDatabase` (JSON types)."""
     return {
         "accepted": checked.accepted,
         "check_improved": checked.improved,
@@ -405,20 +407,20 @@ def _check_summary(checked: CheckedOptimisation) -> dict:
     }
 
 
-def _warn_if_unchecked(summary: dict, folder: Path) -> None:
+def _warn_if_unchecked(summary: OptimizedDatabase, folder: Path) -> None:
     """Warn when the check did not vouch for the optimisation (whether it was kept or not);
-    ``summary`` is the stage's record, fresh or reused."""
-    if summary["check_improved"]:
+    ``summary`` is the stage's, fresh or reused."""
+    if summary.check_improved:
         return
-    if summary["accepted"]:
+    if summary.accepted:
         message = (
             f"the surfel optimisation of {folder} did not pass its check "
-            f"({summary['check_reason']}); its poses were kept anyway because "
+            f"({summary.check_reason}); its poses were kept anyway because "
             "db.optim_check.accept=always"
         )
     else:
         message = (
-            f"the surfel optimisation of {folder} was not accepted ({summary['check_reason']}); "
+            f"the surfel optimisation of {folder} was not accepted ({summary.check_reason}); "
             f"{folder / 'optimized'} keeps the un-optimised poses. Force the optimised ones "
             "with db.optim_check.accept=always"
         )
@@ -427,7 +429,7 @@ def _warn_if_unchecked(summary: dict, folder: Path) -> None:
 
 def optimize_database(
     dataset: str | Path, cfg: DatabaseConfig, show_progress: bool = True, *, rebuild: bool = False
-) -> dict:
+) -> OptimizedDatabase:
     """Optimise the database built with ``cfg`` by surfel reprojection, checked on held-out
     tracks (:mod:`diffloc.optim.holdout`).
 
@@ -462,15 +464,17 @@ def optimize_database(
             "surfel_map": output_identity(map_record, "surfel_map.ply"),
         }
         key = stage_key(config_record(cfg), inputs)
-        record = None if rebuild else stage.reusable(key)
-        if record is None:
+        summary = None if rebuild else stage.reusable(key, OptimizedDatabase)
+        if summary is None:
             summary = _optimize(root, cfg, built, surfels, stage.workdir())
-            record = stage.commit(key, summary, ["optimized"])
-    _warn_if_unchecked(record, out)
-    return record
+            summary = stage.commit(key, summary, ["optimized"])
+    _warn_if_unchecked(summary, out)
+    return summary
 
 
-def _optimize(root: Path, cfg: DatabaseConfig, built: dict, surfels: SurfelMap, work: Path) -> dict:
+def _optimize(
+    root: Path, cfg: DatabaseConfig, built: dict, surfels: SurfelMap, work: Path
+) -> OptimizedDatabase:
     """Optimise the built database into ``work/optimized``; the summary."""
     out = database_dir(root, cfg)
     db = VisualDatabase.load(out / "database")
@@ -491,16 +495,16 @@ def _optimize(root: Path, cfg: DatabaseConfig, built: dict, surfels: SurfelMap, 
     db.save(work / "optimized")
     truth = read_sequence(root, cfg.sequence).T_wc[torch.tensor(built["keyframe_frames"])]
     result = checked.result
-    return {
-        "config": config_record(cfg),
-        "database": str(out / "optimized"),
+    return OptimizedDatabase(
+        config=config_record(cfg),
+        database=str(out / "optimized"),
         **_check_summary(checked),
-        "kf_pos_rmse_before_m": keyframe_position_rmse(T_wc_built, truth),
-        "kf_pos_rmse_after_m": keyframe_position_rmse(db.T_wc, truth),
-        "kf_pos_rmse_optimized_m": keyframe_position_rmse(checked.T_wc_optimized, truth),
-        "iterations": int(result.iterations.max()),
-        "final_cost": float(result.cost.sum()),
-        "converged": bool(torch.as_tensor(result.converged).all()),
-        "optimize_ms": optimize_ms,
-        "optimize_ms_per_image": optimize_ms / db.num_keyframes,
-    }
+        kf_pos_rmse_before_m=keyframe_position_rmse(T_wc_built, truth),
+        kf_pos_rmse_after_m=keyframe_position_rmse(db.T_wc, truth),
+        kf_pos_rmse_optimized_m=keyframe_position_rmse(checked.T_wc_optimized, truth),
+        iterations=int(result.iterations.max()),
+        final_cost=float(result.cost.sum()),
+        converged=bool(torch.as_tensor(result.converged).all()),
+        optimize_ms=optimize_ms,
+        optimize_ms_per_image=optimize_ms / db.num_keyframes,
+    )

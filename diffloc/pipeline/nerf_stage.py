@@ -16,7 +16,7 @@ training's own state, kept beside the committed field).
 from __future__ import annotations
 
 import os
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from diffloc.io.dataset import read_sequence
@@ -27,14 +27,40 @@ from diffloc.maps.nerf.submaps import cluster_trajectory, plot_submaps, save_sub
 from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline.hints import Command
 from diffloc.pipeline.nerf_config import TrainNerfConfig
-from diffloc.pipeline.stage import LockLevel, open_stage, stage_key
+from diffloc.pipeline.stage import LockLevel, StageSummary, open_stage, stage_key
 
-__all__ = ["train_nerf_submap"]
+__all__ = ["NerfSummary", "train_nerf_submap"]
+
+
+@dataclass(frozen=True)
+class NerfSummary(StageSummary):
+    """The ``train_nerf`` summary of one submap (``submap_<k>/train_nerf.json``).
+
+    Attributes:
+        submaps: submaps the clustering made.
+        submap: the trained one.
+        frames: its frames (overlap included); ``train_frames`` / ``heldout_frames`` of them
+            trained on / held out for evaluation.
+        steps: optimiser steps taken (over all resumed runs).
+        final_loss: the last step's loss (``None`` if no step ran).
+        field: path of the exported field (safetensors + JSON).
+        plot: path of the clustered-trajectory plot.
+    """
+
+    submaps: int
+    submap: int
+    frames: int
+    train_frames: int
+    heldout_frames: int
+    steps: int
+    final_loss: float | None
+    field: str
+    plot: str
 
 
 def train_nerf_submap(
     dataset: str | os.PathLike, config: TrainNerfConfig, show_progress: bool = True
-) -> dict:
+) -> NerfSummary:
     """Cluster the mapping run and train (or resume, or reuse) one submap's field.
 
     Args:
@@ -43,8 +69,7 @@ def train_nerf_submap(
         show_progress: Lightning's progress bar (off when ``CI=true``).
 
     Returns:
-        Summary: submap count, the trained submap's frames, steps, final loss and the paths
-        (with the ``"stage"`` entry of its record).
+        The submap's summary (also in its record ``train_nerf.json``).
 
     Raises:
         ValueError: a submap index out of range, or a submap that cannot be trained (one
@@ -67,23 +92,23 @@ def train_nerf_submap(
     key = stage_key(asdict(config), {"sequence": identity(dataset / config.sequence)})
     command = Command("train_nerf", (f"dataset={dataset}", f"nerf.submap={config.submap}"))
     with open_stage(run_dir, "train_nerf", command, LockLevel.DATABASE) as stage:
-        if (record := stage.reusable(key)) is not None:
-            return record
+        if (previous := stage.reusable(key, NerfSummary)) is not None:
+            return previous
         name = f"submap {config.submap} of {dataset}"
         rays = build_submap_rays(seq, submap.frames, config.data, name=name)
         module = fit_submap(
             rays, config.train, run_dir, config.epochs, config.resume, show_progress=show_progress
         )
         export_field(stage.workdir() / "field", module.field, module.grid)
-        summary = {
-            "submaps": len(submaps),
-            "submap": config.submap,
-            "frames": len(submap.frames),
-            "train_frames": len(rays.frames),
-            "heldout_frames": len(rays.heldout),
-            "steps": module.global_step,
-            "final_loss": module.losses[-1] if module.losses else None,
-            "field": str(run_dir / "field"),
-            "plot": str(out_dir / "submaps.png"),
-        }
+        summary = NerfSummary(
+            submaps=len(submaps),
+            submap=config.submap,
+            frames=len(submap.frames),
+            train_frames=len(rays.frames),
+            heldout_frames=len(rays.heldout),
+            steps=module.global_step,
+            final_loss=module.losses[-1] if module.losses else None,
+            field=str(run_dir / "field"),
+            plot=str(out_dir / "submaps.png"),
+        )
         return stage.commit(key, summary, ["field"])

@@ -68,7 +68,7 @@ from diffloc.pipeline.database_select import (
 )
 from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.hints import Command, StaleStageError
-from diffloc.pipeline.stage import LockLevel, open_stage, stage_key
+from diffloc.pipeline.stage import LockLevel, StageSummary, open_stage, stage_key
 from diffloc.progress import progress
 from diffloc.reloc.hierarchical import (
     Candidate,
@@ -85,7 +85,32 @@ from diffloc.reloc.retrieval import (
 )
 from diffloc.reloc.validation import PoseValidator, ValidationConfig
 
-__all__ = ["RelocStageConfig", "relocalize_dataset"]
+__all__ = ["RelocStageConfig", "RelocalizeSummary", "RetrieverSummary", "relocalize_dataset"]
+
+
+@dataclass(frozen=True)
+class RetrieverSummary(StageSummary):
+    """The record summary of a fitted retriever (``<retriever_root>/<name>.json``).
+
+    Attributes:
+        config: ``{"settings": the retriever's settings, "keyframe_sources": [[sequence,
+            frame], ...] of the keyframes it ranks}``.
+    """
+
+    config: dict
+
+
+@dataclass(frozen=True)
+class RelocalizeSummary(StageSummary):
+    """The record summary of a relocalisation run (``<out>/relocalize.json``); the figures
+    are in its ``results.json`` (what :func:`relocalize_dataset` returns).
+
+    Attributes:
+        sequences: the relocalised sequences, one output folder each.
+    """
+
+    sequences: list[str]
+
 
 EXTRACTION_STAGES = ("features", "global_descriptor")
 """Stages counted as feature extraction (left out of ``median_reloc_ms``)."""
@@ -173,7 +198,7 @@ def _retriever(
     level = LockLevel.UPDATED if selected.name.startswith(UPDATED_PREFIX) else LockLevel.DATABASE
     with open_stage(selected.retriever_root, name, command, level) as stage:
         key = stage_key(config, _retriever_inputs(dataset, cfg, db, selected))
-        if stage.reusable(key) is not None:
+        if stage.reusable(key, RetrieverSummary) is not None:
             retriever = load_retriever(selected.retriever_root / name)
         else:
             if isinstance(cfg.retriever, BowConfig):
@@ -183,7 +208,7 @@ def _retriever(
                 images = keyframe_images(dataset, selected.keyframe_sources)
                 retriever = NetVLADRetriever.fit(images, cfg.retriever)
             retriever.save(stage.workdir() / name)
-            stage.commit(key, {"config": config}, [name])
+            stage.commit(key, RetrieverSummary(config), [name])
     if retriever.num_keyframes != db.num_keyframes:
         raise StaleStageError(
             f"{selected.retriever_root / name} ranks {retriever.num_keyframes} keyframes but "
@@ -493,5 +518,5 @@ def relocalize_dataset(
         atomic_write_text(work / "results.json", json.dumps(results, indent=2) + "\n")
         key = stage_key({"reloc": config_record(cfg), "database": str(selected.path)}, {})
         outputs = [*cfg.sequences, "results.md", "results.json"]
-        stage.commit(key, {"sequences": list(cfg.sequences)}, outputs)
+        stage.commit(key, RelocalizeSummary(list(cfg.sequences)), outputs)
     return results

@@ -11,11 +11,12 @@ database's ``noise_sigma``), never the sequence's clean poses: the body twists t
 time offset are finite differences of the poses a user has, noise included. The stage reads
 no ground truth. It writes, next to the database:
 
-- ``rig_calibration.json``: the correction ``T_correction`` (``T_body_camera <- T_body_camera @
-  T_correction``), its size (cm, deg), the time offset ``dt_s`` (image ``k`` belongs to body
-  time ``t_k + dt``), the corrected ``T_body_camera``, standard deviations and the correlation
-  of ``dt`` with the extrinsic (conditioning diagnostics), costs, iterations, surfel pairs and
-  how far the correction moves the keyframes (``kf_pos_shift_rms_m``);
+- ``rig_calibration.json``: the :class:`RigCalibrationSummary`: the correction
+  ``T_correction`` (``T_body_camera <- T_body_camera @ T_correction``), its size (cm, deg),
+  the time offset ``dt_s`` (image ``k`` belongs to body time ``t_k + dt``), the corrected
+  ``T_body_camera``, standard deviations and the correlation of ``dt`` with the extrinsic
+  (conditioning diagnostics), costs, iterations, surfel pairs and how far the correction
+  moves the keyframes (``kf_pos_shift_rms_m``);
 - ``rig_calibrated.urdf``: the sequence's rig URDF with the camera extrinsic corrected, when
   ``calib.yaml`` holds a URDF.
 
@@ -32,7 +33,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -58,12 +59,64 @@ from diffloc.pipeline.database_stage import (
     read_surfel_map,
 )
 from diffloc.pipeline.hints import Command, MissingStageError
-from diffloc.pipeline.stage import LockLevel, open_stage, output_identity, stage_key
+from diffloc.pipeline.stage import (
+    LockLevel,
+    StageSummary,
+    open_stage,
+    output_identity,
+    stage_key,
+)
 
 STAGE = "rig_calibration"
 """The stage name: its record is ``<database_dir>/rig_calibration.json``."""
 
-__all__ = ["calibrate_database_rig"]
+__all__ = ["RigCalibrationSummary", "calibrate_database_rig"]
+
+
+@dataclass(frozen=True)
+class RigCalibrationSummary(StageSummary):
+    """The ``calibrate_rig`` summary (``rig_calibration.json``; module docstring).
+
+    Attributes:
+        config: the calibration settings.
+        database: path of the database calibrated against.
+        keyframes: its keyframes.
+        num_pairs: surfel pairs in the cost.
+        T_correction: (4, 4) the correction, ``T_body_camera <- T_body_camera @ T_correction``.
+        correction_cm, correction_deg: its size.
+        dt_s: the time offset (image ``k`` belongs to body time ``t_k + dt``).
+        T_body_camera, T_body_camera_corrected: (4, 4) the extrinsic before and after.
+        std: (6,) or (7,) standard deviations of the correction's twist ``[v, w]`` (metres,
+            radians) and, when the time offset is estimated, of ``dt_s`` (seconds).
+        dt_correlation: (6,) correlation of ``dt`` with the twist's components (zeros
+            without a time offset).
+        initial_cost, cost, iterations, converged, reason: the Gauss-Newton run.
+        kf_pos_shift_rms_m: RMS of how far the correction moves the keyframes.
+        calibrate_ms: wall time.
+        urdf: path of ``rig_calibrated.urdf`` (``None`` when ``calib.yaml`` holds no URDF).
+    """
+
+    config: dict
+    database: str
+    keyframes: int
+    num_pairs: int
+    T_correction: list[list[float]]
+    correction_cm: float
+    correction_deg: float
+    dt_s: float
+    T_body_camera: list[list[float]]
+    T_body_camera_corrected: list[list[float]]
+    std: list[float]
+    dt_correlation: list[float]
+    initial_cost: float
+    cost: float
+    iterations: int
+    converged: bool
+    reason: str
+    kf_pos_shift_rms_m: float
+    calibrate_ms: float
+    urdf: str | None
+
 
 F64 = torch.float64
 
@@ -75,7 +128,7 @@ def _size(T: torch.Tensor) -> tuple[float, float]:
 
 def calibrate_database_rig(
     dataset: str | Path, db_cfg: DatabaseConfig, config: RigCalibrationConfig
-) -> dict:
+) -> RigCalibrationSummary:
     """Calibrate the camera extrinsic (and time offset) of the database built with ``db_cfg``.
 
     Args:
@@ -112,11 +165,11 @@ def calibrate_database_rig(
             "sequence": identity(root / db_cfg.sequence),
         }
         key = stage_key(asdict(config), inputs)
-        previous = stage.reusable(key)
+        previous = stage.reusable(key, RigCalibrationSummary)
         if previous is not None:
             return previous
         summary = _calibrate(root, db_cfg, config, built, surfels, seq, stage.workdir())
-        outputs = ["rig_calibrated.urdf"] if "urdf" in summary else []
+        outputs = [] if summary.urdf is None else ["rig_calibrated.urdf"]
         return stage.commit(key, summary, outputs, ["rig_calibrated.urdf"])
 
 
@@ -128,7 +181,7 @@ def _calibrate(
     surfels: SurfelMap,
     seq: SequenceData,
     work: Path,
-) -> dict:
+) -> RigCalibrationSummary:
     """Run the calibration; write the corrected URDF (if any) into ``work``; the summary."""
     out = database_dir(root, db_cfg)
     frames = torch.tensor(built["keyframe_frames"], dtype=torch.int64)
@@ -143,30 +196,29 @@ def _calibrate(
     )
     elapsed_ms = (time.perf_counter() - start) * 1e3
     size_cm, size_deg = _size(fit.T_correction)
-    summary = {
-        "config": asdict(config),
-        "database": str(out / "database"),
-        "keyframes": db.num_keyframes,
-        "num_pairs": fit.num_pairs,
-        "T_correction": fit.T_correction.tolist(),
-        "correction_cm": size_cm,
-        "correction_deg": size_deg,
-        "dt_s": fit.dt,
-        "T_body_camera": T_bc.tolist(),
-        "T_body_camera_corrected": (T_bc @ fit.T_correction).tolist(),
-        "std": fit.std.tolist(),
-        "dt_correlation": fit.dt_correlation.tolist(),
-        "initial_cost": fit.initial_cost,
-        "cost": fit.cost,
-        "iterations": fit.iterations,
-        "converged": fit.converged,
-        "reason": fit.reason,
-        "kf_pos_shift_rms_m": keyframe_position_rmse(fit.T_wc, db.T_wc),
-        "calibrate_ms": elapsed_ms,
-    }
     urdf = read_calib(root / db_cfg.sequence / "calib.yaml").rig_urdf
     if urdf is not None:
         rig = corrected_rig(SensorRig.from_urdf(urdf), fit.T_correction)
-        summary["urdf"] = str(out / "rig_calibrated.urdf")
         atomic_write_text(work / "rig_calibrated.urdf", rig.to_urdf())
-    return summary
+    return RigCalibrationSummary(
+        config=asdict(config),
+        database=str(out / "database"),
+        keyframes=db.num_keyframes,
+        num_pairs=fit.num_pairs,
+        T_correction=fit.T_correction.tolist(),
+        correction_cm=size_cm,
+        correction_deg=size_deg,
+        dt_s=fit.dt,
+        T_body_camera=T_bc.tolist(),
+        T_body_camera_corrected=(T_bc @ fit.T_correction).tolist(),
+        std=fit.std.tolist(),
+        dt_correlation=fit.dt_correlation.tolist(),
+        initial_cost=fit.initial_cost,
+        cost=fit.cost,
+        iterations=fit.iterations,
+        converged=fit.converged,
+        reason=fit.reason,
+        kf_pos_shift_rms_m=keyframe_position_rmse(fit.T_wc, db.T_wc),
+        calibrate_ms=elapsed_ms,
+        urdf=None if urdf is None else str(out / "rig_calibrated.urdf"),
+    )

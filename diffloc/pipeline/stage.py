@@ -1,8 +1,9 @@
 """The stage contract: atomic commits, content-keyed reuse, locks and verified records.
 
 A stage (``build_map``, ``build_db``, ...) writes its outputs into a folder and describes them
-in a record ``<folder>/<name>.json``: the stage's summary (counts, timings, ...) with a
-``"stage"`` entry holding
+in a record ``<folder>/<name>.json``: the stage's typed summary (a
+:class:`~diffloc.pipeline.summary.StageSummary`: counts, timings, ...) with a ``"stage"`` entry
+holding
 
 - ``key``: the configuration and the identity (size + SHA-256, :func:`diffloc.io.identity`)
   of every input the stage read, upstream stages' outputs included;
@@ -29,14 +30,18 @@ Example:
     A stage that writes one note: the second run with the same text reuses the first one's
     result, another text makes it again.
 
+    >>> from dataclasses import dataclass
     >>> from pathlib import Path
+    >>> @dataclass(frozen=True)
+    ... class NoteSummary(StageSummary):
+    ...     chars: int
     >>> def write_note(folder, text):
     ...     with open_stage(folder, "note", Command("note")) as stage:
     ...         key = stage_key({"text": text}, {})
-    ...         if (record := stage.reusable(key)) is not None:
+    ...         if stage.reusable(key, NoteSummary) is not None:
     ...             return "reused"
     ...         (stage.workdir() / "note.txt").write_text(text)
-    ...         return stage.commit(key, {"chars": len(text)}, ["note.txt"])["chars"]
+    ...         return stage.commit(key, NoteSummary(len(text)), ["note.txt"]).chars
     >>> _ = Path("notes").mkdir()
     >>> write_note("notes", "hello"), write_note("notes", "hello"), write_note("notes", "hi")
     (5, 'reused', 2)
@@ -53,16 +58,19 @@ import shutil
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
+from typing import TypeVar
 
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.identity import identity
 from diffloc.io.json_record import read_json_record
 from diffloc.io.lock import LockLevel, ReadOnlyFolderError, folder_lock, remove_temporaries
 from diffloc.pipeline.hints import Command, MissingStageError, StaleStageError
+from diffloc.pipeline.summary import StageSummary
 
 __all__ = [
     "STAGE_FORMAT_VERSION",
     "LockLevel",
+    "StageSummary",
     "StageRun",
     "check_made_from",
     "open_stage",
@@ -72,6 +80,8 @@ __all__ = [
     "stage_key",
     "verified_record",
 ]
+
+S = TypeVar("S", bound=StageSummary)
 
 STAGE_FORMAT_VERSION = 1
 """Version of the ``"stage"`` entry of a record."""
@@ -232,10 +242,15 @@ class StageRun:
         """``<folder>/<name>.json``."""
         return record_path(self.folder, self.name)
 
-    def reusable(self, key: dict) -> dict | None:
-        """The record of a complete earlier run with the same key, else ``None``.
+    def reusable(self, key: dict, kind: type[S]) -> S | None:
+        """The summary of a complete earlier run with the same key, else ``None``.
 
-        A missing, corrupt or half-written result is not reusable (it is made again).
+        A missing, corrupt or half-written result, or a record without every field of
+        ``kind`` (an older diffloc's), is not reusable (it is made again).
+
+        Args:
+            key: the run's :func:`stage_key`.
+            kind: the stage's summary type.
 
         Raises:
             ReadOnlyFolderError: the folder cannot be written and holds no reusable result
@@ -243,10 +258,11 @@ class StageRun:
         """
         try:
             record = verified_record(self.folder, self.name, self.command)
-        except (MissingStageError, StaleStageError):
+            summary = kind.from_record(record, self.record_path)
+        except (MissingStageError, StaleStageError, ValueError):
             record = None
         if record is not None and record["stage"]["key"] == key:
-            return record
+            return summary
         if self.read_only is not None:
             raise self._refuse_write()
         return None
@@ -271,9 +287,7 @@ class StageRun:
         except (FileNotFoundError, ValueError):
             return set()
 
-    def commit(
-        self, key: dict, summary: dict, outputs: Iterable[str], owned: Iterable[str] = ()
-    ) -> dict:
+    def commit(self, key: dict, summary: S, outputs: Iterable[str], owned: Iterable[str] = ()) -> S:
         """Move the outputs from :meth:`workdir` into place and write the record last.
 
         The new record and the stale outputs are journaled in the work folder first; a kill
@@ -282,25 +296,25 @@ class StageRun:
 
         Args:
             key: the run's :func:`stage_key`.
-            summary: the stage's summary (JSON types), stored at the top level of the record.
+            summary: the stage's typed summary, stored at the top level of the record.
             outputs: the outputs, relative to :meth:`workdir` (files or folders).
             owned: other names this stage may write; those of them that exist in the folder
                 but are not among ``outputs`` (and outputs of the previous record that are not
                 among them) are removed, so no stale output stays beside the new ones.
 
         Returns:
-            The record written (the summary with its ``"stage"`` entry).
+            ``summary`` as it reads back from the record (equal to what a reuse returns).
         """
         outputs = list(outputs)
         work = self.workdir()
         manifest = {rel: identity(work / rel) for rel in outputs}
         entry = {"format_version": STAGE_FORMAT_VERSION, "key": key, "outputs": manifest}
-        record = {**summary, "stage": entry}
+        record = {**summary.to_json(), "stage": entry}
         stale = sorted((self._previous_outputs() | set(owned)) - set(outputs))
         journal = {"record_name": self.record_path.name, "record": record, "stale": stale}
         atomic_write_text(work / JOURNAL, json.dumps(journal, indent=2) + "\n")
         _finish_commit(self.folder, work)
-        return record
+        return summary.round_trip()
 
     def close(self) -> None:
         """Remove the work folder, unless it holds the journal of a commit that did not finish

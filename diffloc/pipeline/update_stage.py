@@ -8,10 +8,11 @@ reused while its configuration, the built database, the surfel map and the seque
 unchanged):
 
 - ``database/``: the updated :class:`~diffloc.database.database.VisualDatabase`;
-- ``update_db.json``: the counts before the update, after adding (every added image and every
-  created point, before any removal) and after culling, what each culling rule removed, the
-  ``(sequence, frame)`` of every surviving keyframe (``keyframe_sources``), the keyframe
-  position RMSE against the dataset's ground truth and per-step timings.
+- ``update_db.json``: the :class:`UpdateSummary`: the counts before the update, after adding
+  (every added image and every created point, before any removal) and after culling, what
+  each culling rule removed, the ``(sequence, frame)`` of every surviving keyframe
+  (``keyframe_sources``), the keyframe position RMSE against the dataset's ground truth and
+  per-step timings.
 
 A user's update run has its own poses: with ``db.noise_sigma > 0`` they are perturbed like the
 database's (:func:`~diffloc.pipeline.database_stage.perturb_positions`) but from the seed
@@ -26,7 +27,7 @@ Relocalise against the result with ``reloc.database=updated_<sequence>``.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -55,9 +56,15 @@ from diffloc.pipeline.database_stage import (
     read_surfel_map,
 )
 from diffloc.pipeline.hints import Command, StaleStageError
-from diffloc.pipeline.stage import LockLevel, open_stage, output_identity, stage_key
+from diffloc.pipeline.stage import (
+    LockLevel,
+    StageSummary,
+    open_stage,
+    output_identity,
+    stage_key,
+)
 
-__all__ = ["UpdateTaskConfig", "update_database"]
+__all__ = ["UpdateSummary", "UpdateTaskConfig", "update_database"]
 
 
 @dataclass
@@ -77,6 +84,48 @@ class UpdateTaskConfig:
     def __post_init__(self) -> None:
         if not self.sequence or "/" in self.sequence:
             raise ValueError(f"task.sequence must be a sequence name, got {self.sequence!r}")
+
+
+@dataclass(frozen=True)
+class UpdateSummary(StageSummary):
+    """The ``update_db`` summary (``update_db.json``; module docstring).
+
+    Attributes:
+        config: ``{"db": database settings, "task": the stage's settings}``.
+        base_database: path of the database that was updated.
+        database: path of the updated database.
+        sequence: the sequence whose frames were added.
+        images: its frames.
+        before, after_adding, after_culling: ``{"keyframes": int, "map_points": int}``
+            before the update, after adding every image and point, after both culling rules.
+        culled: what culling removed: ``keyframes`` (of them ``keyframes_of_base`` of the
+            original database), ``points_unconfirmed``, ``points_of_culled_keyframes``.
+        stats: the updated database's counts
+            (:meth:`~diffloc.database.database.VisualDatabase.stats`).
+        redundancy: quantiles ``median`` / ``p90`` / ``max`` of the keyframes' redundancy
+            and the culling ``threshold`` (empty for an empty database).
+        keyframe_sources: ``[sequence, frame]`` of every surviving keyframe.
+        kf_pos_rmse_m: keyframe position RMSE against ground truth (scoring only).
+        timings_ms: ``load`` / ``features`` / ``update`` / ``save`` wall times.
+        features_ms_per_image, update_ms_per_image: per added image.
+    """
+
+    config: dict
+    base_database: str
+    database: str
+    sequence: str
+    images: int
+    before: dict[str, int]
+    after_adding: dict[str, int]
+    after_culling: dict[str, int]
+    culled: dict[str, int]
+    stats: dict[str, float]
+    redundancy: dict[str, float]
+    keyframe_sources: list[list]
+    kf_pos_rmse_m: float
+    timings_ms: dict[str, float]
+    features_ms_per_image: float
+    update_ms_per_image: float
 
 
 def _counts(keyframes: int, points: int) -> dict[str, int]:
@@ -105,7 +154,7 @@ def update_database(
     show_progress: bool = True,
     *,
     rebuild: bool = False,
-) -> dict:
+) -> UpdateSummary:
     """Update the built database of ``dataset`` with the frames of ``cfg.sequence``.
 
     Args:
@@ -138,7 +187,7 @@ def update_database(
             "sequence": identity(root / cfg.sequence),
         }
         key = stage_key({"db": config_record(db_cfg), "task": asdict(cfg)}, inputs)
-        previous = stage.reusable(key)
+        previous = stage.reusable(key, UpdateSummary)
         if previous is not None and not rebuild:
             return previous
         db = VisualDatabase.load(base.path)
@@ -151,8 +200,8 @@ def update_database(
         summary = _update(root, db_cfg, cfg, base, db, sequence, surfels, start, show_progress)
         saving = time.perf_counter()
         db.save(stage.workdir() / BUILT)
-        summary["timings_ms"]["save"] = (time.perf_counter() - saving) * 1e3
-        return stage.commit(key, summary, [BUILT])
+        timings = {**summary.timings_ms, "save": (time.perf_counter() - saving) * 1e3}
+        return stage.commit(key, replace(summary, timings_ms=timings), [BUILT])
 
 
 def _update(
@@ -165,7 +214,7 @@ def _update(
     surfels: SurfelMap,
     start: float,
     show_progress: bool,
-) -> dict:
+) -> UpdateSummary:
     """Add ``sequence`` to ``db`` in place; the summary (without the save time)."""
     truth = sequence.T_wc.clone()
     generator = torch.Generator().manual_seed(cfg.noise_seed)
@@ -184,33 +233,33 @@ def _update(
     base_kept = int((builder.keyframe_ids < before["keyframes"]).sum())
     images = len(sequence)
     stage = updated_dir(root, db_cfg, cfg.sequence)
-    return {
-        "config": {"db": config_record(db_cfg), "task": asdict(cfg)},
-        "base_database": str(base.path),
-        "database": str(stage / BUILT),
-        "sequence": cfg.sequence,
-        "images": images,
-        "before": before,
-        "after_adding": _counts(
+    return UpdateSummary(
+        config={"db": config_record(db_cfg), "task": asdict(cfg)},
+        base_database=str(base.path),
+        database=str(stage / BUILT),
+        sequence=cfg.sequence,
+        images=images,
+        before=before,
+        after_adding=_counts(
             before["keyframes"] + counts.keyframes_added,
             before["map_points"] + counts.points_created,
         ),
-        "after_culling": _counts(db.num_keyframes, db.num_points),
-        "culled": {
+        after_culling=_counts(db.num_keyframes, db.num_points),
+        culled={
             "keyframes": counts.keyframes_culled,
             "keyframes_of_base": before["keyframes"] - base_kept,
             "points_unconfirmed": counts.points_unconfirmed,
             "points_of_culled_keyframes": counts.points_orphaned,
         },
-        "stats": db.stats(),
-        "redundancy": _redundancy_summary(db, builder),
-        "keyframe_sources": [[name, frame] for name, frame in kept],
-        "kf_pos_rmse_m": keyframe_position_rmse(db.T_wc, T_wc_true),
-        "timings_ms": {
+        stats=db.stats(),
+        redundancy=_redundancy_summary(db, builder),
+        keyframe_sources=[[name, frame] for name, frame in kept],
+        kf_pos_rmse_m=keyframe_position_rmse(db.T_wc, T_wc_true),
+        timings_ms={
             "load": (loaded - start) * 1e3,
             "features": builder.timings_ms["features"],
             "update": builder.timings_ms["database"],
         },
-        "features_ms_per_image": builder.timings_ms["features"] / images,
-        "update_ms_per_image": builder.timings_ms["database"] / images,
-    }
+        features_ms_per_image=builder.timings_ms["features"] / images,
+        update_ms_per_image=builder.timings_ms["database"] / images,
+    )
