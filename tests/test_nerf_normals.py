@@ -191,3 +191,13 @@ def test_render_rays_with_grad_evaluates_each_sample_once_and_matches_autograd_n
     g_ref = torch.autograd.grad(normal_loss(reference, target), params)
     for a, b in zip(g_new, g_ref, strict=True):
         assert_close(a, b)
+
+
+def test_normals_on_the_box_face_are_the_limit_from_inside() -> None:
+    """Guided lidar samples clamped to the far bound lie on the box face (cube coordinate 1):
+    the normal there is the last cell's, not autograd's through ``grid_sample``'s border
+    (which treats the vertex beyond the face as zero)."""
+    field = _field("triplane", False)
+    face = torch.tensor([[1.0, 0.3, -0.2], [-0.4, 1.5, 0.1]], dtype=torch.float64)
+    inside = face * (1 - 1e-9)
+    assert_close(field.normals(face), field.normals(inside), rtol=1e-6, atol=1e-6)
