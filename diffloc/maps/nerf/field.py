@@ -142,8 +142,12 @@ class RadianceField(nn.Module):
         check_shape(points_world, "N,3", "points_world")
         xyz, inside = self.normalise(points_world)
         h = self.density_mlp(self.encoding(xyz))
-        logit = (h[:, 0] + self.config.density_bias).clamp(max=15.0)
-        return torch.exp(logit) * inside, h[:, 1:]
+        return self._density(h[:, 0], inside), h[:, 1:]
+
+    def _density(self, output: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+        """Density (N,) from the density MLP's first output (N,): ``exp`` of the biased logit
+        (clamped at 15), zero outside the field."""
+        return torch.exp((output + self.config.density_bias).clamp(max=15.0)) * inside
 
     def density(self, points_world: torch.Tensor) -> torch.Tensor:
         """Volume density (N,) in 1/m of (N, 3) world points (zero outside the field)."""
@@ -170,11 +174,10 @@ class RadianceField(nn.Module):
         first, second = self.density_mlp[0], self.density_mlp[2]
         hidden = first(features)
         h = second(torch.relu(hidden))
-        raw = h[:, 0] + self.config.density_bias
-        density = torch.exp(raw.clamp(max=15.0)) * inside
+        density = self._density(h[:, 0], inside)
         d_logit = (second.weight[0] * (hidden > 0)) @ first.weight  # (N, features)
         grad_xyz = (d_logit[..., None] * jacobian).sum(dim=1)
-        scale = density * (raw <= 15.0)
+        scale = density * (h[:, 0] + self.config.density_bias <= 15.0)  # the clamp's gradient
         grad = scale[:, None] * self.normalise.pullback(points_world, grad_xyz)
         return density, h[:, 1:], -grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-9)
 
