@@ -18,12 +18,15 @@ the accepted poses (within 1 m / 30 deg), localisation rates at (0.25 m, 2 deg),
 accepted poses, median translation / rotation error of the accepted queries, retrieval rate
 (top-1 retrieved render within the sampling distance and 45 deg of the query), hole share of
 the database images, candidates matched per query, median ms per query (features, retrieval,
-matching, PnP; wall time under the load recorded in the file), and the distance / angle from
+re-ranking, matching, PnP; wall time under the load recorded in the file, and the process's CPU
+time, which the load inflates less), and the distance / angle from
 each query to its nearest render pose. The JSON also holds every query's candidates with
 their evidence and true errors (``per_query``), which ``experiments/rendered_replay.py``
 replays to choose the re-ranking and validation settings. Re-ranking and validation default
-to :class:`RenderedLocalizerConfig`'s; ``--top-k 1 --select first --no-validation`` is seed 2's
-Algorithm 1. Images are downscaled by ``--scale`` (0.5: 320x240 for the 640x480 dataset).
+to :class:`RenderedLocalizerConfig`'s; ``--top-k 1 --select first --no-validation
+--rerank-candidates 0`` is seed 2's Algorithm 1 (``--rerank-candidates 0``: no
+mutual-nearest-neighbour re-ranking of the global retrieval). Images are downscaled by
+``--scale`` (0.5: 320x240 for the 640x480 dataset).
 
 Usage:
     PYTHONPATH=. OMP_NUM_THREADS=1 python3 experiments/rendered_localization.py \\
@@ -65,6 +68,7 @@ from diffloc.reloc.rendered import (
     RenderedLocalization,
     RenderedLocalizerConfig,
 )
+from diffloc.reloc.rerank import RerankConfig
 from diffloc.render.point_render import render_points
 from diffloc.render.point_sizes import PointSizes
 
@@ -101,6 +105,15 @@ def _parse() -> argparse.Namespace:
     parser.add_argument(
         "--no-validation", action="store_true", help="accept every pose found (seed 2)"
     )
+    rerank = defaults.rerank or RerankConfig()
+    parser.add_argument(
+        "--rerank-candidates",
+        type=int,
+        default=rerank.candidates,
+        help="global-retrieval images re-ranked by mutual NN matches (0: no re-ranking)",
+    )
+    parser.add_argument("--rerank-keypoints", type=int, default=rerank.keypoints)
+    parser.add_argument("--rerank-min-similarity", type=float, default=rerank.min_similarity)
     parser.add_argument(
         "--oracle-retrieval",
         action="store_true",
@@ -203,6 +216,7 @@ def _evaluate(
         "median_translation_m": _median(errors.translation_m[accepted]),
         "median_rotation_deg": _median(errors.rotation_deg[accepted]),
         "median_ms_per_query": float(np.median([r.time_ms for r in results])),
+        "median_cpu_ms_per_query": float(np.median([r.cpu_ms for r in results])),
         "median_candidates_tried": float(np.median([len(r.candidates) for r in results])),
         "median_matches": float(np.median([r.num_matches for r in results])),
         "median_points_with_depth": float(np.median([r.num_points for r in results])),
@@ -254,14 +268,22 @@ def _median(x: np.ndarray) -> float | None:
 def _retrieval_label(retrieval: dict) -> str:
     if retrieval["oracle_nearest_render"]:
         return "ORACLE nearest render to the true pose (diagnostic, not a result)"
-    return f"top-{retrieval['top_k']} ({retrieval['select']})"
+    rerank = retrieval.get("rerank")
+    label = f"top-{retrieval['top_k']} ({retrieval['select']})"
+    if rerank is None:
+        return label
+    return (
+        f"{label} of the global top-{rerank['candidates']} re-ranked by mutual NN matches "
+        f"({rerank['keypoints']} keypoints, similarity > {rerank['min_similarity']:g})"
+    )
 
 
 def _markdown(report: dict) -> str:
     head = ["sequence", "map", "mode", "retr.", "DB", "holes", "found", "prec. found"]
     head += ["accepted", "precision"]
     head += [f"{m:g} m / {d:g} deg" for m, d in THRESHOLDS]
-    head += ["ret. rate", "med. t [m]", "med. R [deg]", "tried", "ms/query", "nearest m / deg"]
+    head += ["ret. rate", "med. t [m]", "med. R [deg]", "tried", "ms/query", "CPU ms/query"]
+    head += ["nearest m / deg"]
     lines = [
         f"# Rendered-database localisation (seed 2 Algorithm 1), {report['tag']}",
         "",
@@ -298,6 +320,7 @@ def _markdown(report: dict) -> str:
             num(r["median_rotation_deg"], ".2f"),
             f"{r['median_candidates_tried']:g}",
             f"{r['median_ms_per_query']:.0f}",
+            _cpu_ms(r),
             f"{r['nearest_render_m']['median']:.2f} / {r['nearest_render_deg']['median']:.1f}",
         ]
         lines.append("| " + " | ".join(cells) + " |")
@@ -308,13 +331,30 @@ def _markdown(report: dict) -> str:
         f"within {CORRECT[0]:g} m / {CORRECT[1]:g} deg. Rates are shares of all queries localised "
         "(accepted) within the bounds (a query not localised counts as a failure); queries per "
         f"sequence: {report['queries']}. Median errors over the accepted queries; tried: median "
-        "candidates matched per query; ms/query: median wall time under the load shown. "
+        "candidates matched per query; ms/query: median wall time under the load shown; CPU "
+        "ms/query: median CPU time of the process (features, retrieval, matching, PnP). "
         "Retrieval rate: the top-1 retrieved render lies within the sampling distance (2 m) "
         "and 45 deg of the query. Nearest render: median over queries of the distance to the "
         "nearest render position and the smallest angle among its views.",
         "",
     ]
     return "\n".join(lines)
+
+
+def _cpu_ms(result: dict) -> str:
+    """The median CPU ms per query, "-" in reports written before it was recorded."""
+    value = result.get("median_cpu_ms_per_query")
+    return "-" if value is None else f"{value:.0f}"
+
+
+def _rerank(args: argparse.Namespace) -> RerankConfig | None:
+    if args.rerank_candidates == 0:
+        return None
+    return RerankConfig(
+        candidates=args.rerank_candidates,
+        keypoints=args.rerank_keypoints,
+        min_similarity=args.rerank_min_similarity,
+    )
 
 
 def main() -> None:
@@ -358,6 +398,7 @@ def main() -> None:
                     select=args.select,
                     stop_inliers=args.stop_inliers or None,
                     validation=None if args.no_validation else RenderedLocalizerConfig().validation,
+                    rerank=_rerank(args),
                 )
                 localizer = RenderedDatabaseLocalizer(db, config, extractor, matcher)
                 for seq_name, seq in sequences.items():
@@ -395,6 +436,7 @@ def main() -> None:
             "select": args.select,
             "stop_inliers": args.stop_inliers or None,
             "oracle_nearest_render": args.oracle_retrieval,
+            "rerank": None if _rerank(args) is None else asdict(_rerank(args)),
         },
         "validation": None if args.no_validation else asdict(RenderedLocalizerConfig().validation),
         "queries": {name: len(range(0, len(seq), step)) for name, seq in sequences.items()},
