@@ -89,7 +89,8 @@ RETRIEVERS = ("netvlad", "bow")
 SELECTIONS = ("first", "most_inliers")
 
 # Chosen on indoor seed 0 only (TLS cloud, single-pass, 320x240, every 4th query frame) by
-# ``experiments/rendered_replay.py`` over a top-10 run; figures in RenderedLocalizerConfig.
+# ``experiments/rendered_replay.py`` over a top-10 run and (TOP_K, with re-ranking) over the
+# re-ranked run; figures in RenderedLocalizerConfig.
 TOP_K = 5
 STOP_INLIERS = 200
 THETA_IN = 150
@@ -124,10 +125,18 @@ class RenderedLocalizerConfig:
 
     - without validation every query gets a pose, precision 55 / 51 / 27 %: half the answers
       are confident wrong poses; with it 52 / 26 / 15 % accepted at precision 100 / 100 / 80 %;
-    - ``top_k``: 1 / 5 / 10 give rates 16 / 42 / 52 % (same), 17 / 23 / 26 % (lane), 3 / 9 /
-      12 % (reverse); the right render is often ranked low by NetVLAD, so 10 (the most
-      recorded) is kept; ``stop_inliers=200`` keeps the rates of trying all 10 with 6.6 /
-      8.6 / 9.1 candidates matched on average instead of 10 (100 loses 6 points on same);
+    - ``top_k`` without re-ranking: 1 / 5 / 10 give rates 16 / 42 / 52 % (same), 17 / 23 /
+      26 % (lane), 3 / 9 / 12 % (reverse): NetVLAD often ranks the right render low (top-1
+      retrieval rate 23 / 23 / 21 %); ``stop_inliers=200`` keeps the rates of trying all 10
+      with 6.6 / 8.6 / 9.1 candidates matched on average (100 loses 6 points on same);
+    - ``rerank`` (mutual-NN matches over NetVLAD's top 50, :class:`RerankConfig`) then
+      ``top_k=5``: rates 61.3 / 28.6 / 15.2 % at precision 100 / 90.9 / 83.3 % (one wrong
+      lane pose more: 159 inliers), top-1 retrieval rate 52 / 34 / 27 %, 5 candidates matched
+      (median) instead of 10, 1.4-1.9 s CPU per query
+      (``experiments/results/rendered_localization_indoor_seed0_tls_single_rerank.md``);
+      ``top_k`` 1 / 2 / 3 / 4 / 5 after re-ranking give 48.4 / 51.6 / 54.8 / 58.1 / 61.3 %
+      (same), 22.9 / 22.9 / 25.7 / 28.6 / 28.6 % (lane), 15.2 / 18.2 / 15.2 / 15.2 / 15.2 %
+      (reverse) (replayed prefixes of that run), so 5;
     - ``theta_in=150``: below it (6-60 alike) lane precision falls to 77 % (wrong poses with
       60-140 inliers, e.g. 157 of 261 points 9 m off); correct poses mostly have 150-400;
     - ``min_coverage=0.625`` (10 of 16 cells): 0.5 or less accepts a wrong lane pose
