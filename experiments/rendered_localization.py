@@ -5,7 +5,8 @@ For each point map (``map/tls_map.ply``, ``map/lidar_map.ply``):
 1. colour the points from the ``mapping`` images (:meth:`PointMap.colorize`); the occlusion
    test uses depth rendered from the cloud itself at the mapping poses (no simulator depth);
 2. select render poses on the free-path corridor (:func:`select_render_poses`, indoor
-   defaults: 2 m spacing, 4 views, camera 1.5 m above the floor);
+   defaults: 2 m spacing, 4 views, camera 1.5 m above the floor); ``--yaw-views 8`` (a
+   multiple of 4) adds each view turned by 45 deg about the vertical (``360 / views`` apart);
 3. render the RGB-D database, single-pass Eq. 2 (every point its own rounded size) and the
    multi-pass merge (a few fixed sizes), and build local features + NetVLAD;
 4. localise every frame of the query sequences (:class:`RenderedDatabaseLocalizer`) and score
@@ -57,6 +58,7 @@ from diffloc.features.local import XFeatConfig, XFeatExtractor
 from diffloc.features.matching import LighterGlueConfig, LighterGlueMatcher
 from diffloc.features.retrieval_eval import pairwise_pose_distances
 from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.se3 import so3_exp
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.io.ply import read_point_cloud
@@ -96,6 +98,9 @@ def _parse() -> argparse.Namespace:
     parser.add_argument("--rho-max", type=float, default=8.0, help="Eq. 2 size at 1 m (px)")
     parser.add_argument("--levels", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--every", type=int, default=1, help="localise every n-th query frame")
+    parser.add_argument(
+        "--yaw-views", type=int, default=4, help="views per render position (multiple of 4)"
+    )
     defaults = RenderedLocalizerConfig()
     parser.add_argument("--top-k", type=int, default=defaults.top_k)
     parser.add_argument("--select", choices=["first", "most_inliers"], default=defaults.select)
@@ -134,6 +139,18 @@ def _images(seq: SequenceData, camera: PinholeCamera, indices: list[int]) -> tor
     return torch.stack(
         [F.interpolate(seq.load_rgb(i)[None], size, mode="area")[0] for i in indices]
     )
+
+
+def _yaw_views(T_wc: torch.Tensor, views: int) -> torch.Tensor:
+    """The (M, 4, 4) render poses (4 views per position) and each turned about the camera's
+    y axis (world vertical) by ``k 360 / views`` deg, ``k = 1 .. views / 4 - 1``:
+    (views / 4 M, 4, 4), the given poses first."""
+    if views % 4 or views < 4:
+        sys.exit(f"--yaw-views must be a positive multiple of 4, got {views}")
+    angles = torch.arange(views // 4, dtype=torch.float64) * 2 * math.pi / views
+    turns = torch.eye(4, dtype=torch.float64).repeat(len(angles), 1, 1)
+    turns[:, :3, :3] = so3_exp(torch.stack([0 * angles, angles, 0 * angles], dim=1))
+    return torch.cat([T_wc @ turn for turn in turns])
 
 
 def _colored_map(
@@ -287,7 +304,8 @@ def _markdown(report: dict) -> str:
     lines = [
         f"# Rendered-database localisation (seed 2 Algorithm 1), {report['tag']}",
         "",
-        f"Images {report['image_size']}, retrieval: {_retrieval_label(report['retrieval'])}; "
+        f"Images {report['image_size']}, {report.get('yaw_views', 4)} views per render "
+        f"position, retrieval: {_retrieval_label(report['retrieval'])}; "
         f"`{report['command']}`",
         f"Machine: {report['machine']}",
         "",
@@ -372,8 +390,10 @@ def main() -> None:
         point_map = _colored_map(map_name, args, mapping, camera)
         cloud = read_point_cloud(args.dataset / "map" / f"{map_name}.ply")
         selection = select_render_poses(cloud.points, cloud.normals, pose_config)
+        T_render = _yaw_views(selection.T_wc, args.yaw_views)
         for mode in args.modes:
-            path = args.work / f"db_{map_name}_{mode}_x{args.scale:g}"
+            views = "" if args.yaw_views == 4 else f"_v{args.yaw_views}"
+            path = args.work / f"db_{map_name}_{mode}_x{args.scale:g}{views}"
             start = time.perf_counter()
             if (path / "database.json").is_file():
                 db = RenderedDatabase.load(path)
@@ -381,7 +401,7 @@ def main() -> None:
                 rgbd_map = PointCloudMap(point_map.positions, point_map.colors, _sizes(mode, args))
                 db = render_database(
                     rgbd_map,
-                    selection.T_wc,
+                    T_render,
                     camera,
                     DatabaseConfig(),
                     f"{map_name} {mode}",
@@ -430,6 +450,7 @@ def main() -> None:
         "command": "python3 " + " ".join(sys.argv),
         "image_size": f"{camera.width}x{camera.height}",
         "machine": f"{platform.node()} {os.cpu_count()} cores, load {os.getloadavg()}",
+        "yaw_views": args.yaw_views,
         "point_sizes": {"rho_min": args.rho_min, "rho_max": args.rho_max, "levels": args.levels},
         "retrieval": {
             "top_k": args.top_k,
