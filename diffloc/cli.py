@@ -145,6 +145,7 @@ def run_export_colmap(cfg: DictConfig) -> dict:
     print(
         f"COLMAP model: {summary['model']} ({summary['images']} images, {summary['points']} "
         f"points, {summary['observations']} observations; colours: {summary['colors']})"
+        + (" up to date, reused" if summary["reused"] else "")
     )
     return summary
 

@@ -69,6 +69,7 @@ from tests.kill_runs import (
     run_stage,
     stage_folder,
     stage_outputs,
+    stage_record,
 )
 from tests.read_only import read_only, snapshot
 
@@ -812,7 +813,7 @@ def _kill_stage(stage: str, trials: int) -> Callable[[Path], None]:
         expected = stage_outputs(stage, reference)
         rng = random.Random(17)
         for trial in range(trials):
-            (stage_folder(stage, root) / f"{stage}.json").unlink(missing_ok=True)
+            stage_record(stage, root).unlink(missing_ok=True)
             killed_run(stage, root, rng.uniform(0.0, 1.1 * work_s))
             killed_run(stage, root, None)
             check(stage_outputs(stage, root) == expected, f"trial {trial}: outputs differ")

@@ -1,4 +1,6 @@
-"""``diffloc task=export_colmap`` on the tiny scene: composes, runs, reads back in pycolmap."""
+"""``diffloc task=export_colmap`` on the tiny scene: composes, runs, reads back in pycolmap,
+reuses an up-to-date export and exports a changed database again (kills:
+``test_colmap_kill.py``)."""
 
 from __future__ import annotations
 
@@ -72,15 +74,59 @@ def test_export_task_writes_the_built_database_as_a_colmap_model(built: Path):
     assert np.mean(errors) == pytest.approx(float(reprojection_errors(db).mean()), abs=1e-6)
 
 
-def test_export_into_a_non_empty_folder_needs_task_overwrite(built: Path, tmp_path: Path):
+def test_a_rerun_reuses_the_export_and_its_record(built: Path, tmp_path: Path):
     out = tmp_path / "sparse"
-    _export(built, f"task.out_dir={out}")
-    before = (out / "points3D.txt").read_bytes()
-    with pytest.raises(FileExistsError, match=r"not empty.*task\.overwrite=true"):
+    first = _export(built, f"task.out_dir={out}")
+    record = tmp_path / "export_colmap_sparse.json"
+    before = {p.name: p.read_bytes() for p in [record, *out.iterdir()]}
+    again = _export(built, f"task.out_dir={out}")
+    assert (first["reused"], again["reused"]) == (False, True)
+    assert again["stage"] == first["stage"] and again["model"] == str(out)
+    assert {p.name: p.read_bytes() for p in [record, *out.iterdir()]} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        ".diffloc.lock",
+        "export_colmap_sparse.json",
+        "sparse",
+    ]
+
+
+def test_a_database_changed_since_the_export_is_exported_again(
+    built: Path, tmp_path_factory: pytest.TempPathFactory
+):
+    root = copy_dataset(built, tmp_path_factory, "changed_db")
+    first = _export(root, "task.overwrite=true")  # the copy holds the fixture's export
+    folder = database_dir(root, DatabaseConfig())
+    db = VisualDatabase.load(folder / "database")
+    observed = int(torch.nonzero(db.observation_counts() > 0)[0, 0])
+    db.point_positions[observed] *= 1.01
+    _recommit(folder, "build_db", "database", db.save)
+    second = _export(root)
+    assert not second["reused"]
+    assert (
+        second["stage"]["key"]["inputs"]["database"] != first["stage"]["key"]["inputs"]["database"]
+    )
+    model = pycolmap.Reconstruction(second["model"])
+    np.testing.assert_allclose(
+        model.points3D[observed + 1].xyz, db.point_positions[observed].double().numpy()
+    )
+    assert verified_record(folder / "colmap", "export_colmap_database", Command("x")) == {
+        k: v for k, v in second.items() if k not in ("model", "database", "reused")
+    }
+
+
+def test_export_into_a_foreign_non_empty_folder_needs_task_overwrite(built: Path, tmp_path: Path):
+    out = tmp_path / "sparse"
+    out.mkdir()
+    (out / "notes.txt").write_text("not an export")
+    with pytest.raises(FileExistsError, match=r"holds no export.*task\.overwrite=true"):
         _export(built, f"task.out_dir={out}")
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
     summary = _export(built, f"task.out_dir={out}", "task.overwrite=true")
     assert summary["model"] == str(out)
-    assert (out / "points3D.txt").read_bytes() == before
+    assert sorted(p.name for p in out.iterdir()) == ["cameras.txt", "images.txt", "points3D.txt"]
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(FileExistsError, match=r"file exists and is not a folder"):
+        _export(built, f"task.out_dir={tmp_path / 'file'}")
 
 
 def test_export_of_a_database_not_made_says_which_task_to_run(built: Path):
@@ -116,7 +162,7 @@ def test_points_take_the_colours_of_their_anchor_surfels(
     _recommit(root / "map", "build_map", "surfel_map.ply", surfels.save)
     run_task("build_db", root)  # on the coloured map
     summary = _export(root, "task.overwrite=true")  # the copy holds the first export
-    assert summary["colors"] == f"anchor surfels of {surfel_path}"
+    assert summary["colors"] == "anchor surfels of map/surfel_map.ply"
     db = VisualDatabase.load(summary["database"])
     model = pycolmap.Reconstruction(summary["model"])
     for point_id, point in model.points3D.items():
