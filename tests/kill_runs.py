@@ -17,6 +17,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from diffloc.config import compose_config, to_object
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig, export_colmap
 from diffloc.pipeline.database_select import updated_dir
@@ -26,9 +27,10 @@ from diffloc.pipeline.database_stage import (
     database_dir,
     optimize_database,
 )
+from diffloc.pipeline.nerf_stage import train_nerf_submap
 from diffloc.pipeline.update_stage import UpdateTaskConfig, update_database
 from diffloc.sim.dataset import simulate_dataset
-from tests.conftest import FINE_SURFELS, TINY, scene_config
+from tests.conftest import FINE_SURFELS, TINY, TINY_NERF, scene_config
 
 _NOISY = DatabaseConfig(noise_sigma=0.05)
 NOISY_DB = replace(
@@ -46,12 +48,13 @@ STAGE_CONFIGS = {
     "optimize_db": NOISY_DB,
     "update_db": NOISY_DB,
     "export_colmap": NOISY_DB,
+    "train_nerf": to_object(compose_config(["task=train_nerf", *TINY_NERF]).nerf),
     "simulate": TINY + ["scene=indoor"],
 }
 """The stage runs that are killed: a map with a coloured point map, a noisy database, its
 optimisation, its update with ``query_lane``, its COLMAP export (``<database_dir>/colmap/
-database``), the tiny indoor dataset (its overrides; ``root`` is then the dataset folder to
-write)."""
+database``), the tiny radiance field of submap 0 (``<dataset>/nerf/submap_0``), the tiny indoor
+dataset (its overrides; ``root`` is then the dataset folder to write)."""
 
 EXPORT_TASK = ExportColmapTaskConfig()
 
@@ -73,6 +76,8 @@ def run_stage(stage: str, root: Path) -> dict | Path:
         return update_database(root, config, UPDATE_TASK, show_progress=False)
     if stage == "export_colmap":
         return export_colmap(root, config, EXPORT_TASK)
+    if stage == "train_nerf":
+        return train_nerf_submap(root, config, show_progress=False)
     return build_database(root, config, show_progress=False)
 
 
@@ -86,6 +91,8 @@ def stage_folder(stage: str, root: Path) -> Path:
         return updated_dir(root, STAGE_CONFIGS[stage], UPDATE_TASK.sequence)
     if stage == "export_colmap":
         return database_dir(root, STAGE_CONFIGS[stage]) / "colmap"
+    if stage == "train_nerf":
+        return root / "nerf" / f"submap_{STAGE_CONFIGS[stage].submap}"
     return database_dir(root, STAGE_CONFIGS[stage])
 
 
