@@ -1032,7 +1032,7 @@ def cases(quick: bool, kills: int) -> list[tuple[str, Callable[[Path], None]]]:
         ]
         found += [("input", case) for case in spoilt_inputs() if "relocalize" in case.__name__]
         found += [("concurrency", concurrent_relocalizations)]
-        stages = ("build_map", "build_db", "optimize_db", "update_db", "export_colmap")
+        stages = ("build_map", "build_db", "optimize_db", "update_db")
         found += [("kill", _kill_stage(stage, kills)) for stage in stages]
         found += [("kill", _kill_simulate(min(kills, 3)))]
     return found
