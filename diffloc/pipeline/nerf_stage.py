@@ -54,12 +54,13 @@ _NOT_TRAINING = ("epochs", "resume", "out_dir")
 
 def _unusable_checkpoint(last: Path, run_dir: Path, key: dict, max_steps: int) -> str | None:
     """Why checkpoint ``last`` cannot be resumed by the training ``key``, or ``None``."""
+    record = run_dir / TRAINING_RECORD
     try:
-        belongs = read_json_record(run_dir / TRAINING_RECORD) == key
+        belongs = read_json_record(record) == key
     except (OSError, ValueError):
-        belongs = False
+        return f"{record} does not say which training it belongs to (missing or unreadable)"
     if not belongs:
-        return f"it belongs to a training of other settings or data (see {TRAINING_RECORD})"
+        return f"it belongs to a training of other settings or data (see {record})"
     try:
         state = torch.load(last, map_location="cpu", weights_only=True)
         steps, weights = int(state["global_step"]), state["state_dict"]
