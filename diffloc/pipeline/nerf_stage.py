@@ -148,6 +148,7 @@ def train_nerf_submap(
     with open_stage(run_dir, "train_nerf", command, LockLevel.DATABASE) as stage:
         if (record := stage.reusable(key)) is not None:
             return record
+        work = stage.workdir()  # a folder this run cannot write is refused here, before work
         name = f"submap {config.submap} of {dataset}"
         rays = build_submap_rays(seq, submap.frames, config.data, name=name)
         resume = _prepare_checkpoints(run_dir, stage_key(training, inputs), config)
@@ -155,7 +156,7 @@ def train_nerf_submap(
             rays, config.train, run_dir, config.epochs, resume, show_progress=show_progress
         )
         _check_finite(module, name)
-        export_field(stage.workdir() / "field", module.field, module.grid)
+        export_field(work / "field", module.field, module.grid)
         summary = {
             "submaps": len(submaps),
             "submap": config.submap,
