@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from diffloc.checks import check_shape
+from diffloc.checks import check_int_at_least, check_number, check_shape
 from diffloc.maps.nerf.contraction import SceneNormalisation
 from diffloc.maps.nerf.rendering import render_weights
 
@@ -49,6 +49,20 @@ class SamplerConfig:
     guided_samples: int = 8
     far_m: float = 200.0
     near_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        check_int_at_least(self.grid_resolution, "grid_resolution", 2)
+        check_number(self.grid_decay, "grid_decay", 0.0, 1.0)
+        for name in ("grid_update_every", "coarse_samples"):
+            check_int_at_least(getattr(self, name), name, 1)
+        for name in ("importance_samples", "uniform_samples", "guided_samples"):
+            check_int_at_least(getattr(self, name), name, 0)
+        if self.importance_samples + self.uniform_samples + self.guided_samples < 1:
+            raise ValueError(
+                "importance_samples, uniform_samples and guided_samples must not all be 0"
+            )
+        check_number(self.near_m, "near_m", 0.0, open_low=True)
+        check_number(self.far_m, "far_m", self.near_m, open_low=True)
 
 
 def spacing(s: torch.Tensor, near: torch.Tensor, far: torch.Tensor, far_outer: float | None):
