@@ -65,6 +65,57 @@ def check_positive_int(value: object, name: str) -> int:
     return int(value)
 
 
+def check_int_at_least(value: object, name: str, low: int) -> int:
+    """Return ``value`` if it is an integer ``>= low`` (not a bool), else raise ``ValueError``.
+
+    Example:
+        >>> check_int_at_least(3, "steps", 1)
+        3
+    """
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+def check_number(
+    value: object,
+    name: str,
+    low: float = -math.inf,
+    high: float = math.inf,
+    *,
+    open_low: bool = False,
+    open_high: bool = False,
+) -> float:
+    """Return ``value`` if it is a finite number in the interval, else raise ``ValueError``.
+
+    Args:
+        value: the setting.
+        name: its name, for the message.
+        low, high: the interval's ends.
+        open_low, open_high: exclude the end (``open_low=True, low=0``: positive).
+
+    Example:
+        >>> check_number(0.5, "scale", 0.0, 1.0, open_low=True)
+        0.5
+    """
+    number = isinstance(value, int | float | np.floating | np.integer) and not isinstance(
+        value, bool
+    )
+    inside = (
+        number
+        and math.isfinite(value)
+        and (value > low if open_low else value >= low)
+        and (value < high if open_high else value <= high)
+    )
+    if not inside:
+        if math.isinf(high):
+            where = f"{'>' if open_low else '>='} {low:g}"
+        else:
+            where = f"in {'(' if open_low else '['}{low:g}, {high:g}{')' if open_high else ']'}"
+        raise ValueError(f"{name} must be a finite number {where}, got {value!r}")
+    return float(value)
+
+
 def check_ransac_settings(config: object, min_sample: int) -> None:
     """Validate the settings every RANSAC config of diffloc shares (PnP, essential check).
 

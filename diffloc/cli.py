@@ -44,7 +44,7 @@ from diffloc.config import CONF_DIR, check_known_keys, register_configs, to_obje
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.lock import lock_config
 from diffloc.pipeline.build_map import MapSummary, build_maps
-from diffloc.pipeline.colmap_stage import export_colmap
+from diffloc.pipeline.colmap_stage import ColmapExport, export_colmap
 from diffloc.pipeline.database_stage import build_database, optimize_database
 from diffloc.pipeline.database_summary import BuiltDatabase, OptimizedDatabase
 from diffloc.pipeline.hints import Command, CommandHint, MissingStageError, override_key
@@ -141,14 +141,16 @@ def run_calibrate_rig(cfg: DictConfig) -> RigCalibrationSummary:
     return summary
 
 
-def run_export_colmap(cfg: DictConfig) -> dict:
+def run_export_colmap(cfg: DictConfig) -> ColmapExport:
     """``task=export_colmap``: a saved database as a COLMAP TEXT model."""
-    summary = export_colmap(Path(cfg.dataset), to_object(cfg.db), OmegaConf.to_object(cfg.task))
+    export = export_colmap(Path(cfg.dataset), to_object(cfg.db), OmegaConf.to_object(cfg.task))
+    summary = export.summary
     print(
-        f"COLMAP model: {summary['model']} ({summary['images']} images, {summary['points']} "
-        f"points, {summary['observations']} observations; colours: {summary['colors']})"
+        f"COLMAP model: {export.model} ({summary.images} images, {summary.points} "
+        f"points, {summary.observations} observations; colours: {summary.colors})"
+        + (" up to date, reused" if export.reused else "")
     )
-    return summary
+    return export
 
 
 def _results_dir(cfg: DictConfig) -> Path:

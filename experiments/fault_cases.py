@@ -21,10 +21,11 @@ PLY, NPZ, JSON records, PNG images, pose tables, calibration YAML; a run that en
 result as on the intact file counts as correct), ``config`` (every kind of range and name
 error, which must fail before any file is written), ``concurrency`` (each pair of stages that
 share a folder, run together in threads; ``stage.wait=false`` and ``stage.timeout_s``),
-``read-only`` (a dataset folder that cannot be written: :mod:`tests.read_only`), ``kill``.
-``--quick`` leaves out the cases that relocalise or run many kills. ``--kills N`` sets the
-killed runs per kill case (SIGKILL after a random delay, seeded; then the stage is run again
-and compared byte for byte). The script writes
+``read-only`` (a dataset folder that cannot be written: :mod:`tests.read_only`), ``nerf``
+(checkpoints of other settings or past ``nerf.epochs``), ``kill``. ``--quick`` leaves out the
+cases that relocalise and the kills of every stage but ``train_nerf`` (seconds per kill).
+``--kills N`` sets the killed runs per kill case (SIGKILL after a random delay, seeded; then
+the stage is run again and compared byte for byte). The script writes
 ``--out`` (JSON: per case its group, class and message) and the same name with ``.md``
 (a Markdown table and the counts per class).
 """
@@ -45,7 +46,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import torch
 from hydra.errors import ConfigCompositionException
+from safetensors.torch import load_file, save_file
 
 from diffloc.cli import run
 from diffloc.config import compose_config
@@ -53,15 +56,17 @@ from diffloc.database.database import VisualDatabase
 from diffloc.io.identity import identity
 from diffloc.io.lock import LockLevel, folder_lock, remove_temporaries
 from diffloc.io.ply import read_point_cloud, write_point_cloud
+from diffloc.maps.nerf.export import load_field
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.pipeline.database_select import select_database
 from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
 from diffloc.pipeline.hints import Command, StaleStageError
+from diffloc.pipeline.nerf_stage import TRAINING_RECORD
 from diffloc.pipeline.stage import verified_record
 from diffloc.reloc.retrieval import BowConfig, BowRetriever, load_retriever
 from diffloc.sim.dataset import simulate_dataset
-from tests.conftest import FINE_SURFELS, TINY, run_task, scene_config
+from tests.conftest import FINE_SURFELS, TINY, TINY_NERF, run_task, scene_config
 from tests.kill_runs import (
     PREREQUISITES,
     folder_files,
@@ -69,6 +74,7 @@ from tests.kill_runs import (
     run_stage,
     stage_folder,
     stage_outputs,
+    stage_record,
 )
 from tests.read_only import read_only, snapshot
 
@@ -357,6 +363,7 @@ STAGES: dict[str, Callable[[Path], object]] = {
     "calibrate_rig": lambda root: run_task("calibrate_rig", root, *DB),
     "relocalize": lambda root: run_task("relocalize", root, *DB, *_reloc_settings(root)),
     "export_colmap": lambda root: run_task("export_colmap", root, *DB, "task.overwrite=true"),
+    "train_nerf": lambda root: run_task("train_nerf", root, *TINY_NERF),
 }
 """How each stage runs in the cases below (``build_map`` as the base dataset's map)."""
 
@@ -368,12 +375,17 @@ NEEDS = {
     "calibrate_rig": ("build_db",),
     "relocalize": ("build_db",),
     "export_colmap": ("build_db",),
+    "train_nerf": (),
 }
 """The stages each stage needs to have run first."""
 
 
 def _db_folder(root: Path) -> Path:
     return database_dir(root, DatabaseConfig())
+
+
+def _nerf_dir(root: Path) -> Path:
+    return root / "nerf" / "submap_0"
 
 
 def stage_result(stage: str, root: Path) -> dict[str, bytes]:
@@ -391,6 +403,7 @@ def stage_result(stage: str, root: Path) -> dict[str, bytes]:
         "optimize_db": (_db_folder(root), "optimize_db"),
         "update_db": (_db_folder(root) / "updated_query_lane", "update_db"),
         "calibrate_rig": (_db_folder(root), "rig_calibration"),
+        "train_nerf": (_nerf_dir(root), "train_nerf"),
     }
     if stage == "export_colmap":
         folder, names = _db_folder(root) / "colmap" / "database", None
@@ -445,6 +458,30 @@ def _nan_npz_field(field: str) -> Callable[[Path], None]:
 
     spoil.__name__ = f"_nan_{field}"
     return spoil
+
+
+def _edit_field_config(path: Path) -> None:
+    """Another density bias in ``field.json``: a field that still loads, with other values."""
+    record = json.loads(path.read_text())
+    record["field"]["density_bias"] -= 1.0
+    path.write_text(json.dumps(record, indent=1))
+
+
+def _nan_safetensors(path: Path) -> None:
+    """A NaN in the first floating-point tensor of a safetensors file."""
+    tensors = load_file(path)
+    name = next(k for k in sorted(tensors) if tensors[k].is_floating_point())
+    tensors[name].view(-1)[0] = math.nan
+    save_file(tensors, path)
+
+
+def _nan_checkpoint(path: Path) -> None:
+    """A NaN in the first floating-point weight of a Lightning checkpoint."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    weights = state["state_dict"]
+    name = next(k for k in sorted(weights) if weights[k].is_floating_point())
+    weights[name].view(-1)[0] = math.nan
+    torch.save(state, path)
 
 
 SPOILERS = {"truncated": _truncate, "garbage": _garbage_bytes, "nan": _nan_text, "nanply": _nan_ply}
@@ -507,6 +544,22 @@ def _rig_record(root: Path) -> Path:
     return _db_folder(root) / "rig_calibration.json"
 
 
+def _field_weights(root: Path) -> Path:
+    STAGES["train_nerf"](root)  # the field first
+    return _nerf_dir(root) / "field" / "field.safetensors"
+
+
+def _field_config(root: Path) -> Path:
+    STAGES["train_nerf"](root)
+    return _nerf_dir(root) / "field" / "field.json"
+
+
+def _half_trained_checkpoint(root: Path) -> Path:
+    """The checkpoint after the first of the two epochs (what a killed run leaves)."""
+    run_task("train_nerf", root, *TINY_NERF, "nerf.epochs=1")
+    return _nerf_dir(root) / "checkpoints" / "last.ckpt"
+
+
 def spoilt_inputs() -> list[Callable[[Path], None]]:
     """A spoilt copy of every kind of file each stage reads."""
     return [
@@ -548,6 +601,16 @@ def spoilt_inputs() -> list[Callable[[Path], None]]:
         _spoilt("export_colmap", _db_meta, "truncated"),
         _spoilt("export_colmap", "map/surfel_map.ply", "truncated"),
         _spoilt("export_colmap", "mapping/poses.txt", "truncated"),
+        # train_nerf: its field (the run trains again), a checkpoint it resumes, its inputs
+        _spoilt("train_nerf", _field_weights, "truncated"),
+        _spoilt("train_nerf", _field_weights, _nan_safetensors),
+        _spoilt("train_nerf", _field_config, _edit_field_config),
+        _spoilt("train_nerf", _half_trained_checkpoint, "truncated"),
+        _spoilt("train_nerf", _half_trained_checkpoint, "garbage"),
+        _spoilt("train_nerf", _half_trained_checkpoint, _nan_checkpoint),
+        _spoilt("train_nerf", "mapping/poses.txt", "nan"),
+        _spoilt("train_nerf", "mapping/lidar/000001.ply", "truncated"),
+        _spoilt("train_nerf", "mapping/rgb/000001.png", "garbage"),
     ]
 
 
@@ -577,7 +640,22 @@ CONFIG_RANGES = [
     ("relocalize", "reloc.retriever.clusters=0"),
     ("export_colmap", "task.database=best"),
     ("train_nerf", "nerf.submap=-1"),
+    ("train_nerf", "nerf.submap=7"),
     ("train_nerf", "nerf.epochs=0"),
+    ("train_nerf", "nerf.sequence=mappin"),
+    ("train_nerf", "nerf.train.lr_network=-0.01"),
+    ("train_nerf", "nerf.train.lr_encoding=nan"),
+    ("train_nerf", "nerf.train.ray_batch=0"),
+    ("train_nerf", "nerf.train.normal_batch=64"),
+    ("train_nerf", "nerf.train.field.encoding=voxels"),
+    ("train_nerf", "nerf.train.field.triplane_resolutions=[]"),
+    ("train_nerf", "nerf.train.sampler.near_m=-1"),
+    ("train_nerf", "nerf.train.sampler.grid_decay=2"),
+    ("train_nerf", "nerf.train.loss.depth_sigma_m=0"),
+    ("train_nerf", "nerf.data.image_scale=0"),
+    ("train_nerf", "nerf.data.lidar_stride=0"),
+    ("train_nerf", "nerf.submaps.num_submaps=-1"),
+    ("train_nerf", "nerf.submaps.position_sigma_m=0"),
     ("simulate", "scene.camera.width=0"),
     ("simulate", "scene.camera.hfov_deg=200"),
     ("simulate", "scene.trajectory.max_frames=-1"),
@@ -594,9 +672,13 @@ def _config_case(task: str, override: str) -> Callable[[Path], None]:
         for need in NEEDS.get(task, ()):  # so the setting is the only fault
             STAGES[need](root)
         before = sorted(p.relative_to(root).as_posix() for p in root.rglob("*"))
-        extra = {"simulate": f"out_dir={root / 'sim'}", "relocalize": f"task.out_dir={root / 'o'}"}
+        extra = {
+            "simulate": [f"out_dir={root / 'sim'}"],
+            "relocalize": [f"task.out_dir={root / 'o'}"],
+            "train_nerf": TINY_NERF,  # seconds of work if the setting were let through
+        }
         try:
-            run_task(task, root, *DB, *override.split(), *([extra[task]] if task in extra else []))
+            run_task(task, root, *DB, *extra.get(task, []), *override.split())
         finally:
             after = sorted(p.relative_to(root).as_posix() for p in root.rglob("*"))
             check(before == after, f"{task} wrote files before refusing {override}")
@@ -812,7 +894,7 @@ def _kill_stage(stage: str, trials: int) -> Callable[[Path], None]:
         expected = stage_outputs(stage, reference)
         rng = random.Random(17)
         for trial in range(trials):
-            (stage_folder(stage, root) / f"{stage}.json").unlink(missing_ok=True)
+            stage_record(stage, root).unlink(missing_ok=True)
             killed_run(stage, root, rng.uniform(0.0, 1.1 * work_s))
             killed_run(stage, root, None)
             check(stage_outputs(stage, root) == expected, f"trial {trial}: outputs differ")
@@ -837,6 +919,61 @@ def _kill_simulate(trials: int) -> Callable[[Path], None]:
             check(names == [".indoor_seed0.diffloc.lock", "indoor_seed0"], "temporaries left")
 
     case.__name__ = f"kill_simulate_x{trials}"
+    return case
+
+
+# ---------------------------------------------------------------------------- radiance fields
+
+
+def _check_field(root: Path, what: str) -> None:
+    """Submap 0's field loads, its record describes it, and it is the field of an
+    uninterrupted training (the reference dataset's; training is deterministic)."""
+    try:
+        verified_record(_nerf_dir(root), "train_nerf", Command("train_nerf"))
+        load_field(_nerf_dir(root) / "field")
+    except (ValueError, OSError) as exc:
+        raise Silent(f"{what}: {' '.join(str(exc).split())}") from exc
+    expected = stage_result("train_nerf", REFERENCE[0])
+    check(stage_result("train_nerf", root) == expected, f"{what}: another field")
+
+
+def nerf_checkpoint_of_other_settings(root: Path) -> None:
+    """The checkpoint of a training with another learning rate is not resumed."""
+    run_task("train_nerf", root, *TINY_NERF, "nerf.train.lr_network=0.001")
+    STAGES["train_nerf"](root)
+    _check_field(root, "the checkpoint of another learning rate was resumed")
+
+
+def nerf_checkpoint_past_epochs(root: Path) -> None:
+    """A run asking for fewer epochs than its checkpoint holds trains them anew."""
+    STAGES["train_nerf"](root)
+    summary = run_task("train_nerf", root, *TINY_NERF, "nerf.epochs=1")
+    check(summary.steps == 2, f"{summary.steps} steps recorded for 1 epoch of 2 steps")
+    try:
+        load_field(_nerf_dir(root) / "field")
+    except (ValueError, OSError) as exc:
+        raise Silent(f"the field does not load: {exc}") from exc
+
+
+def _kill_train_nerf(trials: int) -> Callable[[Path], None]:
+    """Kills while submap 0 trains (the clock starts when its training record is written; the
+    first kill at once), each followed by a run to the end."""
+
+    def case(root: Path) -> None:
+        started = f"{root.name}/nerf/submap_0/{TRAINING_RECORD}"
+        _, seconds = killed_run("train_nerf", root, None, after_glob=started)
+        rng = random.Random(11)
+        for trial in range(trials):
+            shutil.rmtree(root / "nerf")
+            delay = 0.0 if trial == 0 else rng.uniform(0.0, seconds)
+            killed_run("train_nerf", root, delay, after_glob=started)
+            if (_nerf_dir(root) / "train_nerf.json").is_file():  # finished before the kill
+                _check_field(root, f"trial {trial}: a killed run's field")
+            killed_run("train_nerf", root, None)
+            _check_field(root, f"trial {trial}")
+            check(remove_temporaries(_nerf_dir(root)) == [], f"trial {trial}: temporaries left")
+
+    case.__name__ = f"kill_train_nerf_x{trials}"
     return case
 
 
@@ -883,6 +1020,9 @@ def cases(quick: bool, kills: int) -> list[tuple[str, Callable[[Path], None]]]:
         ("read-only", read_only_reuse),
         ("read-only", read_only_build),
         ("read-only", read_only_simulate_reuse),
+        ("nerf", nerf_checkpoint_of_other_settings),
+        ("nerf", nerf_checkpoint_past_epochs),
+        ("kill", _kill_train_nerf(kills)),
     ]
     if not quick:
         found += [

@@ -5,7 +5,8 @@ For each point map (``map/tls_map.ply``, ``map/lidar_map.ply``):
 1. colour the points from the ``mapping`` images (:meth:`PointMap.colorize`); the occlusion
    test uses depth rendered from the cloud itself at the mapping poses (no simulator depth);
 2. select render poses on the free-path corridor (:func:`select_render_poses`, indoor
-   defaults: 2 m spacing, 4 views, camera 1.5 m above the floor);
+   defaults: 2 m spacing, 4 views, camera 1.5 m above the floor); ``--yaw-views 8`` (a
+   multiple of 4) adds each view turned by 45 deg about the vertical (``360 / views`` apart);
 3. render the RGB-D database, single-pass Eq. 2 (every point its own rounded size) and the
    multi-pass merge (a few fixed sizes), and build local features + NetVLAD;
 4. localise every frame of the query sequences (:class:`RenderedDatabaseLocalizer`) and score
@@ -18,12 +19,15 @@ the accepted poses (within 1 m / 30 deg), localisation rates at (0.25 m, 2 deg),
 accepted poses, median translation / rotation error of the accepted queries, retrieval rate
 (top-1 retrieved render within the sampling distance and 45 deg of the query), hole share of
 the database images, candidates matched per query, median ms per query (features, retrieval,
-matching, PnP; wall time under the load recorded in the file), and the distance / angle from
+re-ranking, matching, PnP; wall time under the load recorded in the file, and the process's CPU
+time, which the load inflates less), and the distance / angle from
 each query to its nearest render pose. The JSON also holds every query's candidates with
 their evidence and true errors (``per_query``), which ``experiments/rendered_replay.py``
 replays to choose the re-ranking and validation settings. Re-ranking and validation default
-to :class:`RenderedLocalizerConfig`'s; ``--top-k 1 --select first --no-validation`` is seed 2's
-Algorithm 1. Images are downscaled by ``--scale`` (0.5: 320x240 for the 640x480 dataset).
+to :class:`RenderedLocalizerConfig`'s; ``--top-k 1 --select first --no-validation
+--rerank-candidates 0`` is seed 2's Algorithm 1 (``--rerank-candidates 0``: no
+mutual-nearest-neighbour re-ranking of the global retrieval). Images are downscaled by
+``--scale`` (0.5: 320x240 for the 640x480 dataset).
 
 Usage:
     PYTHONPATH=. OMP_NUM_THREADS=1 python3 experiments/rendered_localization.py \\
@@ -54,6 +58,7 @@ from diffloc.features.local import XFeatConfig, XFeatExtractor
 from diffloc.features.matching import LighterGlueConfig, LighterGlueMatcher
 from diffloc.features.retrieval_eval import pairwise_pose_distances
 from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.se3 import so3_exp
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.io.ply import read_point_cloud
@@ -65,6 +70,7 @@ from diffloc.reloc.rendered import (
     RenderedLocalization,
     RenderedLocalizerConfig,
 )
+from diffloc.reloc.rerank import RerankConfig
 from diffloc.render.point_render import render_points
 from diffloc.render.point_sizes import PointSizes
 
@@ -92,6 +98,9 @@ def _parse() -> argparse.Namespace:
     parser.add_argument("--rho-max", type=float, default=8.0, help="Eq. 2 size at 1 m (px)")
     parser.add_argument("--levels", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--every", type=int, default=1, help="localise every n-th query frame")
+    parser.add_argument(
+        "--yaw-views", type=int, default=4, help="views per render position (multiple of 4)"
+    )
     defaults = RenderedLocalizerConfig()
     parser.add_argument("--top-k", type=int, default=defaults.top_k)
     parser.add_argument("--select", choices=["first", "most_inliers"], default=defaults.select)
@@ -101,6 +110,15 @@ def _parse() -> argparse.Namespace:
     parser.add_argument(
         "--no-validation", action="store_true", help="accept every pose found (seed 2)"
     )
+    rerank = defaults.rerank or RerankConfig()
+    parser.add_argument(
+        "--rerank-candidates",
+        type=int,
+        default=rerank.candidates,
+        help="global-retrieval images re-ranked by mutual NN matches (0: no re-ranking)",
+    )
+    parser.add_argument("--rerank-keypoints", type=int, default=rerank.keypoints)
+    parser.add_argument("--rerank-min-similarity", type=float, default=rerank.min_similarity)
     parser.add_argument(
         "--oracle-retrieval",
         action="store_true",
@@ -121,6 +139,18 @@ def _images(seq: SequenceData, camera: PinholeCamera, indices: list[int]) -> tor
     return torch.stack(
         [F.interpolate(seq.load_rgb(i)[None], size, mode="area")[0] for i in indices]
     )
+
+
+def _yaw_views(T_wc: torch.Tensor, views: int) -> torch.Tensor:
+    """The (M, 4, 4) render poses (4 views per position) and each turned about the camera's
+    y axis (world vertical) by ``k 360 / views`` deg, ``k = 1 .. views / 4 - 1``:
+    (views / 4 M, 4, 4), the given poses first."""
+    if views % 4 or views < 4:
+        sys.exit(f"--yaw-views must be a positive multiple of 4, got {views}")
+    angles = torch.arange(views // 4, dtype=torch.float64) * 2 * math.pi / views
+    turns = torch.eye(4, dtype=torch.float64).repeat(len(angles), 1, 1)
+    turns[:, :3, :3] = so3_exp(torch.stack([0 * angles, angles, 0 * angles], dim=1))
+    return torch.cat([T_wc @ turn for turn in turns])
 
 
 def _colored_map(
@@ -203,6 +233,7 @@ def _evaluate(
         "median_translation_m": _median(errors.translation_m[accepted]),
         "median_rotation_deg": _median(errors.rotation_deg[accepted]),
         "median_ms_per_query": float(np.median([r.time_ms for r in results])),
+        "median_cpu_ms_per_query": float(np.median([r.cpu_ms for r in results])),
         "median_candidates_tried": float(np.median([len(r.candidates) for r in results])),
         "median_matches": float(np.median([r.num_matches for r in results])),
         "median_points_with_depth": float(np.median([r.num_points for r in results])),
@@ -254,18 +285,27 @@ def _median(x: np.ndarray) -> float | None:
 def _retrieval_label(retrieval: dict) -> str:
     if retrieval["oracle_nearest_render"]:
         return "ORACLE nearest render to the true pose (diagnostic, not a result)"
-    return f"top-{retrieval['top_k']} ({retrieval['select']})"
+    rerank = retrieval.get("rerank")
+    label = f"top-{retrieval['top_k']} ({retrieval['select']})"
+    if rerank is None:
+        return label
+    return (
+        f"{label} of the global top-{rerank['candidates']} re-ranked by mutual NN matches "
+        f"({rerank['keypoints']} keypoints, similarity > {rerank['min_similarity']:g})"
+    )
 
 
 def _markdown(report: dict) -> str:
     head = ["sequence", "map", "mode", "retr.", "DB", "holes", "found", "prec. found"]
     head += ["accepted", "precision"]
     head += [f"{m:g} m / {d:g} deg" for m, d in THRESHOLDS]
-    head += ["ret. rate", "med. t [m]", "med. R [deg]", "tried", "ms/query", "nearest m / deg"]
+    head += ["ret. rate", "med. t [m]", "med. R [deg]", "tried", "ms/query", "CPU ms/query"]
+    head += ["nearest m / deg"]
     lines = [
         f"# Rendered-database localisation (seed 2 Algorithm 1), {report['tag']}",
         "",
-        f"Images {report['image_size']}, retrieval: {_retrieval_label(report['retrieval'])}; "
+        f"Images {report['image_size']}, {report.get('yaw_views', 4)} views per render "
+        f"position, retrieval: {_retrieval_label(report['retrieval'])}; "
         f"`{report['command']}`",
         f"Machine: {report['machine']}",
         "",
@@ -298,6 +338,7 @@ def _markdown(report: dict) -> str:
             num(r["median_rotation_deg"], ".2f"),
             f"{r['median_candidates_tried']:g}",
             f"{r['median_ms_per_query']:.0f}",
+            _cpu_ms(r),
             f"{r['nearest_render_m']['median']:.2f} / {r['nearest_render_deg']['median']:.1f}",
         ]
         lines.append("| " + " | ".join(cells) + " |")
@@ -308,13 +349,30 @@ def _markdown(report: dict) -> str:
         f"within {CORRECT[0]:g} m / {CORRECT[1]:g} deg. Rates are shares of all queries localised "
         "(accepted) within the bounds (a query not localised counts as a failure); queries per "
         f"sequence: {report['queries']}. Median errors over the accepted queries; tried: median "
-        "candidates matched per query; ms/query: median wall time under the load shown. "
+        "candidates matched per query; ms/query: median wall time under the load shown; CPU "
+        "ms/query: median CPU time of the process (features, retrieval, matching, PnP). "
         "Retrieval rate: the top-1 retrieved render lies within the sampling distance (2 m) "
         "and 45 deg of the query. Nearest render: median over queries of the distance to the "
         "nearest render position and the smallest angle among its views.",
         "",
     ]
     return "\n".join(lines)
+
+
+def _cpu_ms(result: dict) -> str:
+    """The median CPU ms per query, "-" in reports written before it was recorded."""
+    value = result.get("median_cpu_ms_per_query")
+    return "-" if value is None else f"{value:.0f}"
+
+
+def _rerank(args: argparse.Namespace) -> RerankConfig | None:
+    if args.rerank_candidates == 0:
+        return None
+    return RerankConfig(
+        candidates=args.rerank_candidates,
+        keypoints=args.rerank_keypoints,
+        min_similarity=args.rerank_min_similarity,
+    )
 
 
 def main() -> None:
@@ -332,8 +390,10 @@ def main() -> None:
         point_map = _colored_map(map_name, args, mapping, camera)
         cloud = read_point_cloud(args.dataset / "map" / f"{map_name}.ply")
         selection = select_render_poses(cloud.points, cloud.normals, pose_config)
+        T_render = _yaw_views(selection.T_wc, args.yaw_views)
         for mode in args.modes:
-            path = args.work / f"db_{map_name}_{mode}_x{args.scale:g}"
+            views = "" if args.yaw_views == 4 else f"_v{args.yaw_views}"
+            path = args.work / f"db_{map_name}_{mode}_x{args.scale:g}{views}"
             start = time.perf_counter()
             if (path / "database.json").is_file():
                 db = RenderedDatabase.load(path)
@@ -341,7 +401,7 @@ def main() -> None:
                 rgbd_map = PointCloudMap(point_map.positions, point_map.colors, _sizes(mode, args))
                 db = render_database(
                     rgbd_map,
-                    selection.T_wc,
+                    T_render,
                     camera,
                     DatabaseConfig(),
                     f"{map_name} {mode}",
@@ -358,6 +418,7 @@ def main() -> None:
                     select=args.select,
                     stop_inliers=args.stop_inliers or None,
                     validation=None if args.no_validation else RenderedLocalizerConfig().validation,
+                    rerank=_rerank(args),
                 )
                 localizer = RenderedDatabaseLocalizer(db, config, extractor, matcher)
                 for seq_name, seq in sequences.items():
@@ -389,12 +450,14 @@ def main() -> None:
         "command": "python3 " + " ".join(sys.argv),
         "image_size": f"{camera.width}x{camera.height}",
         "machine": f"{platform.node()} {os.cpu_count()} cores, load {os.getloadavg()}",
+        "yaw_views": args.yaw_views,
         "point_sizes": {"rho_min": args.rho_min, "rho_max": args.rho_max, "levels": args.levels},
         "retrieval": {
             "top_k": args.top_k,
             "select": args.select,
             "stop_inliers": args.stop_inliers or None,
             "oracle_nearest_render": args.oracle_retrieval,
+            "rerank": None if _rerank(args) is None else asdict(_rerank(args)),
         },
         "validation": None if args.no_validation else asdict(RenderedLocalizerConfig().validation),
         "queries": {name: len(range(0, len(seq), step)) for name, seq in sequences.items()},

@@ -26,6 +26,25 @@ TINY = [
 ]
 
 
+TINY_NERF = [
+    "nerf.epochs=2",
+    "nerf.submaps.num_submaps=2",
+    "nerf.data.holdout_every=0",
+    "nerf.data.lidar_stride=8",
+    "nerf.train.field.triplane_resolutions=[16]",
+    "nerf.train.field.triplane_channels=4",
+    "nerf.train.field.hidden=16",
+    "nerf.train.sampler.grid_resolution=16",
+    "nerf.train.sampler.coarse_samples=16",
+    "nerf.train.sampler.importance_samples=8",
+    "nerf.train.ray_batch=64",
+    "nerf.train.lidar_batch=32",
+    "nerf.train.normal_batch=8",
+    "nerf.train.steps_per_epoch=2",
+]
+"""``task=train_nerf`` settings that train submap 0 of the tiny scene in seconds (2 epochs of 2
+steps, so a checkpoint is written before training ends)."""
+
 FINE_SURFELS = SurfelMapConfig(voxel_size_m=0.02, mean_radius_m=0.02, normal_radius_m=0.08)
 """Surfel map settings fine enough for the 160x120 tiny scene."""
 

@@ -17,7 +17,9 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from diffloc.config import compose_config, to_object
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
+from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig, export_colmap
 from diffloc.pipeline.database_select import updated_dir
 from diffloc.pipeline.database_stage import (
     DatabaseConfig,
@@ -25,9 +27,10 @@ from diffloc.pipeline.database_stage import (
     database_dir,
     optimize_database,
 )
+from diffloc.pipeline.nerf_stage import train_nerf_submap
 from diffloc.pipeline.update_stage import UpdateTaskConfig, update_database
 from diffloc.sim.dataset import simulate_dataset
-from tests.conftest import FINE_SURFELS, TINY, scene_config
+from tests.conftest import FINE_SURFELS, TINY, TINY_NERF, scene_config
 
 _NOISY = DatabaseConfig(noise_sigma=0.05)
 NOISY_DB = replace(
@@ -44,19 +47,24 @@ STAGE_CONFIGS = {
     "build_db": NOISY_DB,
     "optimize_db": NOISY_DB,
     "update_db": NOISY_DB,
+    "export_colmap": NOISY_DB,
+    "train_nerf": to_object(compose_config(["task=train_nerf", *TINY_NERF]).nerf),
     "simulate": TINY + ["scene=indoor"],
 }
 """The stage runs that are killed: a map with a coloured point map, a noisy database, its
-optimisation, its update with ``query_lane``, the tiny indoor dataset (its overrides; ``root``
-is then the dataset folder to write)."""
+optimisation, its update with ``query_lane``, its COLMAP export (``<database_dir>/colmap/
+database``), the tiny radiance field of submap 0 (``<dataset>/nerf/submap_0``), the tiny indoor
+dataset (its overrides; ``root`` is then the dataset folder to write)."""
 
-PREREQUISITES = {"optimize_db": "build_db", "update_db": "build_db"}
+EXPORT_TASK = ExportColmapTaskConfig()
+
+PREREQUISITES = {"optimize_db": "build_db", "update_db": "build_db", "export_colmap": "build_db"}
 """The stage each killed stage needs to have run first (on the same settings)."""
 
 
-def run_stage(stage: str, root: Path) -> dict | Path:
-    """Run ``stage`` (a key of :data:`STAGE_CONFIGS`) on ``root``; its record (the dataset
-    folder for ``simulate``)."""
+def run_stage(stage: str, root: Path) -> object:
+    """Run ``stage`` (a key of :data:`STAGE_CONFIGS`) on ``root``; what it returns (its typed
+    summary; the dataset folder for ``simulate``)."""
     config = STAGE_CONFIGS[stage]
     if stage == "build_map":
         return build_maps(root, config, FINE_SURFELS, show_progress=False)
@@ -66,6 +74,10 @@ def run_stage(stage: str, root: Path) -> dict | Path:
         return optimize_database(root, config, show_progress=False)
     if stage == "update_db":
         return update_database(root, config, UPDATE_TASK, show_progress=False)
+    if stage == "export_colmap":
+        return export_colmap(root, config, EXPORT_TASK)
+    if stage == "train_nerf":
+        return train_nerf_submap(root, config, show_progress=False)
     return build_database(root, config, show_progress=False)
 
 
@@ -77,7 +89,17 @@ def stage_folder(stage: str, root: Path) -> Path:
         return root
     if stage == "update_db":
         return updated_dir(root, STAGE_CONFIGS[stage], UPDATE_TASK.sequence)
+    if stage == "export_colmap":
+        return database_dir(root, STAGE_CONFIGS[stage]) / "colmap"
+    if stage == "train_nerf":
+        return root / "nerf" / f"submap_{STAGE_CONFIGS[stage].submap}"
     return database_dir(root, STAGE_CONFIGS[stage])
+
+
+def stage_record(stage: str, root: Path) -> Path:
+    """The record ``stage`` writes (``export_colmap`` names it after its model folder)."""
+    name = f"{stage}_{EXPORT_TASK.database}" if stage == "export_colmap" else stage
+    return stage_folder(stage, root) / f"{name}.json"
 
 
 def folder_files(folder: Path) -> dict[str, bytes]:
@@ -144,7 +166,7 @@ def killed_run(
 def stage_outputs(stage: str, root: Path) -> dict[str, bytes]:
     """The bytes of every file of every output listed in the stage's record, by path."""
     folder = stage_folder(stage, root)
-    record = json.loads((folder / f"{stage}.json").read_text())
+    record = json.loads(stage_record(stage, root).read_text())
     files = {}
     for rel in record["stage"]["outputs"]:
         path = folder / rel

@@ -1,4 +1,6 @@
-"""``diffloc task=export_colmap`` on the tiny scene: composes, runs, reads back in pycolmap."""
+"""``diffloc task=export_colmap`` on the tiny scene: composes, runs, reads back in pycolmap,
+reuses an up-to-date export and exports a changed database again (kills:
+``test_colmap_kill.py``)."""
 
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from diffloc.io.ply import read_point_cloud, write_point_cloud
 from diffloc.maps._storage import EXACT_COLOR_PROPERTIES
 from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline.build_map import MapSummary
-from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
+from diffloc.pipeline.colmap_stage import ColmapExport, ColmapSummary, ExportColmapTaskConfig
 from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
 from diffloc.pipeline.database_summary import BuiltDatabase
 from diffloc.pipeline.hints import Command, StaleStageError
@@ -36,7 +38,7 @@ def built(tiny_indoor_mapped: Path, tmp_path_factory: pytest.TempPathFactory) ->
     return root
 
 
-def _export(root: Path, *overrides: str) -> dict:
+def _export(root: Path, *overrides: str) -> ColmapExport:
     return run_task("export_colmap", root, *overrides)
 
 
@@ -52,14 +54,15 @@ def test_unknown_database_name_is_refused():
 
 
 def test_export_task_writes_the_built_database_as_a_colmap_model(built: Path):
-    summary = _export(built)
-    db = VisualDatabase.load(summary["database"])
-    model = pycolmap.Reconstruction(summary["model"])
-    assert Path(summary["model"]) == Path(summary["database"]).parent / "colmap" / "database"
-    assert len(model.images) == db.num_keyframes == summary["images"]
-    assert summary["colors"] == "grey (the surfel map has no colours)"
-    assert len(model.points3D) == summary["points"] == int((db.observation_counts() > 0).sum())
-    assert sum(p.track.length() for p in model.points3D.values()) == summary["observations"]
+    export = _export(built)
+    summary = export.summary
+    db = VisualDatabase.load(export.database)
+    model = pycolmap.Reconstruction(export.model)
+    assert Path(export.model) == Path(export.database).parent / "colmap" / "database"
+    assert len(model.images) == db.num_keyframes == summary.images
+    assert summary.colors == "grey (the surfel map has no colours)"
+    assert len(model.points3D) == summary.points == int((db.observation_counts() > 0).sum())
+    assert sum(p.track.length() for p in model.points3D.values()) == summary.observations
     T_cw = invert(db.T_wc).numpy()
     for k in range(db.num_keyframes):
         image = model.images[k + 1]
@@ -74,15 +77,58 @@ def test_export_task_writes_the_built_database_as_a_colmap_model(built: Path):
     assert np.mean(errors) == pytest.approx(float(reprojection_errors(db).mean()), abs=1e-6)
 
 
-def test_export_into_a_non_empty_folder_needs_task_overwrite(built: Path, tmp_path: Path):
+def test_a_rerun_reuses_the_export_and_its_record(built: Path, tmp_path: Path):
     out = tmp_path / "sparse"
-    _export(built, f"task.out_dir={out}")
-    before = (out / "points3D.txt").read_bytes()
-    with pytest.raises(FileExistsError, match=r"not empty.*task\.overwrite=true"):
+    first = _export(built, f"task.out_dir={out}")
+    record = tmp_path / "export_colmap_sparse.json"
+    before = {p.name: p.read_bytes() for p in [record, *out.iterdir()]}
+    again = _export(built, f"task.out_dir={out}")
+    assert (first.reused, again.reused) == (False, True)
+    assert again.summary == first.summary and again.model == str(out)
+    assert {p.name: p.read_bytes() for p in [record, *out.iterdir()]} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        ".diffloc.lock",
+        "export_colmap_sparse.json",
+        "sparse",
+    ]
+
+
+def test_a_database_changed_since_the_export_is_exported_again(
+    built: Path, tmp_path_factory: pytest.TempPathFactory
+):
+    root = copy_dataset(built, tmp_path_factory, "changed_db")
+    _export(root, "task.overwrite=true")  # the copy holds the fixture's export
+    folder = database_dir(root, DatabaseConfig())
+    record = folder / "colmap" / "export_colmap_database.json"
+    first = json.loads(record.read_text())
+    db = VisualDatabase.load(folder / "database")
+    observed = int(torch.nonzero(db.observation_counts() > 0)[0, 0])
+    db.point_positions[observed] *= 1.01
+    _recommit(folder, "build_db", "database", db.save)
+    second = _export(root)
+    assert not second.reused
+    inputs = json.loads(record.read_text())["stage"]["key"]["inputs"]
+    assert inputs["database"] != first["stage"]["key"]["inputs"]["database"]
+    model = pycolmap.Reconstruction(second.model)
+    np.testing.assert_allclose(
+        model.points3D[observed + 1].xyz, db.point_positions[observed].double().numpy()
+    )
+    verified = verified_record(folder / "colmap", "export_colmap_database", Command("x"))
+    assert ColmapSummary.from_record(verified) == second.summary
+
+
+def test_export_into_a_foreign_non_empty_folder_needs_task_overwrite(built: Path, tmp_path: Path):
+    out = tmp_path / "sparse"
+    out.mkdir()
+    (out / "notes.txt").write_text("not an export")
+    with pytest.raises(FileExistsError, match=r"holds no export.*task\.overwrite=true"):
         _export(built, f"task.out_dir={out}")
-    summary = _export(built, f"task.out_dir={out}", "task.overwrite=true")
-    assert summary["model"] == str(out)
-    assert (out / "points3D.txt").read_bytes() == before
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    assert _export(built, f"task.out_dir={out}", "task.overwrite=true").model == str(out)
+    assert sorted(p.name for p in out.iterdir()) == ["cameras.txt", "images.txt", "points3D.txt"]
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(FileExistsError, match=r"file exists and is not a folder"):
+        _export(built, f"task.out_dir={tmp_path / 'file'}")
 
 
 def test_export_of_a_database_not_made_says_which_task_to_run(built: Path):
@@ -120,10 +166,10 @@ def test_points_take_the_colours_of_their_anchor_surfels(
     surfels = _coloured(SurfelMap.load(surfel_path))
     _recommit(root / "map", "build_map", "surfel_map.ply", surfels.save)
     run_task("build_db", root)  # on the coloured map
-    summary = _export(root, "task.overwrite=true")  # the copy holds the first export
-    assert summary["colors"] == f"anchor surfels of {surfel_path}"
-    db = VisualDatabase.load(summary["database"])
-    model = pycolmap.Reconstruction(summary["model"])
+    export = _export(root, "task.overwrite=true")  # the copy holds the first export
+    assert export.summary.colors == "anchor surfels of map/surfel_map.ply"
+    db = VisualDatabase.load(export.database)
+    model = pycolmap.Reconstruction(export.model)
     for point_id, point in model.points3D.items():
         anchor = int(db.point_surfels[point_id - 1])
         expected = (

@@ -1,17 +1,25 @@
-"""``diffloc task=train_nerf``: config composition, a tiny run, bad submaps."""
+"""``diffloc task=train_nerf``: config composition, a tiny run, bad submaps, checkpoints that
+must not be resumed, a spoilt field, a diverged training, bad ``nerf.*`` values."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
+import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+import torch
 
+from diffloc.cli import check_values
 from diffloc.config import compose_config, to_object
 from diffloc.maps.nerf.export import load_field
 from diffloc.maps.nerf.field import FieldConfig
 from diffloc.maps.nerf.sampler import SamplerConfig
 from diffloc.maps.nerf.submaps import load_submaps
+from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline import nerf_stage
 from diffloc.pipeline.nerf_config import TrainNerfConfig
 from diffloc.pipeline.nerf_stage import train_nerf_submap
@@ -83,3 +91,138 @@ def test_bad_submaps_are_clear_errors(tiny_indoor_dataset: Path, tmp_path: Path)
     single.submaps.overlap_m = 0.0
     with pytest.raises(ValueError, match="at least 2 training frames"):
         train_nerf_submap(tiny_indoor_dataset, single, False)
+
+
+def _field_bytes(out: Path, submap: int = 0) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in (out / f"submap_{submap}" / "field").iterdir()}
+
+
+def _trained(dataset: Path, cfg: TrainNerfConfig) -> dict[str, bytes]:
+    """The field of a training from scratch with ``cfg`` (in its own folder)."""
+    train_nerf_submap(dataset, cfg, False)
+    return _field_bytes(Path(cfg.out_dir), cfg.submap)
+
+
+def _truncate(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 3])
+
+
+def _nan_weight(path: Path) -> None:
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    next(iter(state["state_dict"].values())).view(-1)[0] = math.nan
+    torch.save(state, path)
+
+
+@pytest.mark.parametrize(
+    ("spoil", "reason"),
+    [(_truncate, "cannot be read"), (_nan_weight, "non-finite weights")],
+)
+def test_a_spoilt_checkpoint_is_not_resumed_and_the_run_trains_from_scratch(
+    tiny_indoor_dataset: Path, tmp_path: Path, spoil: Callable[[Path], None], reason: str
+) -> None:
+    expected = _trained(tiny_indoor_dataset, _tiny(tmp_path / "scratch", epochs=2))
+    cfg = _tiny(tmp_path)
+    train_nerf_submap(tiny_indoor_dataset, cfg, False)  # epoch 1 of 2: a checkpoint to resume
+    checkpoint = tmp_path / "nerf" / "submap_0" / "checkpoints" / "last.ckpt"
+    spoil(checkpoint)
+    with pytest.warns(UserWarning, match=rf"last\.ckpt is not resumed.*{reason}"):
+        summary = train_nerf_submap(tiny_indoor_dataset, dataclasses.replace(cfg, epochs=2), False)
+    assert summary.steps == 4
+    assert _field_bytes(tmp_path / "nerf") == expected
+
+
+def test_an_intact_checkpoint_is_resumed_to_the_uninterrupted_field(
+    tiny_indoor_dataset: Path, tmp_path: Path
+) -> None:
+    expected = _trained(tiny_indoor_dataset, _tiny(tmp_path / "scratch", epochs=2))
+    cfg = _tiny(tmp_path)
+    train_nerf_submap(tiny_indoor_dataset, cfg, False)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*is not resumed")
+        train_nerf_submap(tiny_indoor_dataset, dataclasses.replace(cfg, epochs=2), False)
+    assert _field_bytes(tmp_path / "nerf") == expected
+
+
+def test_the_checkpoint_of_other_settings_is_not_resumed(
+    tiny_indoor_dataset: Path, tmp_path: Path
+) -> None:
+    """It holds as many steps as asked for: resumed, it would be exported as is."""
+    expected = _trained(tiny_indoor_dataset, _tiny(tmp_path / "scratch"))
+    cfg = _tiny(tmp_path)
+    other = dataclasses.replace(cfg.train, lr_network=cfg.train.lr_network / 5)
+    train_nerf_submap(tiny_indoor_dataset, dataclasses.replace(cfg, train=other), False)
+    with pytest.warns(UserWarning, match="belongs to a training of other settings"):
+        train_nerf_submap(tiny_indoor_dataset, cfg, False)
+    assert _field_bytes(tmp_path / "nerf") == expected
+
+
+def test_a_checkpoint_past_the_epochs_asked_for_is_not_resumed(
+    tiny_indoor_dataset: Path, tmp_path: Path
+) -> None:
+    expected = _trained(tiny_indoor_dataset, _tiny(tmp_path / "scratch"))
+    cfg = _tiny(tmp_path)
+    train_nerf_submap(tiny_indoor_dataset, dataclasses.replace(cfg, epochs=2), False)
+    with pytest.warns(UserWarning, match=r"past nerf\.epochs \(4 steps, 2 asked for\)"):
+        assert train_nerf_submap(tiny_indoor_dataset, cfg, False).steps == 2
+    assert _field_bytes(tmp_path / "nerf") == expected
+
+
+def test_a_field_spoilt_since_its_record_is_made_again(
+    tiny_indoor_dataset: Path, tmp_path: Path
+) -> None:
+    cfg = _tiny(tmp_path)
+    train_nerf_submap(tiny_indoor_dataset, cfg, False)
+    expected = _field_bytes(tmp_path / "nerf")
+    _truncate(tmp_path / "nerf" / "submap_0" / "field" / "field.safetensors")
+    train_nerf_submap(tiny_indoor_dataset, cfg, False)
+    assert _field_bytes(tmp_path / "nerf") == expected
+
+
+def test_a_diverged_training_is_refused_and_nothing_is_committed(
+    tiny_indoor_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def diverging(*args, **kwargs):
+        module = fit_submap(*args, **kwargs)
+        with torch.no_grad():
+            next(module.field.parameters()).view(-1)[0] = math.inf
+        return module
+
+    monkeypatch.setattr(nerf_stage, "fit_submap", diverging)
+    with pytest.raises(ValueError, match=r"diverged .* lower nerf\.train\.lr_encoding"):
+        train_nerf_submap(tiny_indoor_dataset, _tiny(tmp_path), False)
+    run_dir = tmp_path / "nerf" / "submap_0"
+    assert not (run_dir / "field").exists() and not (run_dir / "train_nerf.json").exists()
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "nerf.train.lr_network=-0.01",
+        "nerf.train.lr_encoding=nan",
+        "nerf.train.ray_batch=0",
+        "nerf.train.normal_batch=2000",
+        "nerf.train.seed=-1",
+        "nerf.train.field.encoding=voxels",
+        "nerf.train.field.triplane_resolutions=[]",
+        "nerf.train.field.hidden=0",
+        "nerf.train.field.hash_max_resolution=8",
+        "nerf.train.field.init_std=0",
+        "nerf.train.sampler.near_m=-1",
+        "nerf.train.sampler.far_m=0.01",
+        "nerf.train.sampler.grid_decay=2",
+        "nerf.train.sampler.coarse_samples=0",
+        "nerf.train.loss.depth_weight=-1",
+        "nerf.train.loss.depth_sigma_m=0",
+        "nerf.train.loss.depth_sigma_start_m=0.001",
+        "nerf.data.image_scale=0",
+        "nerf.data.lidar_stride=0",
+        "nerf.data.box_percentile=50",
+        "nerf.submaps.num_submaps=-1",
+        "nerf.submaps.position_sigma_m=0",
+        "nerf.submaps.overlap_m=-1",
+    ],
+)
+def test_bad_nerf_values_are_refused_naming_the_key(override: str) -> None:
+    key = override.split("=")[0]
+    with pytest.raises(ValueError, match=rf"^{re.escape(key)} must be"):
+        check_values(compose_config(["task=train_nerf", override]))

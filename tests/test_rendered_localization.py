@@ -35,6 +35,7 @@ from diffloc.reloc.rendered import (
     accept_pose,
     lift_keypoints,
 )
+from diffloc.reloc.rerank import RerankConfig
 from diffloc.reloc.validation import ValidationConfig
 from diffloc.render.point_sizes import PointSizes
 
@@ -273,6 +274,34 @@ def test_reranking_stops_once_a_candidate_has_enough_inliers(scene, mesh_databas
         image, mapping.camera, torch.tensor([2, 0, 4])
     )
     assert result.num_inliers >= 20 and len(result.candidates) == 1
+
+
+def test_mutual_nn_reranking_recovers_the_right_image_the_global_retrieval_misses(
+    scene, mesh_database
+):
+    """Every image's NetVLAD descriptor is swapped for its successor's, so the global
+    retrieval ranks image 1 first for a query 16 cm from image 2; re-ranking its 5 best by
+    mutual-nearest-neighbour matches puts image 2 first, and top-1 localises from it."""
+    _, mapping = scene
+    image, T_query = _near_frame_2(scene)
+    db = mesh_database
+    shuffled = RenderedDatabase(
+        db.T_wc,
+        db.rgb,
+        db.depth,
+        db.camera,
+        db.features,
+        db.global_descriptors.roll(-1, 0),
+        db.netvlad,
+    )
+    config = RenderedLocalizerConfig(top_k=1, rerank=None)
+    plain = RenderedDatabaseLocalizer(shuffled, config).localize(image, mapping.camera)
+    assert plain.retrieved.tolist() == [1]
+    reranked = RenderedDatabaseLocalizer(
+        shuffled, replace(config, rerank=RerankConfig(candidates=5))
+    ).localize(image, mapping.camera)
+    assert reranked.retrieved.tolist() == [2] and reranked.reference == 2
+    assert reranked.success and _errors(reranked.T_wc, T_query)[0] < 0.05
 
 
 def test_validation_accepts_the_right_pose_and_rejects_a_repeated_place(scene, mesh_database):

@@ -20,13 +20,13 @@ import pytest
 
 from diffloc.io.lock import remove_temporaries
 from tests.conftest import copy_dataset
-from tests.kill_runs import killed_run, stage_folder, stage_outputs
+from tests.kill_runs import killed_run, stage_folder, stage_outputs, stage_record
 
 TRIALS = {"build_map": 2, "build_db": 6}
 
 
 def _manifest(stage: str, root: Path) -> dict:
-    return json.loads((stage_folder(stage, root) / f"{stage}.json").read_text())["stage"]
+    return json.loads(stage_record(stage, root).read_text())["stage"]
 
 
 @pytest.mark.parametrize("stage", list(TRIALS))
@@ -41,7 +41,7 @@ def test_killed_runs_end_byte_identical_to_an_uninterrupted_run(
     rng = random.Random(17)
     kills = 0
     for _ in range(TRIALS[stage]):
-        (stage_folder(stage, root) / f"{stage}.json").unlink(missing_ok=True)
+        stage_record(stage, root).unlink(missing_ok=True)
         kills += killed_run(stage, root, rng.uniform(0.0, 1.1 * work_s))[0]
         assert not killed_run(stage, root, None)[0]
         assert stage_outputs(stage, root) == expected

@@ -8,28 +8,43 @@ trains them in parallel processes under a parallel Hydra launcher.
 
 Each submap is a stage (:mod:`diffloc.pipeline.stage`) writing into ``submap_<k>/``: the field
 and its record ``train_nerf.json`` appear together, keyed on the ``nerf`` settings and the content
-of the mapping sequence, so a rerun with the same settings reuses the field and any change
-trains again (resuming from the last checkpoint when ``nerf.resume``; the checkpoints are the
-training's own state, kept beside the committed field).
+of the mapping sequence, so a rerun with the same settings reuses the field and any change (or a
+field changed or spoilt since its record) trains again.
+
+The checkpoints (``checkpoints/last.ckpt``) are the training's own state, kept beside the
+committed field; ``training.json`` beside them holds the key of the training they belong to (the
+stage key without ``epochs``, ``resume`` and ``out_dir``). With ``nerf.resume`` a run continues
+from the last checkpoint only if it belongs to the same training, reads (tensors only), holds
+finite weights and is not past ``nerf.epochs``; otherwise the run warns why (a checkpoint of
+other settings, a spoilt one, e.g. cut short by a kill) and trains from scratch. A training that
+ends with non-finite weights is refused before anything is committed.
 """
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import torch
+
+from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.io.identity import identity
+from diffloc.io.json_record import read_json_record
 from diffloc.maps.nerf.data import build_submap_rays
 from diffloc.maps.nerf.export import export_field
+from diffloc.maps.nerf.module import NerfModule
 from diffloc.maps.nerf.submaps import cluster_trajectory, plot_submaps, save_submaps
 from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline.hints import Command
 from diffloc.pipeline.nerf_config import TrainNerfConfig
 from diffloc.pipeline.stage import LockLevel, StageSummary, open_stage, stage_key
 
-__all__ = ["NerfSummary", "train_nerf_submap"]
+__all__ = ["TRAINING_RECORD", "NerfSummary", "train_nerf_submap"]
 
 
 @dataclass(frozen=True)
@@ -58,6 +73,68 @@ class NerfSummary(StageSummary):
     plot: str
 
 
+TRAINING_RECORD = "training.json"
+"""``submap_<k>/training.json``: the key of the training the checkpoints belong to."""
+_NOT_TRAINING = ("epochs", "resume", "out_dir")
+"""Settings that do not change what a checkpoint holds (a run may continue it)."""
+
+
+def _unusable_checkpoint(last: Path, run_dir: Path, key: dict, max_steps: int) -> str | None:
+    """Why checkpoint ``last`` cannot be resumed by the training ``key``, or ``None``."""
+    record = run_dir / TRAINING_RECORD
+    try:
+        belongs = read_json_record(record) == key
+    except (OSError, ValueError):
+        return f"{record} does not say which training it belongs to (missing or unreadable)"
+    if not belongs:
+        return f"it belongs to a training of other settings or data (see {record})"
+    try:
+        state = torch.load(last, map_location="cpu", weights_only=True)
+        steps, weights = int(state["global_step"]), state["state_dict"]
+    except Exception as exc:  # noqa: BLE001 - any failure to read makes it unusable
+        return f"it cannot be read ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})"
+    floats = [v for v in weights.values() if torch.is_tensor(v) and v.is_floating_point()]
+    if not all(bool(torch.isfinite(v).all()) for v in floats):
+        return "it holds non-finite weights"
+    if steps > max_steps:
+        return f"it is past nerf.epochs ({steps} steps, {max_steps} asked for)"
+    return None
+
+
+def _prepare_checkpoints(run_dir: Path, key: dict, config: TrainNerfConfig) -> bool:
+    """Keep the checkpoints if ``nerf.resume`` and they can be resumed (else remove them,
+    warning why when there was one), and record the training they belong to from now.
+
+    Returns:
+        Whether to resume from ``checkpoints/last.ckpt``.
+    """
+    last = run_dir / "checkpoints" / "last.ckpt"
+    max_steps = config.epochs * config.train.steps_per_epoch
+    reason = _unusable_checkpoint(last, run_dir, key, max_steps) if last.is_file() else None
+    if reason is not None and config.resume:
+        warnings.warn(f"{last} is not resumed, training from scratch: {reason}", stacklevel=3)
+    resume = config.resume and last.is_file() and reason is None
+    if not resume:
+        shutil.rmtree(run_dir / "checkpoints", ignore_errors=True)
+    atomic_write_text(run_dir / TRAINING_RECORD, json.dumps(key, indent=2) + "\n")
+    return resume
+
+
+def _check_finite(module: NerfModule, name: str) -> None:
+    """Refuse a trained field with non-finite weights (a diverged training).
+
+    Raises:
+        ValueError: the message names the submap and the learning-rate settings.
+    """
+    states = (module.field.state_dict(), module.grid.state_dict())
+    values = [v for state in states for v in state.values() if v.is_floating_point()]
+    if not all(bool(torch.isfinite(v).all()) for v in values):
+        raise ValueError(
+            f"training of {name} diverged (non-finite weights after {module.global_step} "
+            "steps): lower nerf.train.lr_encoding / nerf.train.lr_network"
+        )
+
+
 def train_nerf_submap(
     dataset: str | os.PathLike, config: TrainNerfConfig, show_progress: bool = True
 ) -> NerfSummary:
@@ -72,8 +149,9 @@ def train_nerf_submap(
         The submap's summary (also in its record ``train_nerf.json``).
 
     Raises:
-        ValueError: a submap index out of range, or a submap that cannot be trained (one
-            frame, no lidar; see :func:`~diffloc.maps.nerf.data.build_submap_rays`).
+        ValueError: a submap index out of range, a submap that cannot be trained (one
+            frame, no lidar; see :func:`~diffloc.maps.nerf.data.build_submap_rays`), or a
+            training that diverged.
     """
     dataset = Path(dataset)
     out_dir = Path(config.out_dir) if config.out_dir else dataset / "nerf"
@@ -89,17 +167,22 @@ def train_nerf_submap(
     plot_submaps(out_dir / "submaps.png", seq.T_wc, submaps)
     submap = submaps[config.submap]
     run_dir = out_dir / f"submap_{config.submap}"
-    key = stage_key(asdict(config), {"sequence": identity(dataset / config.sequence)})
+    inputs = {"sequence": identity(dataset / config.sequence)}
+    key = stage_key(asdict(config), inputs)
+    training = {k: v for k, v in asdict(config).items() if k not in _NOT_TRAINING}
     command = Command("train_nerf", (f"dataset={dataset}", f"nerf.submap={config.submap}"))
     with open_stage(run_dir, "train_nerf", command, LockLevel.DATABASE) as stage:
         if (previous := stage.reusable(key, NerfSummary)) is not None:
             return previous
+        work = stage.workdir()  # a folder this run cannot write is refused here, before work
         name = f"submap {config.submap} of {dataset}"
         rays = build_submap_rays(seq, submap.frames, config.data, name=name)
+        resume = _prepare_checkpoints(run_dir, stage_key(training, inputs), config)
         module = fit_submap(
-            rays, config.train, run_dir, config.epochs, config.resume, show_progress=show_progress
+            rays, config.train, run_dir, config.epochs, resume, show_progress=show_progress
         )
-        export_field(stage.workdir() / "field", module.field, module.grid)
+        _check_finite(module, name)
+        export_field(work / "field", module.field, module.grid)
         summary = NerfSummary(
             submaps=len(submaps),
             submap=config.submap,

@@ -13,6 +13,10 @@ For one query image:
    one pair at a time: kornia's LightGlue runs a batch pair by pair while point pruning is on,
    and without pruning a batch of 5 costs as much CPU per pair as single pairs (449 vs 441 ms
    per 1024 x 1024 pair at 320x240; 338 ms single with pruning; one core, under load).
+   With ``rerank`` set (beyond seed 2), the global retrieval's ``rerank.candidates`` best are
+   first re-ranked by mutual-nearest-neighbour matches of cached XFeat descriptors
+   (:class:`~diffloc.reloc.rerank.MutualNNReranker`, one batched product), and the
+   ``top_k`` best after re-ranking are the ones matched.
 2. **Matching.** XFeat (1024 keypoints) + LighterGlue between query and reference; matches
    with confidence > ``min_confidence`` (0, as Algorithm 1) are kept.
 3. **Lifting.** Each matched reference keypoint ``(r_u, r_v)`` takes the reference depth ``z``
@@ -59,6 +63,7 @@ from diffloc.features.matching import LighterGlueConfig, LighterGlueMatcher
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.reloc.hierarchical import grid_coverage
 from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
+from diffloc.reloc.rerank import MutualNNReranker, RerankConfig
 from diffloc.reloc.retrieval import (
     BowConfig,
     BowRetriever,
@@ -84,8 +89,9 @@ RETRIEVERS = ("netvlad", "bow")
 SELECTIONS = ("first", "most_inliers")
 
 # Chosen on indoor seed 0 only (TLS cloud, single-pass, 320x240, every 4th query frame) by
-# ``experiments/rendered_replay.py`` over a top-10 run; figures in RenderedLocalizerConfig.
-TOP_K = 10
+# ``experiments/rendered_replay.py`` over a top-10 run and (TOP_K, with re-ranking) over the
+# re-ranked run; figures in RenderedLocalizerConfig.
+TOP_K = 5
 STOP_INLIERS = 200
 THETA_IN = 150
 MIN_INLIER_RATIO = 0.0
@@ -119,10 +125,21 @@ class RenderedLocalizerConfig:
 
     - without validation every query gets a pose, precision 55 / 51 / 27 %: half the answers
       are confident wrong poses; with it 52 / 26 / 15 % accepted at precision 100 / 100 / 80 %;
-    - ``top_k``: 1 / 5 / 10 give rates 16 / 42 / 52 % (same), 17 / 23 / 26 % (lane), 3 / 9 /
-      12 % (reverse); the right render is often ranked low by NetVLAD, so 10 (the most
-      recorded) is kept; ``stop_inliers=200`` keeps the rates of trying all 10 with 6.6 /
-      8.6 / 9.1 candidates matched on average instead of 10 (100 loses 6 points on same);
+    - ``top_k`` without re-ranking: 1 / 5 / 10 give rates 16 / 42 / 52 % (same), 17 / 23 /
+      26 % (lane), 3 / 9 / 12 % (reverse): NetVLAD often ranks the right render low (top-1
+      retrieval rate 23 / 23 / 21 %); ``stop_inliers=200`` keeps the rates of trying all 10
+      with 6.6 / 8.6 / 9.1 candidates matched on average (100 loses 6 points on same);
+    - ``rerank`` (mutual-NN matches over NetVLAD's top 50, :class:`RerankConfig`) then
+      ``top_k=5``: rates 61.3 / 28.6 / 15.2 % at precision 100 / 90.9 / 83.3 % (one wrong
+      lane pose more: 159 inliers), top-1 retrieval rate 52 / 34 / 27 %, 5 candidates matched
+      (median) instead of 10, 1.4-1.9 s CPU per query
+      (``experiments/results/rendered_localization_indoor_seed0_tls_single_rerank.md``);
+      ``top_k`` 1 / 2 / 3 / 4 / 5 after re-ranking give 48.4 / 51.6 / 54.8 / 58.1 / 61.3 %
+      (same), 22.9 / 22.9 / 25.7 / 28.6 / 28.6 % (lane), 15.2 / 18.2 / 15.2 / 15.2 / 15.2 %
+      (reverse) (replayed prefixes of that run), so 5; a database with 8 views per render
+      position (``experiments/rendered_localization.py --yaw-views 8``, 728 renders) gives
+      58.1 / 45.7 / 24.2 % at precision 100 / 94 / 89 % with these settings (held-out
+      seed 1: 59.4 / 48.6 / 29.4 % against 50.0 / 43.2 / 26.5 % with 4 views);
     - ``theta_in=150``: below it (6-60 alike) lane precision falls to 77 % (wrong poses with
       60-140 inliers, e.g. 157 of 261 points 9 m off); correct poses mostly have 150-400;
     - ``min_coverage=0.625`` (10 of 16 cells): 0.5 or less accepts a wrong lane pose
@@ -149,6 +166,8 @@ class RenderedLocalizerConfig:
             (``temporal=False``; ``theta_dist_m`` is the distance beyond which a candidate of
             another reference is a rival); ``None`` accepts every pose found.
         bow: bag-of-words settings (vocabulary trained on the database's descriptors).
+        rerank: re-ranking of the global retrieval's best by mutual-nearest-neighbour
+            matches before ``top_k`` are matched (``None``: the global order).
         seed: seed of the per-query RANSAC generator.
     """
 
@@ -163,6 +182,7 @@ class RenderedLocalizerConfig:
     coverage_grid: int = 4
     validation: ValidationConfig | None = field(default_factory=single_image_validation)
     bow: BowConfig = field(default_factory=BowConfig)
+    rerank: RerankConfig | None = field(default_factory=RerankConfig)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -229,12 +249,13 @@ class RenderedLocalization:
         accepted: a pose was found and passed the validation: the localiser's answer.
         reference: database image the pose came from; when not localised, the last one tried
             (``select="first"``) or the one with the most inliers; -1 if none was retrieved.
-        retrieved: (k,) int64 database images in retrieval order.
+        retrieved: (k,) int64 database images in retrieval order (after re-ranking).
         candidates: every reference tried, in rank order.
         num_matches: LighterGlue matches with the reference.
         num_points: of those, matches whose reference keypoint has depth.
         num_inliers: PnP inliers (0 without a PnP attempt).
         time_ms: wall time of the query (features, retrieval, matching, PnP), milliseconds.
+        cpu_ms: CPU time of the process over the same span (all its threads), milliseconds.
     """
 
     T_wc: torch.Tensor
@@ -247,6 +268,7 @@ class RenderedLocalization:
     num_points: int
     num_inliers: int
     time_ms: float
+    cpu_ms: float
 
 
 def pose_evidence(
@@ -355,6 +377,13 @@ class RenderedDatabaseLocalizer:
             LighterGlueConfig(min_confidence=config.min_confidence)
         )
         self.retriever = self._retriever()
+        self.reranker = None
+        if config.rerank is not None:
+            self.reranker = MutualNNReranker(
+                [f.descriptors for f in database.features],
+                [f.scores for f in database.features],
+                config.rerank,
+            )
 
     def _retriever(self) -> KeyframeRetriever:
         db = self.database
@@ -376,7 +405,8 @@ class RenderedDatabaseLocalizer:
             camera: the query camera (unbatched), size W x H; it may differ from the
                 database camera.
             references: optional (k,) int64 database images to try in place of the
-                retrieval (e.g. an oracle for diagnostics); ``None`` retrieves ``top_k``.
+                retrieval and re-ranking (e.g. an oracle for diagnostics); ``None``
+                retrieves ``top_k``.
 
         Returns:
             The :class:`RenderedLocalization` (``success`` false when it could not localise).
@@ -391,13 +421,9 @@ class RenderedDatabaseLocalizer:
             check_shape(references, "k", "references")
             if bool(((references < 0) | (references >= self.database.num_images)).any()):
                 raise IndexError(f"references must lie in [0, {self.database.num_images})")
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         query = self.extractor.extract(image)
-        retrieved = references
-        if retrieved is None:
-            with torch.no_grad():
-                descriptor = self.retriever.describe(image, query)
-                _, retrieved = self.retriever.search(descriptor, self.config.top_k)
+        retrieved = references if references is not None else self._retrieve(image, query)
         generator = torch.Generator().manual_seed(self.config.seed)
         attempts = (
             self._try_reference(query, camera, int(reference), generator)
@@ -415,7 +441,18 @@ class RenderedDatabaseLocalizer:
             num_points=best.num_points,
             num_inliers=best.num_inliers,
             time_ms=1000.0 * (time.perf_counter() - start),
+            cpu_ms=1000.0 * (time.process_time() - start_cpu),
         )
+
+    def _retrieve(self, image: torch.Tensor, query: Features) -> torch.Tensor:
+        """(k,) database images to match: the global retrieval's best, re-ranked if set."""
+        rerank = self.config.rerank
+        k = self.config.top_k if rerank is None else max(rerank.candidates, self.config.top_k)
+        with torch.no_grad():
+            _, retrieved = self.retriever.search(self.retriever.describe(image, query), k)
+        if self.reranker is not None:
+            _, retrieved = self.reranker.rerank(query.descriptors, retrieved, query.scores)
+        return retrieved[: self.config.top_k]
 
     def _try_reference(
         self,

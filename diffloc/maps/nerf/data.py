@@ -9,6 +9,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from diffloc.checks import check_int_at_least, check_number
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.nerf.lidar_rays import LidarRays, lidar_rays
@@ -38,6 +39,15 @@ class SubmapDataConfig:
     normal_radius_m: float = 0.15
     box_percentile: float = 0.5
     box_padding_m: float = 0.3
+
+    def __post_init__(self) -> None:
+        check_number(self.image_scale, "image_scale", 0.0, 1.0, open_low=True)
+        check_int_at_least(self.holdout_every, "holdout_every", 0)
+        check_number(self.lidar_max_range_m, "lidar_max_range_m", 0.0, open_low=True)
+        check_int_at_least(self.lidar_stride, "lidar_stride", 1)
+        check_number(self.normal_radius_m, "normal_radius_m", 0.0, open_low=True)
+        check_number(self.box_percentile, "box_percentile", 0.0, 50.0, open_high=True)
+        check_number(self.box_padding_m, "box_padding_m", 0.0)
 
 
 @dataclass

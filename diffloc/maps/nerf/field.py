@@ -15,11 +15,22 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from diffloc.checks import check_shape
+from diffloc.checks import check_int_at_least, check_number, check_shape
 from diffloc.maps.nerf.contraction import SceneNormalisation
 from diffloc.maps.nerf.encodings import HashGridEncoding, TriplaneEncoding
 
-__all__ = ["FieldConfig", "FieldOutputs", "RadianceField", "build_encoding", "sh_basis_deg2"]
+__all__ = [
+    "ENCODINGS",
+    "FieldConfig",
+    "FieldOutputs",
+    "RadianceField",
+    "build_encoding",
+    "sh_basis_deg2",
+]
+
+
+ENCODINGS = ("triplane", "hashgrid")
+"""The position encodings of :class:`RadianceField`."""
 
 
 @dataclass
@@ -57,6 +68,28 @@ class FieldConfig:
     appearance_dim: int = 8
     contracted: bool = False
     density_bias: float = -1.0
+
+    def __post_init__(self) -> None:
+        if self.encoding not in ENCODINGS:
+            raise ValueError(
+                f"encoding must be one of {list(ENCODINGS)} (unknown encoding {self.encoding!r})"
+            )
+        resolutions = self.triplane_resolutions
+        if not resolutions or isinstance(resolutions, str | int):
+            raise ValueError(f"triplane_resolutions must be a non-empty list, got {resolutions!r}")
+        for value in resolutions:
+            check_int_at_least(value, "triplane_resolutions", 2)
+        for name in ("triplane_channels", "hash_levels", "hash_channels", "hidden"):
+            check_int_at_least(getattr(self, name), name, 1)
+        check_int_at_least(self.hash_log2_table_size, "hash_log2_table_size", 1)
+        check_int_at_least(self.hash_base_resolution, "hash_base_resolution", 2)
+        check_int_at_least(
+            self.hash_max_resolution, "hash_max_resolution", self.hash_base_resolution
+        )
+        check_int_at_least(self.geo_features, "geo_features", 0)
+        check_int_at_least(self.appearance_dim, "appearance_dim", 0)
+        check_number(self.init_std, "init_std", 0.0, open_low=True)
+        check_number(self.density_bias, "density_bias")
 
 
 @dataclass

@@ -19,6 +19,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
+from diffloc.checks import check_int_at_least, check_number
 from diffloc.maps.nerf.data import SubmapRays
 from diffloc.maps.nerf.field import FieldConfig, RadianceField
 from diffloc.maps.nerf.losses import depth_kl_loss, normal_loss, photometric_loss
@@ -58,6 +59,13 @@ class NerfLossConfig:
     depth_sigma_start_m: float = 0.2
     depth_sigma_halflife_steps: int = 100
 
+    def __post_init__(self) -> None:
+        check_number(self.depth_weight, "depth_weight", 0.0)
+        check_number(self.normal_weight, "normal_weight", 0.0)
+        check_number(self.depth_sigma_m, "depth_sigma_m", 0.0, open_low=True)
+        check_number(self.depth_sigma_start_m, "depth_sigma_start_m", self.depth_sigma_m)
+        check_int_at_least(self.depth_sigma_halflife_steps, "depth_sigma_halflife_steps", 1)
+
     def sigma(self, step: int) -> float:
         """The depth-loss spread at training step ``step``."""
         decayed = self.depth_sigma_start_m * 0.5 ** (step / self.depth_sigma_halflife_steps)
@@ -91,6 +99,18 @@ class NerfTrainConfig:
     lr_network: float = 5e-3
     steps_per_epoch: int = 100
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("ray_batch", "lidar_batch", "steps_per_epoch"):
+            check_int_at_least(getattr(self, name), name, 1)
+        check_int_at_least(self.normal_batch, "normal_batch", 0)
+        if self.normal_batch > self.lidar_batch:
+            raise ValueError(
+                f"normal_batch must be <= lidar_batch ({self.lidar_batch}), got {self.normal_batch}"
+            )
+        check_number(self.lr_encoding, "lr_encoding", 0.0, open_low=True)
+        check_number(self.lr_network, "lr_network", 0.0, open_low=True)
+        check_int_at_least(self.seed, "seed", 0)
 
 
 def _generator(seed: int, step: int, stream: int) -> torch.Generator:

@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from diffloc.checks import check_shape
+from diffloc.checks import check_int_at_least, check_number, check_shape
 from diffloc.maps.nerf.contraction import SceneNormalisation
 from diffloc.maps.nerf.rendering import render_weights
 
@@ -75,6 +75,20 @@ def _jitter(rows: int, n: int, generator: torch.Generator | None) -> torch.Tenso
     strata centres when ``generator`` is ``None`` (deterministic rendering)."""
     offsets = torch.rand(rows, n, generator=generator) if generator is not None else 0.5
     return ((torch.arange(n) + offsets) / n).expand(rows, n)
+
+    def __post_init__(self) -> None:
+        check_int_at_least(self.grid_resolution, "grid_resolution", 2)
+        check_number(self.grid_decay, "grid_decay", 0.0, 1.0)
+        for name in ("grid_update_every", "coarse_samples"):
+            check_int_at_least(getattr(self, name), name, 1)
+        for name in ("importance_samples", "uniform_samples", "guided_samples"):
+            check_int_at_least(getattr(self, name), name, 0)
+        if self.importance_samples + self.uniform_samples + self.guided_samples < 1:
+            raise ValueError(
+                "importance_samples, uniform_samples and guided_samples must not all be 0"
+            )
+        check_number(self.near_m, "near_m", 0.0, open_low=True)
+        check_number(self.far_m, "far_m", self.near_m, open_low=True)
 
 
 def spacing(s: torch.Tensor, near: torch.Tensor, far: torch.Tensor, far_outer: float | None):

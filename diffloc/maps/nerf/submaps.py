@@ -22,7 +22,7 @@ import torch
 from scipy.cluster.vq import kmeans2
 from scipy.linalg import eigh
 
-from diffloc.checks import check_finite, check_shape
+from diffloc.checks import check_finite, check_int_at_least, check_number, check_shape
 from diffloc.io.atomic import atomic_write_bytes, atomic_write_text
 
 __all__ = [
@@ -60,6 +60,15 @@ class SubmapConfig:
     overlap_m: float = 1.0
     box_margin_m: float = 3.0
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_int_at_least(self.num_submaps, "num_submaps", 0)
+        check_int_at_least(self.max_submaps, "max_submaps", 1)
+        check_number(self.position_sigma_m, "position_sigma_m", 0.0, open_low=True)
+        check_number(self.angle_sigma_deg, "angle_sigma_deg", 0.0, open_low=True)
+        check_number(self.overlap_m, "overlap_m", 0.0)
+        check_number(self.box_margin_m, "box_margin_m", 0.0)
+        check_int_at_least(self.seed, "seed", 0)
 
 
 @dataclass

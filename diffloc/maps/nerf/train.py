@@ -33,7 +33,8 @@ def fit_submap(
         config: training settings.
         out_dir: run folder: ``logs/`` (CSV), ``checkpoints/`` (``last.ckpt`` each epoch).
         epochs: train until this many epochs of ``config.steps_per_epoch`` steps are done.
-        resume: continue from ``checkpoints/last.ckpt`` if it exists.
+        resume: continue from ``checkpoints/last.ckpt`` if it exists (read with
+            ``weights_only``: tensors and plain values, no pickled objects).
         callbacks: extra Lightning callbacks (e.g. evaluation in a benchmark).
         show_progress: Lightning's progress bar (off when ``CI=true``).
 
@@ -59,5 +60,5 @@ def fit_submap(
     )
     last = out_dir / "checkpoints" / "last.ckpt"
     ckpt_path = str(last) if resume and last.is_file() else None
-    trainer.fit(module, NerfDataModule(rays, config), ckpt_path=ckpt_path)
+    trainer.fit(module, NerfDataModule(rays, config), ckpt_path=ckpt_path, weights_only=True)
     return module
