@@ -69,13 +69,6 @@ class SamplerConfig:
     min_weight: float = 1e-4
     grad_min_weight: float = -1.0
 
-
-def _jitter(rows: int, n: int, generator: torch.Generator | None) -> torch.Tensor:
-    """Stratified positions (rows, n) in [0, 1): uniform within each of n strata, or the
-    strata centres when ``generator`` is ``None`` (deterministic rendering)."""
-    offsets = torch.rand(rows, n, generator=generator) if generator is not None else 0.5
-    return ((torch.arange(n) + offsets) / n).expand(rows, n)
-
     def __post_init__(self) -> None:
         check_int_at_least(self.grid_resolution, "grid_resolution", 2)
         check_number(self.grid_decay, "grid_decay", 0.0, 1.0)
@@ -89,6 +82,16 @@ def _jitter(rows: int, n: int, generator: torch.Generator | None) -> torch.Tenso
             )
         check_number(self.near_m, "near_m", 0.0, open_low=True)
         check_number(self.far_m, "far_m", self.near_m, open_low=True)
+        check_number(self.skip_density, "skip_density", 0.0)
+        check_number(self.min_weight, "min_weight", -1.0, 1.0)
+        check_number(self.grad_min_weight, "grad_min_weight", -1.0, 1.0)
+
+
+def _jitter(rows: int, n: int, generator: torch.Generator | None) -> torch.Tensor:
+    """Stratified positions (rows, n) in [0, 1): uniform within each of n strata, or the
+    strata centres when ``generator`` is ``None`` (deterministic rendering)."""
+    offsets = torch.rand(rows, n, generator=generator) if generator is not None else 0.5
+    return ((torch.arange(n) + offsets) / n).expand(rows, n)
 
 
 def spacing(s: torch.Tensor, near: torch.Tensor, far: torch.Tensor, far_outer: float | None):
