@@ -9,12 +9,15 @@ space). At 160x120 a correct pose has 40-70 PnP inliers, so the validation's inl
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
 
 from diffloc.cli import run
-from diffloc.config import compose_config
+from diffloc.config import compose_config, to_object
+from diffloc.io.dataset import read_sequence
+from diffloc.io.exposure import EXPOSURE_FILE
 from diffloc.io.trajectory import read_tum
 from diffloc.pipeline import crossmodal_stage
 from diffloc.sim.dataset import simulate_dataset
@@ -35,6 +38,12 @@ TASK = [
     "task.every=2",
     "task.localizer.validation.theta_in=30",
 ]
+MESH = [
+    "map.texture.reconstruction.poisson_depth=7",
+    "map.texture.reconstruction.target_faces=6000",
+    "map.texture.atlas_size=256",
+]
+"""A small mesh (as in ``tests/test_mesh_map.py``)."""
 STAGE_RECORDS = (
     "poses_tls_map/render_poses.json",
     "tls/map/crossmodal_map.json",
@@ -147,3 +156,25 @@ def test_bad_map_settings_name_their_key():
     cfg = compose_config(["task=crossmodal", "map=cloud", "map.passes=triple"])
     with pytest.raises(ValueError, match="map.passes must be one of"):
         run(cfg)
+
+
+def test_the_mesh_map_stage_never_reads_the_ground_truth(dataset, tmp_path, monkeypatch):
+    root = tmp_path / dataset.name
+    shutil.copytree(dataset, root, ignore=shutil.ignore_patterns("crossmodal"))
+    shutil.rmtree(root / "map" / "mesh")
+    (root / "map" / "mesh_changed" / "scene.obj").write_text("poison: not an OBJ\n")
+    (root / "mapping" / EXPOSURE_FILE).write_text("poison: not exposures\n")
+    config = to_object(compose_config([*TASK[:1], "map=mesh", *MESH])).map
+    mesh_map, record = crossmodal_stage.build_rgbd_map(root, config, 1.0)
+    folder = root / "crossmodal" / "mesh" / "map" / "mesh"
+    assert sorted(p.suffix for p in folder.iterdir()) == [".mtl", ".obj", ".ply", ".png"]
+    assert record["faces"] > 1000 and record["textured_fraction"] > 0.05
+    mapping = read_sequence(root, "mapping")
+    view = mesh_map.render(mapping.T_wc[:1], mapping.camera)
+    seen = view.depth[0, 0] > 0
+    assert float(seen.float().mean()) > 0.25  # 8 lidar sweeps mesh a third of the first view
+    # The texture came from the mapping images: the render matches the image where seen.
+    error = (view.rgb[0][:, seen] - mapping.load_rgb(0)[:, seen]).abs().median()
+    assert float(error) < 0.1
+    _refuse(monkeypatch, ("build_textured_mesh",))
+    assert crossmodal_stage.build_rgbd_map(root, config, 1.0)[1] == record
