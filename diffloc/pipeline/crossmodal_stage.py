@@ -97,6 +97,12 @@ def scaled_images(seq: SequenceData, camera: PinholeCamera, indices: list[int]) 
     )
 
 
+def _checked(path: Path) -> Path:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: the dataset has no such point map")
+    return path
+
+
 def _read_cloud(path: Path) -> PointCloudData:
     """A dataset point map with normals (what the poses, colours and mesh need)."""
     cloud = read_point_cloud(_checked(path))
@@ -146,12 +152,6 @@ def render_pose_stage(
     return T_wc, record
 
 
-def _checked(path: Path) -> Path:
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing: the dataset has no such point map")
-    return path
-
-
 def colored_point_map(
     cloud: PointCloudData,
     mapping: SequenceData,
@@ -187,59 +187,95 @@ def colored_point_map(
     return point_map
 
 
+def _map_settings(config: PointMapConfig | MeshMapConfig) -> dict:
+    """The settings the map depends on: a cloud's colours depend on its occlusion sizes only
+    (the render passes are the database's), a mesh on all of its settings."""
+    if isinstance(config, PointMapConfig):
+        return {"point_map": config.point_map, "rho_min": config.rho_min, "rho_max": config.rho_max}
+    return asdict(config)
+
+
+def _make_cloud(
+    cloud: PointCloudData,
+    mapping: SequenceData,
+    camera: PinholeCamera,
+    config: PointMapConfig,
+    work: Path,
+    show_progress: bool,
+) -> tuple[dict, list[str]]:
+    """Colour the cloud into ``work/colored_map.ply``; the summary and the outputs."""
+    occlusion = PointSizes.inverse_depth(config.rho_min, config.rho_max)
+    colored = colored_point_map(cloud, mapping, camera, occlusion, show_progress)
+    colored.save_ply(work / "colored_map.ply")
+    summary = {"points": len(cloud.points), "colored_points": len(colored.positions)}
+    return summary, ["colored_map.ply"]
+
+
+def _make_mesh(
+    cloud: PointCloudData,
+    mapping: SequenceData,
+    camera: PinholeCamera,
+    config: MeshMapConfig,
+    work: Path,
+    show_progress: bool,
+) -> tuple[dict, list[str]]:
+    """Reconstruct and texture the mesh into ``work/mesh/``; the summary and the outputs."""
+    images = scaled_images(mapping, camera, list(range(len(mapping))))
+    built = build_textured_mesh(
+        cloud.points,
+        cloud.normals,
+        images,
+        mapping.T_wc,
+        camera,
+        config.texture,
+        config.exposures,
+        show_progress,
+    )
+    write_atlas_obj(work / "mesh" / "mesh.obj", built.mesh)
+    write_atlas_ply(work / "mesh" / "mesh.ply", built.mesh)
+    summary = {
+        "faces": len(built.mesh.triangles),
+        "vertices": len(built.mesh.vertices),
+        "textured_fraction": built.textured_fraction,
+        "seconds": built.seconds,
+    }
+    return summary, ["mesh"]
+
+
 def build_rgbd_map(
     dataset: Path,
     config: PointMapConfig | MeshMapConfig,
     image_scale: float,
     show_progress: bool = False,
 ) -> tuple[RGBDMap, dict]:
-    """The coloured cloud or textured mesh of ``config`` (made or reused) and its record."""
+    """The coloured cloud or textured mesh of ``config`` (made or reused) and its record.
+
+    Args:
+        dataset: the dataset folder.
+        config: the ``map`` node.
+        image_scale: the mapping images are resized by this factor.
+        show_progress: progress bars.
+    """
     option = map_option(config)
     path = _checked(dataset / MAP_FILES[config.point_map])
     folder = crossmodal_folder(dataset) / option / "map"
-    if isinstance(config, PointMapConfig):
-        settings = {"point_map": config.point_map, "rho_min": config.rho_min}
-        settings |= {"rho_max": config.rho_max}
-    else:
-        settings = asdict(config)
     key = stage_key(
-        {"map": settings, "image_scale": image_scale},
+        {"map": _map_settings(config), "image_scale": image_scale},
         {"point_map": identity(path), **_sequence_inputs(dataset, MAPPING, with_poses=True)},
     )
     with open_stage(folder, "crossmodal_map", _command(dataset, option), LockLevel.MAP) as stage:
         record = stage.reusable(key)
         if record is None:
-            cloud = _read_cloud(path)
             mapping = read_sequence(dataset, MAPPING)
-            camera = mapping.camera.scaled(image_scale)
-            work = stage.workdir()
-            if isinstance(config, PointMapConfig):
-                occlusion = PointSizes.inverse_depth(config.rho_min, config.rho_max)
-                colored = colored_point_map(cloud, mapping, camera, occlusion, show_progress)
-                colored.save_ply(work / "colored_map.ply")
-                summary = {"points": len(cloud.points), "colored_points": len(colored.positions)}
-                outputs = ["colored_map.ply"]
-            else:
-                images = scaled_images(mapping, camera, list(range(len(mapping))))
-                built = build_textured_mesh(
-                    cloud.points,
-                    cloud.normals,
-                    images,
-                    mapping.T_wc,
-                    camera,
-                    config.texture,
-                    config.exposures,
-                    show_progress,
-                )
-                write_atlas_obj(work / "mesh" / "mesh.obj", built.mesh)
-                write_atlas_ply(work / "mesh" / "mesh.ply", built.mesh)
-                summary = {
-                    "faces": len(built.mesh.triangles),
-                    "vertices": len(built.mesh.vertices),
-                    "textured_fraction": built.textured_fraction,
-                    "seconds": built.seconds,
-                }
-                outputs = ["mesh"]
+            make = _make_cloud if isinstance(config, PointMapConfig) else _make_mesh
+            summary, outputs = make(
+                _read_cloud(path),
+                mapping,
+                mapping.camera.scaled(image_scale),
+                config,
+                stage.workdir(),
+                show_progress,
+            )
             record = stage.commit(key, {"map": option, **summary}, outputs)
     if isinstance(config, PointMapConfig):
         colored = PointMap.load_ply(folder / "colored_map.ply")
