@@ -117,9 +117,9 @@ class DifflocConfig:
     """The app's root: which task, which scene, where the dataset lives, the map, the
     database, the relocalisation and the radiance-field settings.
 
-    The groups fill it: ``task/``, ``scene/``, ``map/`` (the surfel map of the seed 1
-    pipeline; the coloured TLS / lidar clouds and the textured mesh of ``task=crossmodal``),
-    ``features/``
+    The groups fill it: ``task/`` (and ``task/scene/``, a task's settings that follow the
+    scene kind), ``scene/``, ``map/`` (the surfel map of the seed 1 pipeline; the coloured TLS
+    / lidar clouds and the textured mesh of ``task=crossmodal``), ``features/``
     (``db.features``), ``optim/`` (``db.optim``, ``db.optim_check``), ``retriever/``
     (``reloc.retriever``), ``matcher/`` (the relocaliser's matching, in ``reloc.method``) and
     ``experiment/`` (named setups of the committed tables).

@@ -17,6 +17,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from diffloc.checks import check_positive_int
@@ -130,8 +131,8 @@ class CrossmodalTaskConfig:
     ``<dataset>/crossmodal/``; results, TUM files and plots under the run folder.
 
     Attributes:
-        out_dir: where results go; empty: the Hydra run folder (``<dataset>/crossmodal/<map>``
-            outside a Hydra run).
+        out_dir: where results go; empty: the Hydra run folder
+            (``<dataset>/crossmodal/<map>/results`` outside a Hydra run).
         sequences: the query sequences to localise.
         every: localise every n-th frame.
         image_scale: images (mapping, database renders, queries) are resized by this factor.
@@ -161,9 +162,7 @@ class CrossmodalTaskConfig:
         check_positive_int(self.plot_queries, "plot_queries")
         if not self.sequences:
             raise ValueError("sequences must name at least one query sequence")
-        for name, value, high in (
-            ("image_scale", self.image_scale, 1.0),
-            ("loose_m", self.loose_m, 1e9),
-        ):
-            if not 0.0 < value <= high:
-                raise ValueError(f"{name} must be in (0, {high:g}], got {value!r}")
+        if not 0.0 < self.image_scale <= 1.0:
+            raise ValueError(f"image_scale must be in (0, 1], got {self.image_scale!r}")
+        if not 0.0 < self.loose_m < math.inf:
+            raise ValueError(f"loose_m must be a positive finite number, got {self.loose_m!r}")

@@ -418,6 +418,7 @@ def localize_sequence(
                 "sequence": sequence,
                 "queries": len(frames),
                 "accepted": int(arrays["accepted"].sum()),
+                "load_average": os.getloadavg(),  # the times of localization.npz ran under it
             }
             record = stage.commit(key, summary, ["localization.npz"])
     return SequenceLocalization.load(folder / "localization.npz"), record

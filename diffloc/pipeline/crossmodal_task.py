@@ -125,24 +125,24 @@ def run_crossmodal(
 
 
 def _markdown(results: dict) -> str:
-    rows = {name: entry for name, entry in results["sequences"].items()}
     loose = results["loose_m"]
     return "\n".join(
         [
             f"# Rendered-database localisation in `map={results['map']}` ({results['dataset']})",
             "",
             f"Database: {results['database_images']} renders of {results['image_size']}, "
-            f"hole share {100 * results['hole_share']:.1f} %; every {results['every']}. query "
-            "frame.",
+            f"hole share {100 * results['hole_share']:.1f} %; queries: every "
+            f"{results['every']}-th frame of each sequence.",
             "",
-            markdown_table(rows, loose),
+            markdown_table(results["sequences"], loose),
             "",
             f"Accepted: a pose was found and passed the validation. Precision: share of the "
             f"accepted poses within {loose:g} m / 30 deg. Rates: share of all queries accepted "
             "within the bound (a query not localised is a failure). Retrieval: the top-1 "
             "render lies within the render spacing and 45 deg of the query. mATE: mean "
             "position error of the accepted queries. ms/query: median wall time (features, "
-            f"retrieval, matching, PnP) under the load of {results['machine']}.",
+            "retrieval, matching, PnP) when the localisation ran (its load average is in "
+            f"results.json, stages.localize_<sequence>); machine: {results['machine']}.",
             "",
             "Files per sequence: `trajectory_<sequence>.tum` (accepted poses; "
             "`evo_ape tum <truth> trajectory_<sequence>.tum`), `retrieved_<sequence>.png` "
