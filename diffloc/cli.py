@@ -14,6 +14,7 @@ Examples:
     diffloc task=train_nerf nerf.submap=3            # one radiance-field submap
     diffloc -m +experiment=table3_noise              # a committed table's sweep
     diffloc task=export_colmap task.database=optimized  # the database as a COLMAP model
+    diffloc task=crossmodal map=tls                 # seed 2: localise in renders of a map
     diffloc task=main                               # all of the above, each stage cached
 
 Errors: a checked error (an ``OSError`` such as a missing dataset or database, a
@@ -45,6 +46,9 @@ from diffloc.io.atomic import atomic_write_text
 from diffloc.io.lock import lock_config
 from diffloc.pipeline.build_map import MapSummary, build_maps
 from diffloc.pipeline.colmap_stage import ColmapExport, export_colmap
+from diffloc.pipeline.crossmodal_config import map_option
+from diffloc.pipeline.crossmodal_stage import crossmodal_folder
+from diffloc.pipeline.crossmodal_task import run_crossmodal
 from diffloc.pipeline.database_stage import build_database, optimize_database
 from diffloc.pipeline.database_summary import BuiltDatabase, OptimizedDatabase
 from diffloc.pipeline.hints import Command, CommandHint, MissingStageError, override_key
@@ -153,13 +157,13 @@ def run_export_colmap(cfg: DictConfig) -> ColmapExport:
     return export
 
 
-def _results_dir(cfg: DictConfig) -> Path:
-    """``task.out_dir``, else the Hydra run folder, else ``<dataset>/reloc``."""
+def _results_dir(cfg: DictConfig, fallback: Path | None = None) -> Path:
+    """``task.out_dir``, else the Hydra run folder, else ``fallback`` (``<dataset>/reloc``)."""
     if cfg.task.out_dir:
         return Path(cfg.task.out_dir)
     if HydraConfig.initialized():
         return Path(HydraConfig.get().runtime.output_dir)
-    return Path(cfg.dataset) / "reloc"
+    return fallback or Path(cfg.dataset) / "reloc"
 
 
 def _print_results(results: dict, out: Path) -> None:
@@ -214,6 +218,19 @@ def run_main(cfg: DictConfig) -> dict:
     return results
 
 
+def run_crossmodal_task(cfg: DictConfig) -> dict:
+    """``task=crossmodal``: localise the query sequences in a database rendered from ``map``."""
+    map_config = to_object(cfg.map)
+    fallback = crossmodal_folder(cfg.dataset) / map_option(map_config) / "results"
+    out = _results_dir(cfg, fallback)
+    results = run_crossmodal(
+        Path(cfg.dataset), map_config, to_object(cfg.task), out, show_progress=cfg.progress
+    )
+    print((out / "results.md").read_text(encoding="utf-8"))
+    print(f"results: {out / 'results.json'}")
+    return results
+
+
 def run_train_nerf(cfg: DictConfig) -> NerfSummary:
     """``task=train_nerf``: train one radiance-field submap under ``<dataset>/nerf``."""
     summary = train_nerf_submap(Path(cfg.dataset), to_object(cfg.nerf), cfg.progress)
@@ -233,7 +250,12 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
     "export_colmap": run_export_colmap,
     "main": run_main,
     "train_nerf": run_train_nerf,
+    "crossmodal": run_crossmodal_task,
 }
+
+
+TASK_MAPS: dict[str, tuple[str, ...]] = {"crossmodal": ("tls", "cloud", "mesh")}
+"""The ``map`` options of the tasks that render a map; every other task takes ``map=surfel``."""
 
 
 MAKE_DATASET = ("simulate", "main")
@@ -272,6 +294,34 @@ def _build_node(node: DictConfig, path: str) -> None:
         raise ValueError(f"{path}: {message}") from exc
 
 
+def check_map_option(task: str, option: str) -> None:
+    """Refuse a ``map`` option the task cannot use (:data:`TASK_MAPS`).
+
+    Raises:
+        ValueError: one line naming the map options of every task.
+
+    Example:
+        >>> try:
+        ...     check_map_option("main", "tls")
+        ... except ValueError as error:
+        ...     print(str(error).split(": ")[0])
+        task=main cannot use map=tls
+    """
+    allowed = TASK_MAPS.get(task, ("surfel",))
+    if option in allowed:
+        return
+    rendered = "; ".join(f"task={name} takes {_choices(maps)}" for name, maps in TASK_MAPS.items())
+    raise ValueError(
+        f"task={task} cannot use map={option}: {rendered}; every other task takes map=surfel"
+    )
+
+
+def _choices(options: tuple[str, ...]) -> str:
+    """``map=a, map=b or map=c``."""
+    words = [f"map={o}" for o in options]
+    return " or ".join([", ".join(words[:-1]), words[-1]] if len(words) > 1 else words)
+
+
 def check_values(cfg: DictConfig) -> None:
     """Check every range and name of the config before any work starts.
 
@@ -286,6 +336,7 @@ def check_values(cfg: DictConfig) -> None:
     for key in VALUE_NODES:
         if key in cfg:
             _build_node(cfg[key], key)
+    check_map_option(cfg.task.name, map_option(to_object(cfg.map)))
     if cfg.task.name in MAKE_DATASET:
         validate_scene_config(OmegaConf.to_object(cfg.scene))
 

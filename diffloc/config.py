@@ -30,6 +30,7 @@ from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.rig_calibration import RigCalibrationConfig
 from diffloc.pipeline.build_map import BuildMapConfig
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
+from diffloc.pipeline.crossmodal_config import CrossmodalTaskConfig, MeshMapConfig, PointMapConfig
 from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.nerf_config import TrainNerfConfig
 from diffloc.pipeline.reloc_stage import RelocStageConfig
@@ -116,7 +117,9 @@ class DifflocConfig:
     """The app's root: which task, which scene, where the dataset lives, the map, the
     database, the relocalisation and the radiance-field settings.
 
-    The groups fill it: ``task/``, ``scene/``, ``map/`` (the surfel map), ``features/``
+    The groups fill it: ``task/`` (and ``task/scene/``, a task's settings that follow the
+    scene kind), ``scene/``, ``map/`` (the surfel map of the seed 1 pipeline; the coloured TLS
+    / lidar clouds and the textured mesh of ``task=crossmodal``), ``features/``
     (``db.features``), ``optim/`` (``db.optim``, ``db.optim_check``), ``retriever/``
     (``reloc.retriever``), ``matcher/`` (the relocaliser's matching, in ``reloc.method``) and
     ``experiment/`` (named setups of the committed tables).
@@ -129,7 +132,7 @@ class DifflocConfig:
 
     task: Any = MISSING
     scene: Any = MISSING
-    map: SurfelMapConfig = MISSING
+    map: Any = MISSING  # typed by map/<option>.yaml (surfel, tls, cloud, mesh)
     out_dir: str = MISSING
     dataset: str = MISSING
     db: DatabaseConfig = field(default_factory=DatabaseConfig)
@@ -149,7 +152,11 @@ GROUP_SCHEMAS: dict[str, type] = {
     "schema_task_export_colmap": ExportColmapTaskConfig,
     "schema_task_main": MainTaskConfig,
     "schema_task_train_nerf": TrainNerfTaskConfig,
+    "schema_task_crossmodal": CrossmodalTaskConfig,
     "schema_map_surfel": SurfelMapConfig,
+    "schema_map_tls": PointMapConfig,
+    "schema_map_cloud": PointMapConfig,
+    "schema_map_mesh": MeshMapConfig,
     "schema_reloc": RelocStageConfig,
     "schema_scene_indoor": IndoorSceneConfig,
     "schema_scene_outdoor": OutdoorSceneConfig,
@@ -166,10 +173,14 @@ dataclass default's, types them."""
 
 
 def _schema(name: str, node: type) -> DictConfig:
-    """The schema ``node`` as Hydra stores it: its swap points (:data:`SWAP_POINTS`) empty."""
+    """The schema ``node`` as Hydra stores it: its swap points (:data:`SWAP_POINTS`) empty,
+    and writable (OmegaConf marks the nodes of frozen settings dataclasses read-only, which
+    would refuse every override; the instance built from the node is frozen again)."""
     schema = OmegaConf.structured(node)
     for key in SWAP_POINTS.get(name, ()):
         OmegaConf.update(schema, key, MISSING, merge=False)
+    for _, child in _walk(schema, ""):
+        OmegaConf.set_readonly(child, None)
     return schema
 
 

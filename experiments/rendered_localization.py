@@ -48,7 +48,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from diffloc.crossmodal.database import DatabaseConfig, RenderedDatabase, render_database
 from diffloc.crossmodal.pose_selection import PoseSelectionConfig, select_render_poses
@@ -64,6 +63,8 @@ from diffloc.io.dataset import read_sequence
 from diffloc.io.ply import read_point_cloud
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.pointcloud import PointMap
+from diffloc.pipeline.crossmodal_report import retrieval_hits
+from diffloc.pipeline.crossmodal_stage import colored_point_map, scaled_images
 from diffloc.progress import progress
 from diffloc.reloc.rendered import (
     RenderedDatabaseLocalizer,
@@ -71,14 +72,12 @@ from diffloc.reloc.rendered import (
     RenderedLocalizerConfig,
 )
 from diffloc.reloc.rerank import RerankConfig
-from diffloc.render.point_render import render_points
 from diffloc.render.point_sizes import PointSizes
 
 THRESHOLDS = ((0.25, 2.0), (0.5, 5.0), (1.0, 30.0))
 """(metres, degrees) localisation criteria; (1 m, 30 deg) is seed 2's indoor one."""
 CORRECT = (1.0, 30.0)
 """An accepted pose within this is correct (precision)."""
-RETRIEVAL_ANGLE_DEG = 45.0
 
 
 def _parse() -> argparse.Namespace:
@@ -133,14 +132,6 @@ def _sizes(mode: str, args: argparse.Namespace) -> PointSizes:
     return PointSizes.multi_pass(args.rho_min, args.rho_max, tuple(args.levels))
 
 
-def _images(seq: SequenceData, camera: PinholeCamera, indices: list[int]) -> torch.Tensor:
-    """(N, 3, h, w) frames ``indices`` of ``seq`` resized (area) to ``camera``'s size."""
-    size = (camera.height, camera.width)
-    return torch.stack(
-        [F.interpolate(seq.load_rgb(i)[None], size, mode="area")[0] for i in indices]
-    )
-
-
 def _yaw_views(T_wc: torch.Tensor, views: int) -> torch.Tensor:
     """The (M, 4, 4) render poses (4 views per position) and each turned about the camera's
     y axis (world vertical) by ``k 360 / views`` deg, ``k = 1 .. views / 4 - 1``:
@@ -161,17 +152,8 @@ def _colored_map(
     if cache.is_file():
         return PointMap.load(cache)
     cloud = read_point_cloud(args.dataset / "map" / f"{name}.ply")
-    points = torch.from_numpy(cloud.points)
-    normals = torch.nn.functional.normalize(torch.from_numpy(cloud.normals), dim=1)
-    images = _images(mapping, camera, list(range(len(mapping))))
-    grey = torch.full_like(points, 0.5)
     sizes = PointSizes.inverse_depth(args.rho_min, args.rho_max)
-    depths = torch.cat(
-        [render_points(points, grey, T, camera, sizes).depth for T in mapping.T_wc.split(8)]
-    )
-    point_map, _ = PointMap.colorize(
-        points, images, mapping.T_wc, camera, depths, normals=normals, show_progress=True
-    )
+    point_map = colored_point_map(cloud, mapping, camera, sizes, show_progress=True)
     args.work.mkdir(parents=True, exist_ok=True)
     point_map.save(cache)
     return point_map
@@ -205,7 +187,7 @@ def _evaluate(
         nearest = [None] * len(indices)
     results = []
     for i, reference in zip(progress(indices, f"{seq.name}"), nearest, strict=True):
-        image = _images(seq, camera, [i])[0]
+        image = scaled_images(seq, camera, [i])[0]
         references = None if reference is None else torch.tensor([reference])
         results.append(localizer.localize(image, camera, references))
     T_est = torch.stack([r.T_wc for r in results])
@@ -214,12 +196,7 @@ def _evaluate(
     errors = pose_errors(T_est.numpy(), T_gt.numpy(), accepted)
     errors_found = pose_errors(T_est.numpy(), T_gt.numpy(), found)
     top = torch.tensor([int(r.retrieved[0]) if len(r.retrieved) else -1 for r in results])
-    distance, angle = pairwise_pose_distances(T_gt, db.T_wc[top.clamp_min(0)])
-    retrieved_ok = (
-        (top >= 0).numpy()
-        & (distance.diagonal().numpy() <= spacing_m)
-        & (np.degrees(angle.diagonal().numpy()) <= RETRIEVAL_ANGLE_DEG)
-    )
+    retrieved_ok = retrieval_hits(T_gt, db.T_wc[top.clamp_min(0)], (top >= 0).numpy(), spacing_m)
     m, d = CORRECT
     return {
         "queries": len(indices),

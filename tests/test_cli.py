@@ -141,6 +141,7 @@ def test_console_script_simulates_a_dataset(tmp_path):
         "export_colmap",
         "main",
         "train_nerf",
+        "crossmodal",
     ],
 )
 @pytest.mark.parametrize("scene", ["indoor", "outdoor"])
@@ -177,6 +178,11 @@ def test_a_task_without_a_dataset_says_how_to_simulate_it(tmp_path):
             "dataset={data} db.noise_sigma=0.3 reloc.database=database` first",
         ),
         ("unknown_key", "unknown config key scene.max_frames"),
+        (
+            "wrong_map",
+            "error: task=main cannot use map=tls: task=crossmodal takes map=tls, map=cloud or "
+            "map=mesh; every other task takes map=surfel",
+        ),
     ],
 )
 def test_a_checked_error_prints_one_line_with_the_users_overrides(
@@ -195,6 +201,7 @@ def test_a_checked_error_prints_one_line_with_the_users_overrides(
             f"task.out_dir={tmp_path / 'reloc'}",
         ],
         "unknown_key": ["+scene.max_frames=5", f"out_dir={tmp_path / 'sim'}"],
+        "wrong_map": ["task=main", "map=tls", f"out_dir={tmp_path / 'sim'}"],
     }[case]
     done = _diffloc(*args, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     assert done.returncode == 1

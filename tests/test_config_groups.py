@@ -48,8 +48,14 @@ CASES = [
 ]
 
 
-def _override(group: str, option: str) -> str:
-    return f"{group}={option}" if group in DEFAULTS else f"+{group}={option}"
+def _overrides(group: str, option: str) -> list[str]:
+    """The overrides that select ``option``; a scene-kind option ``<parent>/scene`` named
+    ``<choice>_<scene>`` (``task/scene/crossmodal_indoor``) also selects its parent's choice."""
+    chosen = [f"{group}={option}" if group in DEFAULTS else f"+{group}={option}"]
+    parent, _, leaf = group.rpartition("/")
+    if leaf == "scene" and parent:
+        chosen.insert(0, f"{parent}={option.rsplit('_', 1)[0]}")
+    return chosen
 
 
 def _sweep_params(group: str, option: str) -> dict[str, str]:
@@ -61,7 +67,7 @@ def _sweep_params(group: str, option: str) -> dict[str, str]:
 
 @pytest.mark.parametrize(("group", "option", "scene"), CASES, ids="-".join)
 def test_every_group_option_composes_with_every_scene(group: str, option: str, scene: str):
-    overrides = [f"scene={scene}", _override(group, option)]
+    overrides = [f"scene={scene}", *_overrides(group, option)]
     cfg = to_object(compose_config(overrides))
     assert cfg.scene.name in SCENES
     assert isinstance(cfg.db.features, XFeatConfig | OrbConfig)
@@ -87,6 +93,21 @@ def test_map_and_reloc_settings_follow_the_scene_kind(scene, theta_dist_m, voxel
     assert cfg.map.voxel_size_m == voxel_size_m
     explicit = to_object(compose_config(["scene=indoor", "map/scene=surfel_outdoor"]))
     assert explicit.map.voxel_size_m == 0.1
+
+
+@pytest.mark.parametrize(
+    ("scene", "cell_size_m", "spacing_m", "loose_m"),
+    [("indoor", 0.05, 2.0, 1.0), ("outdoor", 0.2, 4.0, 2.0)],
+)
+def test_crossmodal_render_poses_follow_the_scene_kind(scene, cell_size_m, spacing_m, loose_m):
+    task = to_object(compose_config([f"scene={scene}", "task=crossmodal", "map=tls"])).task
+    assert (task.poses.cell_size_m, task.poses.spacing_m, task.loose_m) == (
+        cell_size_m,
+        spacing_m,
+        loose_m,
+    )
+    explicit = compose_config(["scene=indoor", "task=crossmodal", "task/scene=crossmodal_outdoor"])
+    assert to_object(explicit).task.poses.spacing_m == 4.0
 
 
 def test_group_options_swap_the_classes_by_target():

@@ -139,3 +139,15 @@ def _commit_summary(folder: Path, summary: StageSummary) -> StageSummary:
     with open_stage(folder, "demo", COMMAND) as stage:
         (stage.workdir() / "out.txt").write_text("x")
         return stage.commit(stage_key({}, {}), summary, ["out.txt"])
+
+
+def test_the_outcome_names_the_identities_of_the_committed_or_reused_outputs(tmp_path: Path):
+    key = stage_key({"a": 1}, {})
+    with open_stage(tmp_path, "demo", COMMAND) as stage:
+        with pytest.raises(RuntimeError, match="no result reused or committed yet"):
+            stage.outcome(CountSummary(1))
+        (stage.workdir() / "out.txt").write_text("x")
+        made = stage.outcome(stage.commit(key, CountSummary(1), ["out.txt"]))
+    assert made.outputs == {"out.txt": identity(tmp_path / "out.txt")}
+    with open_stage(tmp_path, "demo", COMMAND) as stage:
+        assert stage.outcome(stage.reusable(key, CountSummary)) == made

@@ -57,8 +57,9 @@ import os
 import shutil
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import Generic, TypeVar
 
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.identity import identity
@@ -71,6 +72,7 @@ __all__ = [
     "STAGE_FORMAT_VERSION",
     "LockLevel",
     "StageSummary",
+    "StageOutcome",
     "StageRun",
     "check_made_from",
     "open_stage",
@@ -212,6 +214,20 @@ def read_lock(folder: str | os.PathLike, level: LockLevel) -> Iterator[None]:
         yield
 
 
+@dataclass(frozen=True)
+class StageOutcome(Generic[S]):
+    """A stage's result as the next stage needs it.
+
+    Attributes:
+        summary: the stage's typed summary.
+        outputs: output (relative path) -> identity (:func:`diffloc.io.identity.identity`),
+            as listed in the record; a downstream stage keys itself on these.
+    """
+
+    summary: S
+    outputs: dict[str, dict]
+
+
 class StageRun:
     """A stage run holding its folder's lock (made by :func:`open_stage`).
 
@@ -229,6 +245,7 @@ class StageRun:
         self.command = command
         self.read_only = read_only
         self._workdir: Path | None = None
+        self._outputs: dict[str, dict] | None = None
 
     def _refuse_write(self) -> ReadOnlyFolderError:
         return ReadOnlyFolderError(
@@ -262,6 +279,7 @@ class StageRun:
         except (MissingStageError, StaleStageError, ValueError):
             record = None
         if record is not None and record["stage"]["key"] == key:
+            self._outputs = record["stage"]["outputs"]
             return summary
         if self.read_only is not None:
             raise self._refuse_write()
@@ -314,7 +332,19 @@ class StageRun:
         journal = {"record_name": self.record_path.name, "record": record, "stale": stale}
         atomic_write_text(work / JOURNAL, json.dumps(journal, indent=2) + "\n")
         _finish_commit(self.folder, work)
+        self._outputs = manifest
         return summary.round_trip()
+
+    def outcome(self, summary: S) -> StageOutcome[S]:
+        """``summary`` (what :meth:`reusable` or :meth:`commit` returned) with the identities of
+        the outputs this run reused or committed, for a downstream stage's key.
+
+        Raises:
+            RuntimeError: the run has neither reused nor committed a result yet.
+        """
+        if self._outputs is None:
+            raise RuntimeError(f"{self.record_path}: no result reused or committed yet")
+        return StageOutcome(summary, dict(self._outputs))
 
     def close(self) -> None:
         """Remove the work folder, unless it holds the journal of a commit that did not finish

@@ -1,0 +1,168 @@
+"""Settings of ``diffloc task=crossmodal``: the ``map`` options ``tls`` / ``cloud`` / ``mesh``
+and the task node (render poses, RGB-D database, localiser, query sequences).
+
+The map options mirror :mod:`diffloc.crossmodal`: ``map=tls`` and ``map=cloud`` are the
+dataset's TLS and lidar point maps coloured from the mapping images and rendered as splats
+(:class:`PointMapConfig`), ``map=mesh`` is the textured mesh reconstructed from a point map
+(:class:`MeshMapConfig`). ``map=surfel`` (:class:`~diffloc.maps.surfel.SurfelMapConfig`) is
+the surfel map of the other tasks; :func:`map_option` names the option a typed map node came
+from, so the CLI can refuse a map a task cannot use.
+
+Example:
+    >>> PointMapConfig(point_map="lidar_map", passes="multi").sizes().levels
+    (1, 2, 4, 8)
+    >>> map_option(MeshMapConfig()), map_option(PointMapConfig(point_map="tls_map"))
+    ('mesh', 'tls')
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from diffloc.checks import check_positive_int
+from diffloc.crossmodal.database import DatabaseConfig as RGBDDatabaseConfig
+from diffloc.crossmodal.mesh_map import POINT_MAPS, TexturedMeshConfig
+from diffloc.crossmodal.pose_selection import PoseSelectionConfig
+from diffloc.maps.surfel import SurfelMapConfig
+from diffloc.reloc.rendered import RenderedLocalizerConfig
+from diffloc.render.point_sizes import PointSizes
+
+__all__ = [
+    "MAP_OPTIONS",
+    "CrossmodalTaskConfig",
+    "MeshMapConfig",
+    "PointMapConfig",
+    "map_option",
+]
+
+POINT_MAP_OPTIONS = {"tls_map": "tls", "lidar_map": "cloud"}
+"""The ``map`` option of each dataset point map rendered as a cloud."""
+
+MAP_OPTIONS = ("surfel", "tls", "cloud", "mesh")
+"""Every option of the ``map`` group (``diffloc/conf/map/*.yaml``)."""
+
+PASSES = ("single", "multi")
+EXPOSURES = ("estimated", "none")
+
+
+def _check_point_map(point_map: str) -> None:
+    if point_map not in POINT_MAPS:
+        raise ValueError(f"point_map must be one of {POINT_MAPS}, got {point_map!r}")
+
+
+@dataclass
+class PointMapConfig:
+    """``map=tls`` / ``map=cloud``: a dataset point map coloured from the mapping images and
+    rendered as square splats of seed 2 Eq. 2 sizes.
+
+    Attributes:
+        point_map: ``"tls_map"`` (``map=tls``) or ``"lidar_map"`` (``map=cloud``).
+        passes: ``"single"`` (every point its own Eq. 2 size) or ``"multi"`` (sizes snapped to
+            ``levels`` and rendered in passes merged by nearest depth, seed 2 Fig. 5).
+        rho_min: smallest splat size, pixels.
+        rho_max: Eq. 2 splat size at 1 m, pixels (also the sizes of the occlusion depth used
+            when colouring).
+        levels: the multi-pass sizes, pixels.
+    """
+
+    point_map: str = "tls_map"
+    passes: str = "single"
+    rho_min: float = 1.0
+    rho_max: float = 8.0
+    levels: list[int] = field(default_factory=lambda: [1, 2, 4, 8])
+
+    def __post_init__(self) -> None:
+        _check_point_map(self.point_map)
+        if self.passes not in PASSES:
+            raise ValueError(f"passes must be one of {PASSES}, got {self.passes!r}")
+        self.sizes()
+
+    def sizes(self) -> PointSizes:
+        """The splat sizes of the database renders."""
+        if self.passes == "single":
+            return PointSizes.inverse_depth(self.rho_min, self.rho_max)
+        return PointSizes.multi_pass(self.rho_min, self.rho_max, tuple(self.levels))
+
+
+@dataclass
+class MeshMapConfig:
+    """``map=mesh``: a mesh reconstructed from a point map and textured from the mapping images
+    by seed 2 Eq. 3-4 (the simulator's ground-truth mesh and exposures are never read).
+
+    Attributes:
+        point_map: the point map the mesh is reconstructed from (``"lidar_map"``, seed 2).
+        exposures: ``"estimated"`` from overlapping views, or ``"none"`` (no compensation).
+        texture: reconstruction, UV atlas and blend settings.
+    """
+
+    point_map: str = "lidar_map"
+    exposures: str = "estimated"
+    texture: TexturedMeshConfig = field(default_factory=TexturedMeshConfig)
+
+    def __post_init__(self) -> None:
+        _check_point_map(self.point_map)
+        if self.exposures not in EXPOSURES:
+            raise ValueError(f"exposures must be one of {EXPOSURES}, got {self.exposures!r}")
+
+
+def map_option(config: object) -> str:
+    """The ``map`` option (:data:`MAP_OPTIONS`) a built map node came from.
+
+    Raises:
+        TypeError: ``config`` is no map schema.
+    """
+    if isinstance(config, SurfelMapConfig):
+        return "surfel"
+    if isinstance(config, PointMapConfig):
+        return POINT_MAP_OPTIONS[config.point_map]
+    if isinstance(config, MeshMapConfig):
+        return "mesh"
+    raise TypeError(f"not a map config: {type(config).__name__}")
+
+
+@dataclass
+class CrossmodalTaskConfig:
+    """``task=crossmodal``: seed 2's localisation in a database rendered from the ``map``.
+
+    Render poses on the free-path corridor of the map's point cloud -> the map (coloured cloud
+    or textured mesh) -> its RGB-D database with features and NetVLAD -> Algorithm 1 on every
+    ``every``-th frame of each of ``sequences``; each step a cached stage under
+    ``<dataset>/crossmodal/``; results, TUM files and plots under the run folder.
+
+    Attributes:
+        out_dir: where results go; empty: the Hydra run folder
+            (``<dataset>/crossmodal/<map>/results`` outside a Hydra run).
+        sequences: the query sequences to localise.
+        every: localise every n-th frame.
+        image_scale: images (mapping, database renders, queries) are resized by this factor.
+        poses: render-pose selection (5 cm cells, 2 m spacing indoors; 20 cm, 4 m outdoors).
+        database: features and NetVLAD of the rendered database.
+        localizer: Algorithm 1 with re-ranking and validation.
+        loose_m: position bound of the loose localisation criterion (with 30 deg): 1 m
+            indoors, 2 m outdoors (seed 2).
+        plot_queries: queries shown beside their retrieved render per sequence.
+    """
+
+    name: str = "crossmodal"
+    out_dir: str = ""
+    sequences: list[str] = field(
+        default_factory=lambda: ["query_same", "query_lane", "query_reverse"]
+    )
+    every: int = 1
+    image_scale: float = 0.5
+    poses: PoseSelectionConfig = field(default_factory=PoseSelectionConfig)
+    database: RGBDDatabaseConfig = field(default_factory=RGBDDatabaseConfig)
+    localizer: RenderedLocalizerConfig = field(default_factory=RenderedLocalizerConfig)
+    loose_m: float = 1.0
+    plot_queries: int = 4
+
+    def __post_init__(self) -> None:
+        check_positive_int(self.every, "every")
+        check_positive_int(self.plot_queries, "plot_queries")
+        if not self.sequences:
+            raise ValueError("sequences must name at least one query sequence")
+        if not 0.0 < self.image_scale <= 1.0:
+            raise ValueError(f"image_scale must be in (0, 1], got {self.image_scale!r}")
+        if not 0.0 < self.loose_m < math.inf:
+            raise ValueError(f"loose_m must be a positive finite number, got {self.loose_m!r}")

@@ -1,0 +1,195 @@
+"""Scoring and outputs of ``diffloc task=crossmodal``: metrics, tables, TUM files and plots.
+
+The only place the task reads the query sequences' ground-truth poses. Per sequence:
+
+- queries, found (a PnP pose), accepted (found and validated: the answer) and the precision
+  of the accepted poses (within the loose bound ``loose_m`` / 30 deg);
+- localisation rates (shares of all queries accepted within the bound) at 0.25 m / 2 deg,
+  0.5 m / 5 deg and ``loose_m`` / 30 deg (seed 2: 1 m indoors, 2 m outdoors);
+- retrieval rate: the top-1 retrieved render lies within the render spacing and 45 deg of
+  the query (seed 2);
+- mATE of the accepted queries and the median wall time per query.
+
+Files in the run folder: ``results.md`` and ``results.json`` (the same figures),
+``trajectory_<sequence>.tum`` (the accepted poses, for ``evo_ape tum``),
+``retrieved_<sequence>.png`` (queries beside the render their pose came from) and
+``trajectory_<sequence>.png`` (top-down).
+
+Example:
+    >>> rates = localization_rates(np.array([0.1, 0.3, np.nan]), np.array([1.0, 1.0, np.nan]),
+    ...                            np.array([True, True, False]), 1.0)
+    >>> [round(v, 3) for v in rates.values()]
+    [0.333, 0.667, 0.667]
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffloc.eval.metrics import PoseErrors, is_correct, mean_ate, pose_errors
+from diffloc.eval.plots import plot_trajectory_topdown
+from diffloc.features.retrieval_eval import pairwise_pose_distances
+from diffloc.io.images import write_rgb
+from diffloc.io.sequence import SequenceData
+from diffloc.pipeline.crossmodal_stage import SequenceLocalization, scaled_images
+
+__all__ = [
+    "RETRIEVAL_ANGLE_DEG",
+    "localization_rates",
+    "markdown_table",
+    "plot_retrieved",
+    "retrieval_hits",
+    "score_sequence",
+    "thresholds",
+]
+
+RETRIEVAL_ANGLE_DEG = 45.0
+"""A retrieved render within the render spacing and this angle of the query is a hit."""
+
+
+def thresholds(loose_m: float) -> tuple[tuple[float, float], ...]:
+    """(metres, degrees) criteria: 0.25 m / 2 deg, 0.5 m / 5 deg, ``loose_m`` / 30 deg."""
+    return ((0.25, 2.0), (0.5, 5.0), (loose_m, 30.0))
+
+
+def _label(metres: float, degrees: float) -> str:
+    return f"{metres:g}m_{degrees:g}deg"
+
+
+def localization_rates(
+    translation_m: np.ndarray, rotation_deg: np.ndarray, accepted: np.ndarray, loose_m: float
+) -> dict[str, float]:
+    """Share of all Q queries accepted within each of :func:`thresholds` (failures count).
+
+    Args:
+        translation_m: (Q,) errors in metres (any value where not accepted).
+        rotation_deg: (Q,) errors in degrees.
+        accepted: (Q,) bool.
+        loose_m: the loose bound in metres.
+    """
+    errors = PoseErrors(translation_m, rotation_deg, accepted)
+    return {_label(m, d): float(is_correct(errors, m, d).mean()) for m, d in thresholds(loose_m)}
+
+
+def retrieval_hits(
+    T_query: torch.Tensor, T_retrieved: torch.Tensor, retrieved: np.ndarray, spacing_m: float
+) -> np.ndarray:
+    """(Q,) bool: the retrieved render lies within ``spacing_m`` and 45 deg of the query.
+
+    Args:
+        T_query: (Q, 4, 4) true query poses.
+        T_retrieved: (Q, 4, 4) poses of the retrieved renders (any pose where none).
+        retrieved: (Q,) bool, a render was retrieved.
+        spacing_m: the render spacing.
+    """
+    distance, angle = pairwise_pose_distances(T_query, T_retrieved)
+    return (
+        retrieved
+        & (distance.diagonal().numpy() <= spacing_m)
+        & (np.degrees(angle.diagonal().numpy()) <= RETRIEVAL_ANGLE_DEG)
+    )
+
+
+def _finite(x: float) -> float | None:
+    return None if math.isnan(x) else x
+
+
+def score_sequence(
+    loc: SequenceLocalization,
+    T_gt: torch.Tensor,
+    T_render: torch.Tensor,
+    spacing_m: float,
+    loose_m: float,
+) -> dict:
+    """The figures of one sequence (module docstring).
+
+    Args:
+        loc: the localiser's answers.
+        T_gt: (Q, 4, 4) true poses of the localised frames.
+        T_render: (M, 4, 4) render poses of the database.
+        spacing_m: the render spacing.
+        loose_m: the loose bound.
+    """
+    accepted = loc.accepted.astype(bool)
+    errors = pose_errors(loc.T_wc, T_gt.numpy(), accepted)
+    top = torch.from_numpy(loc.top1)
+    hits = retrieval_hits(T_gt, T_render[top.clamp_min(0)], loc.top1 >= 0, spacing_m)
+    correct = is_correct(errors, loose_m, 30.0)
+    count = int(accepted.sum())
+    return {
+        "queries": len(loc.frames),
+        "found": int(loc.success.sum()),
+        "accepted": count,
+        "precision": correct.sum() / count if count else None,
+        "rates": localization_rates(errors.translation_m, errors.rotation_deg, accepted, loose_m),
+        "retrieval_rate": float(hits.mean()),
+        "mate_m": _finite(mean_ate(errors)),
+        "median_ms_per_query": float(np.median(loc.time_ms)),
+    }
+
+
+def markdown_table(rows: dict[str, dict], loose_m: float) -> str:
+    """The per-sequence table of :func:`score_sequence` results (Markdown)."""
+    head = ["sequence", "queries", "accepted", "precision"]
+    head += [f"{m:g} m / {d:g} deg" for m, d in thresholds(loose_m)]
+    head += ["retrieval", "mATE [m]", "ms/query"]
+
+    def pct(x: float | None) -> str:
+        return "-" if x is None else f"{100 * x:.1f} %"
+
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, r in rows.items():
+        cells = [
+            name,
+            str(r["queries"]),
+            f"{r['accepted']} ({pct(r['accepted'] / r['queries'])})",
+            pct(r["precision"]),
+            *[pct(v) for v in r["rates"].values()],
+            pct(r["retrieval_rate"]),
+            "-" if r["mate_m"] is None else f"{r['mate_m']:.3f}",
+            f"{r['median_ms_per_query']:.0f}",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot_retrieved(
+    path: str | os.PathLike,
+    loc: SequenceLocalization,
+    seq: SequenceData,
+    renders: torch.Tensor,
+    count: int,
+) -> Path:
+    """Write ``count`` evenly spread queries (left) beside the render their pose came from,
+    or their top-1 render when no pose was found (right), one row each.
+
+    Args:
+        path: the PNG.
+        loc: the answers.
+        seq: the query sequence (images).
+        renders: (M, 3, h, w) database images; queries are resized to their size.
+        count: rows (at most the number of queries).
+    """
+    picks = np.unique(np.linspace(0, len(loc.frames) - 1, min(count, len(loc.frames))).round())
+    rows = []
+    for q in picks.astype(int).tolist():
+        camera = seq.camera.scaled(renders.shape[-1] / seq.camera.width)
+        query = scaled_images(seq, camera, [int(loc.frames[q])])[0]
+        chosen = int(loc.reference[q]) if loc.reference[q] >= 0 else int(loc.top1[q])
+        render = renders[chosen] if chosen >= 0 else torch.zeros_like(query)
+        rows.append(torch.cat([query, render], dim=2))
+    write_rgb(path, torch.cat(rows, dim=1))
+    return Path(path)
+
+
+def plot_trajectory(
+    path: str | os.PathLike, loc: SequenceLocalization, T_gt: torch.Tensor, title: str
+) -> Path:
+    """Top-down: the true trajectory and the accepted / rejected estimates."""
+    estimates = np.where(loc.success[:, None, None], loc.T_wc, np.nan)
+    return plot_trajectory_topdown(T_gt, estimates, loc.accepted.astype(bool), path, title=title)

@@ -1,0 +1,495 @@
+"""The stages of ``diffloc task=crossmodal``: render poses, map, RGB-D database, localisation.
+
+Seed 2's localisation in a map without images of its own, each step a cached, atomic stage
+(:mod:`diffloc.pipeline.stage`) under ``<dataset>/crossmodal/``:
+
+- ``poses_<point map>/`` (``render_poses.json``): render poses on the free-path corridor of
+  the point map (:func:`~diffloc.crossmodal.pose_selection.select_render_poses`), ``poses.npz``
+  and the step figures ``floors/floor_<k>.png``; keyed on ``task.poses`` and the point map;
+- ``<map>/map/`` (``crossmodal_map.json``): ``map=tls|cloud``: the point map coloured from the
+  mapping images (``colored_map.ply``; occlusion by depth rendered from the cloud itself);
+  ``map=mesh``: the textured mesh (``mesh/mesh.obj`` + MTL + PNG, ``mesh/mesh.ply``); keyed on
+  the map settings, the image scale, the point map and the mapping sequence's images, poses
+  and calibration;
+- ``<map>/database/`` (``rgbd_database.json``): the map rendered at the render poses with
+  XFeat features and NetVLAD (``rgbd/``); keyed on ``task.database``, the render settings and
+  the two outputs above;
+- ``<map>/localize_<sequence>/`` (``localize.json``): Algorithm 1 on every ``task.every``-th
+  frame (``localization.npz``); keyed on ``task.localizer``, the database and the query
+  sequence's images and calibration.
+
+The ground-truth poses of the query sequences and the simulator's meshes and exposures are
+never read here; scoring is :mod:`diffloc.pipeline.crossmodal_report`'s.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from diffloc.crossmodal.database import DatabaseConfig, RenderedDatabase, render_database
+from diffloc.crossmodal.mesh_map import build_textured_mesh
+from diffloc.crossmodal.pose_selection import (
+    PoseSelectionConfig,
+    select_render_poses,
+    write_floor_plan_figures,
+)
+from diffloc.crossmodal.synthesize import MeshMap, PointCloudMap, RGBDMap
+from diffloc.geometry.camera import PinholeCamera
+from diffloc.io.atomic import atomic_open
+from diffloc.io.dataset import MAP_FILES, read_sequence
+from diffloc.io.identity import identity
+from diffloc.io.mesh_export import write_atlas_obj, write_atlas_ply
+from diffloc.io.mesh_obj import read_textured_mesh_obj
+from diffloc.io.npz import read_npz_archive, write_npz
+from diffloc.io.ply import PointCloudData, read_point_cloud
+from diffloc.io.sequence import SequenceData
+from diffloc.maps.pointcloud import PointMap
+from diffloc.pipeline.crossmodal_config import MeshMapConfig, PointMapConfig, map_option
+from diffloc.pipeline.hints import Command
+from diffloc.pipeline.stage import (
+    LockLevel,
+    StageOutcome,
+    StageSummary,
+    open_stage,
+    stage_key,
+)
+from diffloc.progress import progress
+from diffloc.reloc.rendered import RenderedDatabaseLocalizer, RenderedLocalizerConfig
+from diffloc.render.point_render import render_points
+from diffloc.render.point_sizes import PointSizes
+
+__all__ = [
+    "SequenceLocalization",
+    "build_rgbd_database",
+    "build_rgbd_map",
+    "colored_point_map",
+    "crossmodal_folder",
+    "localize_sequence",
+    "render_pose_stage",
+    "scaled_images",
+]
+
+MAPPING = "mapping"
+"""The sequence whose images colour or texture the map."""
+
+
+def crossmodal_folder(dataset: str | os.PathLike) -> Path:
+    """``<dataset>/crossmodal``: where the stages of ``task=crossmodal`` live."""
+    return Path(dataset) / "crossmodal"
+
+
+def _command(dataset: Path, option: str) -> Command:
+    return Command("crossmodal", (f"dataset={dataset}", f"map={option}"))
+
+
+def _sequence_inputs(dataset: Path, name: str, with_poses: bool) -> dict[str, dict]:
+    """Identities of the files of sequence ``name`` a stage reads: images and calibration,
+    and the poses only where they are an input (the mapping run), never a query's truth."""
+    files = ["rgb", "calib.yaml", *(["poses.txt"] if with_poses else [])]
+    return {f"{name}/{rel}": identity(dataset / name / rel) for rel in files}
+
+
+def scaled_images(seq: SequenceData, camera: PinholeCamera, indices: list[int]) -> torch.Tensor:
+    """(N, 3, h, w) frames ``indices`` of ``seq`` resized (area) to ``camera``'s size."""
+    size = (camera.height, camera.width)
+    return torch.stack(
+        [F.interpolate(seq.load_rgb(i)[None], size, mode="area")[0] for i in indices]
+    )
+
+
+@dataclass(frozen=True)
+class RenderPosesSummary(StageSummary):
+    """The ``render_poses`` summary: ``poses`` render poses at ``samples`` skeleton samples on
+    ``floors`` floors of ``point_map``."""
+
+    point_map: str
+    poses: int
+    samples: int
+    floors: int
+
+
+@dataclass(frozen=True)
+class ColoredCloudSummary(StageSummary):
+    """The ``crossmodal_map`` summary of ``map=tls|cloud``: ``colored_points`` of the
+    cloud's ``points`` were seen by a mapping image (the others are dropped)."""
+
+    map: str
+    points: int
+    colored_points: int
+
+
+@dataclass(frozen=True)
+class TexturedMeshSummary(StageSummary):
+    """The ``crossmodal_map`` summary of ``map=mesh``: the mesh's ``faces`` and
+    ``vertices``, the share of texels a mapping view textured, the build's wall ``seconds``."""
+
+    map: str
+    faces: int
+    vertices: int
+    textured_fraction: float
+    seconds: float
+
+
+@dataclass(frozen=True)
+class RgbdDatabaseSummary(StageSummary):
+    """The ``rgbd_database`` summary: rendered ``images`` and their share of pixels without
+    depth (``hole_share``)."""
+
+    images: int
+    hole_share: float
+
+
+@dataclass(frozen=True)
+class LocalizationSummary(StageSummary):
+    """The ``localize`` summary: ``accepted`` of ``queries`` frames of ``sequence``, and the
+    1/5/15-minute load average the times in ``localization.npz`` ran under."""
+
+    sequence: str
+    queries: int
+    accepted: int
+    load_average: list[float]
+
+
+def _checked(path: Path) -> Path:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: the dataset has no such point map")
+    return path
+
+
+def _read_cloud(path: Path) -> PointCloudData:
+    """A dataset point map with normals (what the poses, colours and mesh need)."""
+    cloud = read_point_cloud(_checked(path))
+    if cloud.normals is None:
+        raise ValueError(f"{path}: the point map has no normals (nx, ny, nz); they are needed")
+    return cloud
+
+
+def render_pose_stage(
+    dataset: Path, point_map: str, config: PoseSelectionConfig, option: str
+) -> tuple[torch.Tensor, StageOutcome[RenderPosesSummary]]:
+    """The render poses of ``point_map`` (made or reused): (M, 4, 4) float64 and the stage's
+    outcome.
+
+    Raises:
+        ValueError: the point map has no normals, no upward normal or an empty corridor on a
+            floor; the message names the file and the ``task.poses`` settings.
+    """
+    path = dataset / MAP_FILES[point_map]
+    folder = crossmodal_folder(dataset) / f"poses_{point_map}"
+    key = stage_key({"poses": asdict(config)}, {"point_map": identity(_checked(path))})
+    with open_stage(folder, "render_poses", _command(dataset, option), LockLevel.MAP) as stage:
+        summary = stage.reusable(key, RenderPosesSummary)
+        if summary is None:
+            cloud = _read_cloud(path)
+            try:
+                selection = select_render_poses(cloud.points, cloud.normals, config)
+            except ValueError as exc:
+                raise ValueError(f"{path}: {exc} (settings: task.poses.*)") from exc
+            work = stage.workdir()
+            arrays = {
+                "T_wc": selection.T_wc.numpy(),
+                "floor_index": selection.floor_index.numpy(),
+                "sample_index": selection.sample_index.numpy(),
+                "view_index": selection.view_index.numpy(),
+            }
+            with atomic_open(work / "poses.npz", "wb") as handle:
+                write_npz(handle, arrays)
+            write_floor_plan_figures(selection, work / "floors")
+            summary = RenderPosesSummary(
+                point_map=point_map,
+                poses=len(selection),
+                samples=int(selection.sample_index.max()) + 1,
+                floors=len(selection.floors),
+            )
+            summary = stage.commit(key, summary, ["poses.npz", "floors"])
+        outcome = stage.outcome(summary)
+        T_wc = torch.from_numpy(read_npz_archive(folder / "poses.npz")["T_wc"])
+    return T_wc, outcome
+
+
+def colored_point_map(
+    cloud: PointCloudData,
+    mapping: SequenceData,
+    camera: PinholeCamera,
+    sizes: PointSizes,
+    show_progress: bool = False,
+) -> PointMap:
+    """The point map coloured from the mapping images (:meth:`PointMap.colorize`).
+
+    The occlusion test uses depth rendered from the cloud itself at the mapping poses with
+    ``sizes`` (no sensor depth); images are resized to ``camera``.
+
+    Args:
+        cloud: (N, 3) points with normals.
+        mapping: the mapping sequence (images and poses).
+        camera: the camera of the resized images.
+        sizes: splat sizes of the occlusion depth.
+        show_progress: progress bar over the views.
+
+    Returns:
+        The coloured points (those no view sees are dropped).
+    """
+    points = torch.from_numpy(cloud.points)
+    normals = F.normalize(torch.from_numpy(cloud.normals), dim=1)
+    images = scaled_images(mapping, camera, list(range(len(mapping))))
+    grey = torch.full_like(points, 0.5)
+    depths = torch.cat(
+        [render_points(points, grey, T, camera, sizes).depth for T in mapping.T_wc.split(8)]
+    )
+    point_map, _ = PointMap.colorize(
+        points, images, mapping.T_wc, camera, depths, normals=normals, show_progress=show_progress
+    )
+    return point_map
+
+
+def _map_settings(config: PointMapConfig | MeshMapConfig) -> dict:
+    """The settings the map depends on: a cloud's colours depend on its occlusion sizes only
+    (the render passes are the database's), a mesh on all of its settings."""
+    if isinstance(config, PointMapConfig):
+        return {"point_map": config.point_map, "rho_min": config.rho_min, "rho_max": config.rho_max}
+    return asdict(config)
+
+
+def _make_cloud(
+    cloud: PointCloudData,
+    mapping: SequenceData,
+    camera: PinholeCamera,
+    config: PointMapConfig,
+    work: Path,
+    show_progress: bool,
+) -> tuple[ColoredCloudSummary, list[str]]:
+    """Colour the cloud into ``work/colored_map.ply``; the summary and the outputs."""
+    occlusion = PointSizes.inverse_depth(config.rho_min, config.rho_max)
+    colored = colored_point_map(cloud, mapping, camera, occlusion, show_progress)
+    colored.save_ply(work / "colored_map.ply")
+    summary = ColoredCloudSummary(
+        map=map_option(config), points=len(cloud.points), colored_points=len(colored.positions)
+    )
+    return summary, ["colored_map.ply"]
+
+
+def _make_mesh(
+    cloud: PointCloudData,
+    mapping: SequenceData,
+    camera: PinholeCamera,
+    config: MeshMapConfig,
+    work: Path,
+    show_progress: bool,
+) -> tuple[TexturedMeshSummary, list[str]]:
+    """Reconstruct and texture the mesh into ``work/mesh/``; the summary and the outputs."""
+    images = scaled_images(mapping, camera, list(range(len(mapping))))
+    built = build_textured_mesh(
+        cloud.points,
+        cloud.normals,
+        images,
+        mapping.T_wc,
+        camera,
+        config.texture,
+        config.exposures,
+        show_progress,
+    )
+    write_atlas_obj(work / "mesh" / "mesh.obj", built.mesh)
+    write_atlas_ply(work / "mesh" / "mesh.ply", built.mesh)
+    summary = TexturedMeshSummary(
+        map=map_option(config),
+        faces=len(built.mesh.triangles),
+        vertices=len(built.mesh.vertices),
+        textured_fraction=built.textured_fraction,
+        seconds=built.seconds,
+    )
+    return summary, ["mesh"]
+
+
+def build_rgbd_map(
+    dataset: Path,
+    config: PointMapConfig | MeshMapConfig,
+    image_scale: float,
+    show_progress: bool = False,
+) -> tuple[RGBDMap, StageOutcome[ColoredCloudSummary | TexturedMeshSummary]]:
+    """The coloured cloud or textured mesh of ``config`` (made or reused) and the stage's
+    outcome.
+
+    Args:
+        dataset: the dataset folder.
+        config: the ``map`` node.
+        image_scale: the mapping images are resized by this factor.
+        show_progress: progress bars.
+    """
+    option = map_option(config)
+    path = _checked(dataset / MAP_FILES[config.point_map])
+    folder = crossmodal_folder(dataset) / option / "map"
+    key = stage_key(
+        {"map": _map_settings(config), "image_scale": image_scale},
+        {"point_map": identity(path), **_sequence_inputs(dataset, MAPPING, with_poses=True)},
+    )
+    with open_stage(folder, "crossmodal_map", _command(dataset, option), LockLevel.MAP) as stage:
+        cloud = isinstance(config, PointMapConfig)
+        summary = stage.reusable(key, ColoredCloudSummary if cloud else TexturedMeshSummary)
+        if summary is None:
+            mapping = read_sequence(dataset, MAPPING)
+            make = _make_cloud if cloud else _make_mesh
+            summary, outputs = make(
+                _read_cloud(path),
+                mapping,
+                mapping.camera.scaled(image_scale),
+                config,
+                stage.workdir(),
+                show_progress,
+            )
+            summary = stage.commit(key, summary, outputs)
+        outcome = stage.outcome(summary)
+        if cloud:
+            colored = PointMap.load_ply(folder / "colored_map.ply")
+            return PointCloudMap(colored.positions, colored.colors, config.sizes()), outcome
+        return MeshMap(read_textured_mesh_obj(folder / "mesh" / "mesh.obj")), outcome
+
+
+def build_rgbd_database(
+    dataset: Path,
+    config: PointMapConfig | MeshMapConfig,
+    database: DatabaseConfig,
+    rgbd_map: tuple[RGBDMap, StageOutcome],
+    poses: tuple[torch.Tensor, StageOutcome],
+    camera: PinholeCamera,
+    show_progress: bool = False,
+) -> tuple[RenderedDatabase, StageOutcome[RgbdDatabaseSummary]]:
+    """The RGB-D database of the map at the render poses (made or reused) and the stage's
+    outcome.
+
+    Args:
+        dataset: the dataset folder.
+        config: the map settings (the render sizes of a cloud are part of the key).
+        database: features and NetVLAD settings.
+        rgbd_map: the map and its outcome (:func:`build_rgbd_map`).
+        poses: the (M, 4, 4) render poses and their outcome (:func:`render_pose_stage`).
+        camera: the render camera.
+        show_progress: progress bars.
+    """
+    option = map_option(config)
+    folder = crossmodal_folder(dataset) / option / "database"
+    renderer, map_outcome = rgbd_map
+    T_wc, pose_outcome = poses
+    sizes = asdict(config.sizes()) if isinstance(config, PointMapConfig) else None
+    map_output = "colored_map.ply" if isinstance(config, PointMapConfig) else "mesh"
+    key = stage_key(
+        {"database": asdict(database), "sizes": sizes, "camera": _camera(camera)},
+        {
+            "map": map_outcome.outputs[map_output],
+            "poses": pose_outcome.outputs["poses.npz"],
+        },
+    )
+    command = _command(dataset, option)
+    with open_stage(folder, "rgbd_database", command, LockLevel.DATABASE) as stage:
+        summary = stage.reusable(key, RgbdDatabaseSummary)
+        if summary is None:
+            source = f"{option} ({config.passes})" if sizes else option
+            db = render_database(
+                renderer, T_wc, camera, database, source, show_progress=show_progress
+            )
+            db.save(stage.workdir() / "rgbd")
+            summary = RgbdDatabaseSummary(images=db.num_images, hole_share=float(db.holes.mean()))
+            summary = stage.commit(key, summary, ["rgbd"])
+        outcome = stage.outcome(summary)
+        return RenderedDatabase.load(folder / "rgbd"), outcome
+
+
+def _camera(camera: PinholeCamera) -> dict:
+    return {k: float(getattr(camera, k)) for k in ("fx", "fy", "cx", "cy", "width", "height")}
+
+
+@dataclass(frozen=True)
+class SequenceLocalization:
+    """Algorithm 1's answers for Q query frames of one sequence.
+
+    Attributes:
+        frames: (Q,) int64 frame indices.
+        T_wc: (Q, 4, 4) float64 estimates (identity where no pose was found).
+        success: (Q,) bool, a PnP pose was found.
+        accepted: (Q,) bool, found and passed the validation (the answer).
+        reference: (Q,) int64 database image the pose came from (-1: none).
+        top1: (Q,) int64 first retrieved database image (-1: none).
+        num_inliers: (Q,) int64 PnP inliers of the answer.
+        time_ms: (Q,) float64 wall time per query (features, retrieval, matching, PnP).
+    """
+
+    frames: np.ndarray
+    T_wc: np.ndarray
+    success: np.ndarray
+    accepted: np.ndarray
+    reference: np.ndarray
+    top1: np.ndarray
+    num_inliers: np.ndarray
+    time_ms: np.ndarray
+
+    @classmethod
+    def load(cls, path: Path) -> SequenceLocalization:
+        """Read ``localization.npz`` written by :func:`localize_sequence`."""
+        arrays = read_npz_archive(path)
+        return cls(**{name: arrays[name] for name in cls.__dataclass_fields__})
+
+
+def localize_sequence(
+    dataset: Path,
+    option: str,
+    sequence: str,
+    every: int,
+    config: RenderedLocalizerConfig,
+    database: tuple[RenderedDatabase, StageOutcome],
+    show_progress: bool = False,
+) -> tuple[SequenceLocalization, StageOutcome[LocalizationSummary]]:
+    """Localise every ``every``-th frame of ``sequence`` (made or reused) and the stage's
+    outcome.
+
+    Query images are resized (area) to the database camera's size.
+    """
+    db, db_outcome = database
+    folder = crossmodal_folder(dataset) / option / f"localize_{sequence}"
+    key = stage_key(
+        {"localizer": asdict(config), "every": every, "camera": _camera(db.camera)},
+        {
+            "database": db_outcome.outputs["rgbd"],
+            **_sequence_inputs(dataset, sequence, with_poses=False),
+        },
+    )
+    command = _command(dataset, option)
+    with open_stage(folder, "localize", command, LockLevel.UPDATED) as stage:
+        summary = stage.reusable(key, LocalizationSummary)
+        if summary is None:
+            seq = read_sequence(dataset, sequence)
+            camera = seq.camera.scaled(db.camera.width / seq.camera.width)
+            localizer = RenderedDatabaseLocalizer(db, config)
+            frames = list(range(0, len(seq), every))
+            results = [
+                localizer.localize(scaled_images(seq, camera, [i])[0], camera)
+                for i in progress(frames, sequence, show_progress)
+            ]
+            arrays = {
+                "frames": np.array(frames, dtype=np.int64),
+                "T_wc": torch.stack([r.T_wc for r in results]).numpy(),
+                "success": np.array([r.success for r in results]),
+                "accepted": np.array([r.accepted for r in results]),
+                "reference": np.array([r.reference for r in results], dtype=np.int64),
+                "top1": np.array(
+                    [int(r.retrieved[0]) if len(r.retrieved) else -1 for r in results],
+                    dtype=np.int64,
+                ),
+                "num_inliers": np.array([r.num_inliers for r in results], dtype=np.int64),
+                "time_ms": np.array([r.time_ms for r in results], dtype=np.float64),
+            }
+            with atomic_open(stage.workdir() / "localization.npz", "wb") as handle:
+                write_npz(handle, arrays)
+            summary = LocalizationSummary(
+                sequence=sequence,
+                queries=len(frames),
+                accepted=int(arrays["accepted"].sum()),
+                load_average=list(os.getloadavg()),  # the times of localization.npz ran under
+            )
+            summary = stage.commit(key, summary, ["localization.npz"])
+        outcome = stage.outcome(summary)
+        return SequenceLocalization.load(folder / "localization.npz"), outcome

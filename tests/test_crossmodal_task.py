@@ -1,0 +1,180 @@
+"""``diffloc task=crossmodal``: end to end on a tiny scene, stage reuse, bad map options.
+
+The scene is the tiny indoor scene with 8 frames per sequence and a denser terrestrial scan
+than the shared fixture's (whose 48 x 96 scan leaves only scanner-station disks as free
+space). At 160x120 a correct pose has 40-70 PnP inliers, so the validation's inlier threshold
+(150, chosen at 320x240 on the default scene) is lowered to 30 here.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from diffloc.cli import run
+from diffloc.config import compose_config, to_object
+from diffloc.io.dataset import read_sequence
+from diffloc.io.exposure import EXPOSURE_FILE
+from diffloc.io.trajectory import read_tum
+from diffloc.pipeline import crossmodal_stage
+from diffloc.sim.dataset import simulate_dataset
+from tests.conftest import TINY, scene_config
+
+SCENE = [
+    *TINY,
+    "scene=indoor",
+    "scene.trajectory.max_frames=8",
+    "scene.tls.elevation_steps=120",
+    "scene.tls.azimuth_steps=240",
+]
+TASK = [
+    "task=crossmodal",
+    "map=tls",
+    "task.image_scale=1.0",
+    "task.sequences=[query_same]",
+    "task.every=2",
+    "task.localizer.validation.theta_in=30",
+]
+MESH = [
+    "map.texture.reconstruction.poisson_depth=7",
+    "map.texture.reconstruction.target_faces=6000",
+    "map.texture.atlas_size=256",
+]
+"""A small mesh (as in ``tests/test_mesh_map.py``)."""
+STAGE_RECORDS = (
+    "poses_tls_map/render_poses.json",
+    "tls/map/crossmodal_map.json",
+    "tls/database/rgbd_database.json",
+)
+LOCALIZE_RECORD = "tls/localize_query_same/localize.json"
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("crossmodal") / "indoor_seed0"
+    return simulate_dataset(scene_config(SCENE), out, show_progress=False)
+
+
+def _run(dataset: Path, out: Path, *overrides: str) -> dict:
+    return run(
+        compose_config([*SCENE, *TASK, f"dataset={dataset}", f"task.out_dir={out}", *overrides])
+    )
+
+
+def _records(dataset: Path) -> dict[str, tuple[bytes, int]]:
+    """Content and modification time of every stage record."""
+    root = dataset / "crossmodal"
+    return {
+        rel: ((root / rel).read_bytes(), (root / rel).stat().st_mtime_ns)
+        for rel in (*STAGE_RECORDS, LOCALIZE_RECORD)
+    }
+
+
+UPSTREAM = ("select_render_poses", "colored_point_map", "render_database")
+"""What the poses, map and database stages compute with."""
+
+
+def _refuse(monkeypatch: pytest.MonkeyPatch, names: tuple[str, ...]) -> None:
+    """Make the computations ``names`` of the stage module fail."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a stage computed again although its result was reusable")
+
+    for name in names:
+        monkeypatch.setattr(crossmodal_stage, name, refuse)
+
+
+@pytest.fixture(scope="module")
+def first(dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
+    out = tmp_path_factory.mktemp("first_run")
+    return _run(dataset, out), out
+
+
+def test_the_task_localizes_queries_in_the_rendered_tls_database(dataset, first):
+    results, out = first
+    entry = results["sequences"]["query_same"]
+    assert entry["queries"] == 4
+    assert entry["accepted"] >= 1 and entry["precision"] == 1.0
+    assert entry["rates"]["1m_30deg"] == entry["accepted"] / entry["queries"]
+    assert results["database_images"] == results["stages"]["poses"]["poses"] > 0
+    assert 0.0 < results["hole_share"] < 1.0
+    times, poses = read_tum(out / "trajectory_query_same.tum")
+    assert len(times) == entry["accepted"] and poses.shape == (entry["accepted"], 4, 4)
+    for name in ("results.md", "retrieved_query_same.png", "trajectory_query_same.png"):
+        assert (out / name).stat().st_size > 0
+    assert "| query_same | 4 |" in (out / "results.md").read_text()
+    assert json.loads((out / "results.json").read_text())["sequences"] == results["sequences"]
+    floors = dataset / "crossmodal" / "poses_tls_map" / "floors"
+    assert sorted(p.name for p in floors.iterdir()) == ["floor_0.png", "floor_1.png"]
+
+
+def test_a_second_run_reuses_every_stage(dataset, first, tmp_path, monkeypatch):
+    before = _records(dataset)
+    _refuse(monkeypatch, (*UPSTREAM, "RenderedDatabaseLocalizer"))
+    again = _run(dataset, tmp_path)
+    assert _records(dataset) == before
+    assert again["sequences"]["query_same"]["rates"] == first[0]["sequences"]["query_same"]["rates"]
+
+
+def test_a_changed_localizer_setting_runs_only_the_localization(
+    dataset, first, tmp_path, monkeypatch
+):
+    before = _records(dataset)
+    _refuse(monkeypatch, UPSTREAM)
+    _run(dataset, tmp_path, "task.localizer.top_k=3")
+    after = _records(dataset)
+    assert all(after[rel] == before[rel] for rel in STAGE_RECORDS)
+    record = json.loads(after[LOCALIZE_RECORD][0])
+    assert record["stage"]["key"]["config"]["localizer"]["top_k"] == 3
+
+
+def test_an_empty_corridor_names_the_map_and_the_settings(dataset, first, tmp_path):
+    before = _records(dataset)
+    with pytest.raises(ValueError, match=r"tls_map.ply: .*empty corridor.*task\.poses"):
+        _run(dataset, tmp_path, "task.poses.min_clearance_m=30")
+    assert _records(dataset) == before  # the failed run left the results in place
+
+
+@pytest.mark.parametrize(
+    ("task", "option"), [("crossmodal", "surfel"), ("main", "tls"), ("build_map", "mesh")]
+)
+def test_a_map_option_the_task_cannot_use_is_refused_before_any_work(task, option, tmp_path):
+    cfg = compose_config([f"task={task}", f"map={option}", f"dataset={tmp_path / 'none'}"])
+    with pytest.raises(
+        ValueError,
+        match=f"task={task} cannot use map={option}: task=crossmodal "
+        "takes map=tls, map=cloud or map=mesh; every other task takes map=surfel",
+    ):
+        run(cfg)
+    assert not (tmp_path / "none").exists()
+
+
+def test_bad_map_settings_name_their_key():
+    cfg = compose_config(["task=crossmodal", "map=cloud", "map.passes=triple"])
+    with pytest.raises(ValueError, match="map.passes must be one of"):
+        run(cfg)
+
+
+def test_the_mesh_map_stage_never_reads_the_ground_truth(dataset, tmp_path, monkeypatch):
+    root = tmp_path / dataset.name
+    shutil.copytree(dataset, root, ignore=shutil.ignore_patterns("crossmodal"))
+    shutil.rmtree(root / "map" / "mesh")
+    (root / "map" / "mesh_changed" / "scene.obj").write_text("poison: not an OBJ\n")
+    (root / "mapping" / EXPOSURE_FILE).write_text("poison: not exposures\n")
+    config = to_object(compose_config([*TASK[:1], "map=mesh", *MESH])).map
+    mesh_map, outcome = crossmodal_stage.build_rgbd_map(root, config, 1.0)
+    folder = root / "crossmodal" / "mesh" / "map" / "mesh"
+    assert sorted(p.suffix for p in folder.iterdir()) == [".mtl", ".obj", ".ply", ".png"]
+    assert outcome.summary.faces > 1000 and outcome.summary.textured_fraction > 0.05
+    mapping = read_sequence(root, "mapping")
+    view = mesh_map.render(mapping.T_wc[:1], mapping.camera)
+    seen = view.depth[0, 0] > 0
+    assert float(seen.float().mean()) > 0.25  # 8 lidar sweeps mesh a third of the first view
+    # The texture came from the mapping images: the render matches the image where seen.
+    error = (view.rgb[0][:, seen] - mapping.load_rgb(0)[:, seen]).abs().median()
+    assert float(error) < 0.1
+    _refuse(monkeypatch, ("build_textured_mesh",))
+    assert crossmodal_stage.build_rgbd_map(root, config, 1.0)[1] == outcome
