@@ -21,7 +21,7 @@ Usage (on a dataset with an updated database)::
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,6 +53,7 @@ __all__ = [
     "UPDATE_STAGE",
     "SelectedDatabase",
     "check_database_name",
+    "keyframe_image_reader",
     "keyframe_images",
     "keyframe_true_poses",
     "select_database",
@@ -206,6 +207,30 @@ def _sources(sources: object, record: Path) -> list[tuple[str, int]]:
     return parsed
 
 
+def keyframe_image_reader(
+    dataset: str | Path, sources: Sequence[tuple[str, int]]
+) -> Callable[[int], torch.Tensor]:
+    """A reader of keyframe ``k``'s image, for keyframes given by ``(sequence, frame)``.
+
+    Args:
+        dataset: the dataset folder.
+        sources: ``(sequence, frame)`` per keyframe.
+
+    Returns:
+        ``read(k)``: the (3, H, W) float32 image in [0, 1] of keyframe ``k`` (each sequence's
+        folder is read once, at its first image).
+    """
+    sequences: dict = {}
+
+    def read(k: int) -> torch.Tensor:
+        name, frame = sources[k]
+        if name not in sequences:
+            sequences[name] = read_sequence(dataset, name)
+        return sequences[name].load_rgb(frame)
+
+    return read
+
+
 def keyframe_images(
     dataset: str | Path, sources: Sequence[tuple[str, int]]
 ) -> Iterator[torch.Tensor]:
@@ -218,11 +243,9 @@ def keyframe_images(
     Yields:
         (3, H, W) float32 images in [0, 1].
     """
-    sequences: dict = {}
-    for name, frame in sources:
-        if name not in sequences:
-            sequences[name] = read_sequence(dataset, name)
-        yield sequences[name].load_rgb(frame)
+    read = keyframe_image_reader(dataset, sources)
+    for k in range(len(sources)):
+        yield read(k)
 
 
 def keyframe_true_poses(dataset: str | Path, sources: Sequence[tuple[str, int]]) -> torch.Tensor:

@@ -7,8 +7,10 @@ into ``out``:
 
 - ``<sequence>/estimates.tum`` (accepted poses, TUM format for evo), ``groundtruth.tum``,
   ``queries.json`` (per query: found, accepted by the configured validation and by seed 1's
-  rule, correct, the found position, inliers, errors, stage times and every candidate's
-  inliers, matches, coverage and distance to the chosen pose);
+  rule, correct, the found position, inliers, the photometric consistency of the found pose
+  where it passed the inlier test (:mod:`diffloc.reloc.photometric`, null for no overlap),
+  errors, stage times and every candidate's inliers, matches, coverage and distance to the
+  chosen pose);
 - ``<sequence>/precision_recall.png`` (precision and recall of every found pose as the inlier
   threshold is swept, with the operating points of pose validation and of seed 1's rule),
   ``trajectory.png``, ``errors.png`` (cumulative position error of the found and of the
@@ -62,6 +64,7 @@ from diffloc.pipeline.database_select import (
     UPDATED_PREFIX,
     SelectedDatabase,
     check_database_name,
+    keyframe_image_reader,
     keyframe_images,
     keyframe_true_poses,
     select_database,
@@ -76,6 +79,7 @@ from diffloc.reloc.hierarchical import (
     RelocConfig,
     RelocResult,
 )
+from diffloc.reloc.photometric import PhotometricCheck, PhotometricConfig
 from diffloc.reloc.retrieval import (
     BowConfig,
     BowRetriever,
@@ -135,6 +139,9 @@ class RelocStageConfig:
         max_rot_deg: rotation threshold of ``recall_rot`` (degrees).
         method: the hierarchical relocaliser.
         validation: pose validation thresholds.
+        photometric: how the photometric consistency of a found pose is measured (every pose
+            that passes the inlier test is measured, so a changed
+            ``validation.min_photometric`` can be replayed by ``experiments/revalidate.py``).
     """
 
     sequences: list[str] = field(default_factory=lambda: ["query_same", "changed"])
@@ -145,6 +152,7 @@ class RelocStageConfig:
     max_rot_deg: float = 5.0
     method: RelocConfig = field(default_factory=RelocConfig)
     validation: ValidationConfig = field(default_factory=ValidationConfig)
+    photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
 
     def __post_init__(self) -> None:
         check_database_name(self.database)
@@ -233,6 +241,7 @@ class _SequenceRun:
     accepted: np.ndarray
     accepted_seed1: np.ndarray
     inliers: np.ndarray
+    photometric: list[float | None]
     timings: list[dict[str, float]]
     candidates: list[list[dict]]
 
@@ -243,14 +252,15 @@ def _relocalize_sequence(
     cfg: RelocStageConfig,
     extractor,
     relocalizer: HierarchicalRelocalizer,
+    photometric: PhotometricCheck,
     show_progress: bool,
 ) -> _SequenceRun:
     sequence = read_sequence(dataset, name)
     frames = list(range(0, len(sequence), cfg.query_stride))
     validator = PoseValidator(cfg.validation)
     seed1 = PoseValidator(cfg.validation.seed1_rule())
-    estimates, found, accepted, accepted_seed1, inliers, timings, candidates = (
-        [] for _ in range(7)
+    estimates, found, accepted, accepted_seed1, inliers, scores, timings, candidates = (
+        [] for _ in range(8)
     )
     for i in progress(frames, f"relocalise {name}", show_progress):
         image = sequence.load_rgb(i)
@@ -259,7 +269,13 @@ def _relocalize_sequence(
         extract_ms = (time.perf_counter() - start) * 1e3
         result: RelocResult = relocalizer.relocalize(image, features, sequence.camera)
         timestamp = float(sequence.timestamps[i])
-        accepted.append(result.found and validator.validate_result(result, timestamp))
+        score = None
+        if result.found and result.num_inliers >= cfg.validation.theta_in:
+            start = time.perf_counter()
+            score = photometric.score(image, result.T_wc, sequence.camera, result.canonical)
+            result.timings_ms["photometric"] = (time.perf_counter() - start) * 1e3
+        scores.append(score)
+        accepted.append(result.found and validator.validate_result(result, timestamp, score))
         accepted_seed1.append(result.found and seed1.validate_result(result, timestamp))
         estimates.append(result.T_wc if result.found else torch.full((4, 4), math.nan))
         found.append(result.found)
@@ -274,6 +290,7 @@ def _relocalize_sequence(
         accepted=np.array(accepted),
         accepted_seed1=np.array(accepted_seed1),
         inliers=np.array(inliers, dtype=np.float64),
+        photometric=scores,
         timings=timings,
         candidates=candidates,
     )
@@ -360,6 +377,11 @@ def _report_sequence(
                 [round(float(x), 6) for x in run.T_wc_est[q, :3, 3]] if run.found[q] else None
             ),
             "inliers": int(run.inliers[q]),
+            **(
+                {}
+                if run.photometric[q] is None
+                else {"photometric": finite_or_none(round(run.photometric[q], 4))}
+            ),
             "translation_error_m": finite_or_none(raw.translation_m[q]),
             "rotation_error_deg": finite_or_none(raw.rotation_deg[q]),
             "timings_ms": {k: round(v, 3) for k, v in run.timings[q].items()},
@@ -470,8 +492,8 @@ def relocalize_dataset(
         db_cfg: the database settings (noise level, local features).
         cfg: the stage settings.
         out: the folder to write results into.
-        surfel_map: the surfel map PLY (default ``<dataset>/map/surfel_map.ply``), read only
-            by the ``naive`` method.
+        surfel_map: the surfel map PLY (default ``<dataset>/map/surfel_map.ply``): the
+            ``naive`` method's surfel centres and the photometric check's depth renders.
         show_progress: progress bars.
 
     Returns:
@@ -489,11 +511,16 @@ def relocalize_dataset(
         )
     db, selected = _load_database(dataset, db_cfg, cfg.database)
     retriever = _retriever(dataset, cfg, db, selected)
-    centers = None
-    if cfg.method.points == "naive":
-        path = Path(surfel_map) if surfel_map else dataset / "map" / "surfel_map.ply"
-        centers = SurfelMap.load(path).centers
+    surfels = SurfelMap.load(Path(surfel_map) if surfel_map else dataset / "map" / "surfel_map.ply")
+    centers = surfels.centers if cfg.method.points == "naive" else None
     relocalizer = HierarchicalRelocalizer(db, retriever, cfg.method, centers)
+    photometric = PhotometricCheck(
+        surfels,
+        db.T_wc,
+        db.camera,
+        keyframe_image_reader(dataset, selected.keyframe_sources),
+        cfg.photometric,
+    )
     extractor = make_extractor(db_cfg.features)
     results: dict = {"sequences": {}}
     rows = []
@@ -502,7 +529,9 @@ def relocalize_dataset(
     with open_stage(out, "relocalize", command, LockLevel.RESULTS) as stage:
         work = stage.workdir()
         for name in cfg.sequences:
-            run = _relocalize_sequence(dataset, name, cfg, extractor, relocalizer, show_progress)
+            run = _relocalize_sequence(
+                dataset, name, cfg, extractor, relocalizer, photometric, show_progress
+            )
             entry = _report_sequence(run, cfg, work / name, out / name, name, T_wc_db_true)
             results["sequences"][name] = entry
             rows.append(table_row(name, entry))

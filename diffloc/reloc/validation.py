@@ -28,7 +28,12 @@ make an *inlier pose* also need
 - inliers spread over the image: ``coverage >= min_coverage``;
 - no competing candidate (another covisibility cluster) with at least ``ambiguity_ratio`` times
   its inliers at a pose farther than ``theta_dist`` away: two well-supported places for one
-  image mean the image is ambiguous.
+  image mean the image is ambiguous;
+- photometric consistency ``>= min_photometric``: the keyframe the pose came from, warped into
+  the query through the surfel map at that pose, agrees with the query image
+  (:mod:`diffloc.reloc.photometric`, median NCC over image cells). A repeated place seen from
+  the other side (the neighbouring room, the far end of a uniform facade) has as many
+  consistent inliers as the right one; the content the inliers do not cover differs.
 
 :meth:`ValidationConfig.seed1_rule` switches them off, giving seed 1's rule.
 
@@ -69,6 +74,9 @@ class ValidationConfig:
         min_coverage: smallest fraction of the image grid holding inliers (0 disables it).
         ambiguity_ratio: a competing candidate with at least this fraction of the inliers,
             farther than ``theta_dist_m`` from the pose, rejects it (``None`` disables it).
+        min_photometric: lowest photometric consistency (median per-cell NCC of the keyframe
+            warped into the query, :mod:`diffloc.reloc.photometric`; no overlap fails) of an
+            inlier pose (``None`` disables it).
         conflict_keeps_reference: an inlier pose that fails the distance test against a live
             reference (not older than ``max_reference_age_s``) is not verified and does not
             replace the reference (seed 1: every inlier pose replaces it, ``False``). A jump
@@ -84,6 +92,7 @@ class ValidationConfig:
     min_inlier_ratio: float = 0.0
     min_coverage: float = 0.0
     ambiguity_ratio: float | None = None
+    min_photometric: float | None = None
     conflict_keeps_reference: bool = False
 
     def __post_init__(self) -> None:
@@ -103,16 +112,20 @@ class ValidationConfig:
         ratio = self.ambiguity_ratio
         if ratio is not None and not (math.isfinite(ratio) and 0.0 < ratio <= 1.0):
             raise ValueError(f"validation.ambiguity_ratio must be in (0, 1] or null, got {ratio}")
+        ncc = self.min_photometric
+        if ncc is not None and not (math.isfinite(ncc) and -1.0 <= ncc <= 1.0):
+            raise ValueError(f"validation.min_photometric must be in [-1, 1] or null, got {ncc}")
 
     def seed1_rule(self) -> ValidationConfig:
-        """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity, the
-        reference age, the kept reference) off; the speed allowance of sparse query streams
-        stays."""
+        """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity,
+        photometric consistency, the reference age, the kept reference) off; the speed
+        allowance of sparse query streams stays."""
         return replace(
             self,
             min_inlier_ratio=0.0,
             min_coverage=0.0,
             ambiguity_ratio=None,
+            min_photometric=None,
             max_reference_age_s=None,
             conflict_keeps_reference=False,
         )
@@ -130,6 +143,8 @@ class PoseEvidence:
         coverage: the fraction of the image grid holding its inliers.
         rivals: ``(inliers, distance to the best pose in metres)`` of every candidate (the
             best one among them, at distance 0).
+        photometric: the best candidate's photometric consistency (NaN: no overlap with its
+            keyframe), or ``None`` when it was not measured.
     """
 
     position: torch.Tensor
@@ -137,10 +152,14 @@ class PoseEvidence:
     num_matches: int
     coverage: float
     rivals: tuple[tuple[int, float], ...]
+    photometric: float | None = None
 
     @classmethod
-    def from_result(cls, result: RelocResult) -> PoseEvidence | None:
-        """The evidence of a relocaliser's answer (``None`` when it found nothing)."""
+    def from_result(
+        cls, result: RelocResult, photometric: float | None = None
+    ) -> PoseEvidence | None:
+        """The evidence of a relocaliser's answer (``None`` when it found nothing), with the
+        best candidate's ``photometric`` consistency where it was measured."""
         best = result.best
         if best is None:
             return None
@@ -149,13 +168,14 @@ class PoseEvidence:
             (c.num_inliers, float(torch.linalg.vector_norm(c.T_wc[:3, 3] - position)))
             for c in result.candidates
         )
-        return cls(position, best.num_inliers, best.num_matches, best.coverage, rivals)
+        return cls(position, best.num_inliers, best.num_matches, best.coverage, rivals, photometric)
 
     @classmethod
     def from_record(cls, record: dict) -> PoseEvidence | None:
         """The evidence a relocalisation run recorded for one query in ``queries.json``
         (``found``, ``position_m``, ``candidates`` with ``inliers``, ``matches``,
-        ``coverage`` and ``distance_to_chosen_m``); ``None`` when it found nothing.
+        ``coverage`` and ``distance_to_chosen_m``, and ``photometric`` where it was measured,
+        null for no overlap); ``None`` when it found nothing.
 
         Raises:
             ValueError: a found query without a position or candidates.
@@ -168,8 +188,16 @@ class PoseEvidence:
         best = max(candidates, key=lambda c: c["inliers"])
         rivals = tuple((int(c["inliers"]), float(c["distance_to_chosen_m"])) for c in candidates)
         position = torch.tensor(record["position_m"], dtype=torch.float64)
+        photometric = None
+        if "photometric" in record:
+            photometric = math.nan if record["photometric"] is None else record["photometric"]
         return cls(
-            position, int(best["inliers"]), int(best["matches"]), float(best["coverage"]), rivals
+            position,
+            int(best["inliers"]),
+            int(best["matches"]),
+            float(best["coverage"]),
+            rivals,
+            photometric,
         )
 
 
@@ -190,8 +218,23 @@ class PoseValidator:
         self._last_time = 0.0
 
     def plausible(self, evidence: PoseEvidence) -> bool:
-        """The tests beyond seed 1's: inlier ratio, coverage and no well-supported rival."""
+        """The tests beyond seed 1's: inlier ratio, coverage, photometric consistency and no
+        well-supported rival.
+
+        Raises:
+            ValueError: ``min_photometric`` is set but the evidence has no photometric
+                consistency (a run that did not measure it).
+        """
         cfg = self.config
+        if cfg.min_photometric is not None:
+            if evidence.photometric is None:
+                raise ValueError(
+                    "validation.min_photometric is set but this answer's photometric "
+                    "consistency was not measured (a relocalisation run of an older diffloc: "
+                    "run it again, or set reloc.validation.min_photometric=null)"
+                )
+            if not evidence.photometric >= cfg.min_photometric:  # NaN (no overlap) fails
+                return False
         if evidence.num_inliers < cfg.min_inlier_ratio * max(evidence.num_matches, 1):
             return False
         if evidence.coverage < cfg.min_coverage:
@@ -203,9 +246,12 @@ class PoseValidator:
             for inliers, distance in evidence.rivals
         )
 
-    def validate_result(self, result: RelocResult, timestamp: float) -> bool:
-        """Whether a relocaliser's answer is verified (:meth:`validate_evidence`)."""
-        return self.validate_evidence(PoseEvidence.from_result(result), timestamp)
+    def validate_result(
+        self, result: RelocResult, timestamp: float, photometric: float | None = None
+    ) -> bool:
+        """Whether a relocaliser's answer is verified (:meth:`validate_evidence`), with its
+        best candidate's ``photometric`` consistency where it was measured."""
+        return self.validate_evidence(PoseEvidence.from_result(result, photometric), timestamp)
 
     def validate_evidence(self, evidence: PoseEvidence | None, timestamp: float) -> bool:
         """Whether an answer is verified (module docstring); ``False`` when nothing was found
