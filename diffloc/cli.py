@@ -15,6 +15,7 @@ Examples:
     diffloc -m +experiment=table3_noise              # a committed table's sweep
     diffloc task=export_colmap task.database=optimized  # the database as a COLMAP model
     diffloc task=crossmodal map=tls                 # seed 2: localise in renders of a map
+    diffloc task=crossmodal map=images              # ... in the mapping images (comparison)
     diffloc task=main                               # all of the above, each stage cached
 
 Errors: a checked error (an ``OSError`` such as a missing dataset or database, a
@@ -254,7 +255,7 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
 }
 
 
-TASK_MAPS: dict[str, tuple[str, ...]] = {"crossmodal": ("tls", "cloud", "mesh")}
+TASK_MAPS: dict[str, tuple[str, ...]] = {"crossmodal": ("tls", "cloud", "mesh", "images")}
 """The ``map`` options of the tasks that render a map; every other task takes ``map=surfel``."""
 
 
