@@ -91,11 +91,14 @@ not know the true noise. The held-out reports (heldout_table3_*.md) also give ha
 # (map=images), all localised by the same Algorithm 1 on every xm_every-th query frame.
 xm_every=4
 xm_sequences="[query_same,query_reverse,changed]"
-# crossmodal_run DATASET MAP: task=crossmodal with MAP into $runs/crossmodal_<dataset>_MAP;
-# sets cmd. Stages are cached under DATASET/crossmodal/ (a rerun only scores).
+# crossmodal_run DATASET MAP [OVERRIDE ...]: task=crossmodal with MAP on xm_sequences into
+# $runs/crossmodal_<dataset>_MAP; sets cmd. Stages are cached under DATASET/crossmodal/ (a
+# rerun only scores).
 crossmodal_run() {
-  cmd="diffloc task=crossmodal map=$2 dataset=$1 task.sequences=$xm_sequences"
-  cmd+=" task.every=$xm_every task.out_dir=$runs/crossmodal_$(basename "$1")_$2"
+  local data=$1 map=$2
+  shift 2
+  cmd="diffloc task=crossmodal map=$map dataset=$data task.sequences=$xm_sequences"
+  cmd+=" task.every=$xm_every task.out_dir=$runs/crossmodal_$(basename "$data")_$map $*"
   $cmd
 }
 # crossmodal_tables [DATASET]: experiments/results/crossmodal_table{1,3,4,5}_<dataset>.md/.json
@@ -132,6 +135,29 @@ rig has no side cameras, so seed 2's front+side rows are missing); the rendered 
     --out "experiments/results/crossmodal_table4_$tag"
   python3 experiments/match_quality.py --dataset "$data" --every 8 --tag "$tag" \
     --colored-map "$data/crossmodal/tls/map/colored_map.ply" --name "crossmodal_table5_$tag"
+}
+
+# crossmodal_lane [DATASET]: Table I's outdoor row, query_lane of DATASET (default
+# data/outdoor_seed0, scene=outdoor: 20 cm cells, 4 m render spacing, 2 m / 30 deg) in the four
+# databases: experiments/results/crossmodal_table1_<dataset>.md/.json; seed 1's row as above.
+crossmodal_lane() {
+  local data=${1:-data/outdoor_seed0} tag m cmds="" seed1 args=() xm_sequences="[query_lane]"
+  tag=$(basename "$data")
+  for m in tls cloud mesh images; do
+    crossmodal_run "$data" "$m" scene=outdoor
+    cmds+="${cmds:+$nl}$cmd"
+    args+=(--run "$m=$runs/crossmodal_${tag}_$m/results.json")
+  done
+  seed1=${seed1_results:-}
+  if [[ -z $seed1 ]]; then
+    cmd="diffloc task=main scene=outdoor dataset=$data hydra.run.dir=$runs/crossmodal_${tag}_seed1"
+    $cmd
+    seed1=$runs/crossmodal_${tag}_seed1/results.json
+  fi
+  cmds+="$nl# seed 1's rows: $seed1"
+  python3 experiments/crossmodal_tables.py --sequence query_lane "${args[@]}" --seed1 "$seed1" \
+    --dataset "$data" --title "Table I (seed 2), outdoors: the parallel lane" \
+    --command "$cmds" --out "experiments/results/crossmodal_table1_$tag"
 }
 
 # `bash experiments/run_tables.sh FUNCTION ARGS...` runs one of the functions above alone, e.g.
@@ -174,8 +200,10 @@ table "$runs/noise_outdoor" noise table3_noise_outdoor "$cmd" "$oracle_note"
 experiment table3_noise_outdoor_epipolar
 table "$runs/noise_outdoor_epipolar" noise table3_noise_outdoor_epipolar "$cmd" "$oracle_note"
 
-# Seed 2's Tables I, III, IV, V on the default indoor scene (every 4th query frame).
+# Seed 2's Tables I, III, IV, V on the default indoor scene, Table I's outdoor row (every 4th
+# query frame).
 crossmodal_tables data/indoor_seed0
+crossmodal_lane data/outdoor_seed0
 
 # Indoors: main job and Tables I/II (XFeat, ORB) on seeds 1-5, Table III on seeds 1-3.
 heldout_main main
