@@ -373,16 +373,22 @@ def _users_overrides(task: str) -> list[str] | None:
     """The overrides the user typed, for a command that runs ``task``.
 
     ``task=...`` is left out, and so are ``task.*`` settings unless ``task`` is the task that
-    ran. ``None`` outside a Hydra run (the command line is unknown).
+    ran, and ``map=...`` / ``map.*`` when ``task`` cannot use the map that ran (``task=crossmodal
+    map=nerf`` names ``task=train_nerf``, which takes ``map=surfel``). ``None`` outside a Hydra
+    run (the command line is unknown).
     """
     if not HydraConfig.initialized():
         return None
     typed = HydraConfig.get().overrides.task
-    same = task == HydraConfig.get().runtime.choices.get("task")
+    choices = HydraConfig.get().runtime.choices
+    same = task == choices.get("task")
+    same_map = choices.get("map") in TASK_MAPS.get(task, ("surfel",))
     return [
         word
         for word in typed
-        if override_key(word) != "task" and (same or not override_key(word).startswith("task."))
+        if override_key(word) != "task"
+        and (same or not override_key(word).startswith("task."))
+        and (same_map or override_key(word).split(".")[0] not in ("map", "map/scene"))
     ]
 
 
