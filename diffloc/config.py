@@ -30,7 +30,12 @@ from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.rig_calibration import RigCalibrationConfig
 from diffloc.pipeline.build_map import BuildMapConfig
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
-from diffloc.pipeline.crossmodal_config import CrossmodalTaskConfig, MeshMapConfig, PointMapConfig
+from diffloc.pipeline.crossmodal_config import (
+    CrossmodalTaskConfig,
+    ImageMapConfig,
+    MeshMapConfig,
+    PointMapConfig,
+)
 from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.nerf_config import TrainNerfConfig
 from diffloc.pipeline.reloc_stage import RelocStageConfig
@@ -132,7 +137,7 @@ class DifflocConfig:
 
     task: Any = MISSING
     scene: Any = MISSING
-    map: Any = MISSING  # typed by map/<option>.yaml (surfel, tls, cloud, mesh)
+    map: Any = MISSING  # typed by map/<option>.yaml (surfel, tls, cloud, mesh, images)
     out_dir: str = MISSING
     dataset: str = MISSING
     db: DatabaseConfig = field(default_factory=DatabaseConfig)
@@ -157,6 +162,7 @@ GROUP_SCHEMAS: dict[str, type] = {
     "schema_map_tls": PointMapConfig,
     "schema_map_cloud": PointMapConfig,
     "schema_map_mesh": MeshMapConfig,
+    "schema_map_images": ImageMapConfig,
     "schema_reloc": RelocStageConfig,
     "schema_scene_indoor": IndoorSceneConfig,
     "schema_scene_outdoor": OutdoorSceneConfig,

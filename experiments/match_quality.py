@@ -1,7 +1,9 @@
 """Table V of seed 2: local features between real query frames and point-cloud renders.
 
 For every ``--every``-th frame of a query sequence, the coloured TLS cloud (the cache written
-by ``experiments/rendered_localization.py``) is rendered at the frame's TRUE pose (ground truth
+by ``experiments/rendered_localization.py``, or with ``--colored-map`` the PLY of
+``diffloc task=crossmodal map=tls``'s map stage, ``<dataset>/crossmodal/tls/map/colored_map.ply``)
+is rendered at the frame's TRUE pose (ground truth
 read to make the pair, as seed 2 does) with single-pass Eq. 2 splats. Features of the real
 frame and of the render are matched by each method; a match is **correct** when the render's
 keypoint has depth and reprojects within 3 px of the query keypoint. The render shares the
@@ -18,6 +20,9 @@ matching).
 Usage:
     PYTHONPATH=. OMP_NUM_THREADS=1 python3 experiments/match_quality.py \\
         --dataset data/indoor_seed0 --work /tmp/rendered_work --every 8
+    PYTHONPATH=. OMP_NUM_THREADS=1 python3 experiments/match_quality.py \\
+        --dataset data/indoor_seed0 --every 8 --name crossmodal_table5_indoor_seed0 \\
+        --colored-map data/indoor_seed0/crossmodal/tls/map/colored_map.ply
 """
 
 from __future__ import annotations
@@ -66,6 +71,10 @@ def _parse() -> argparse.Namespace:
     parser.add_argument("--work", type=Path, default=Path("/tmp/rendered_work"))
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("--tag", default="indoor_seed0")
+    parser.add_argument(
+        "--colored-map", type=Path, help="a coloured PLY (task=crossmodal's) instead of the cache"
+    )
+    parser.add_argument("--name", help="file stem under --out (default match_quality_<tag>)")
     parser.add_argument("--sequence", default="query_same")
     parser.add_argument("--every", type=int, default=8)
     parser.add_argument("--scale", type=float, default=0.5)
@@ -87,10 +96,15 @@ def _correct(
 
 def main() -> None:
     args = _parse()
-    cache = args.work / f"tls_map_colored_x{args.scale:g}.npz"
-    if not cache.is_file():
-        sys.exit(f"{cache} is missing: run experiments/rendered_localization.py first")
-    point_map = PointMap.load(cache)
+    if args.colored_map is not None:
+        if not args.colored_map.is_file():
+            sys.exit(f"{args.colored_map} is missing: run diffloc task=crossmodal map=tls first")
+        point_map = PointMap.load_ply(args.colored_map)
+    else:
+        cache = args.work / f"tls_map_colored_x{args.scale:g}.npz"
+        if not cache.is_file():
+            sys.exit(f"{cache} is missing: run experiments/rendered_localization.py first")
+        point_map = PointMap.load(cache)
     cloud = PointCloudMap(point_map.positions, point_map.colors, PointSizes.inverse_depth(1.0, 8.0))
     seq = read_sequence(args.dataset, args.sequence)
     camera = seq.camera.scaled(args.scale)
@@ -173,7 +187,7 @@ def main() -> None:
         "",
     ]
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / f"match_quality_{args.tag}"
+    stem = args.out / (args.name or f"match_quality_{args.tag}")
     atomic_write_text(stem.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
     atomic_write_text(stem.with_suffix(".md"), "\n".join(lines))
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Reproduce the structure of seed 1's Tables I-IV on the default indoor scene and the outdoor
-# courtyard. Each table is a named setup of the `experiment` config group
+# courtyard, and seed 2's Tables I, III, IV and V (crossmodal_tables) on the indoor scene. Each table is a named setup of the `experiment` config group
 # (diffloc/conf/experiment/<name>.yaml: its overrides and the sweep's hydra.sweeper.params), run
 # as `diffloc -m +experiment=<name>`; this script runs them and post-processes their sweep
 # folders (experiments/tables.py, experiments/heldout.py). Each table in experiments/results/
@@ -84,6 +84,82 @@ oracle_note="ORACLE setting: the pose prior (db.pose_prior_sigma_m, which sizes 
 gates and bounds the optimisation's moves) equals the injected noise db.noise_sigma; a user does \
 not know the true noise. The held-out reports (heldout_table3_*.md) also give half and twice it."
 
+# ------------------------------------------------------------------------------------------------
+# Seed 2 (localisation in a database rendered from a map, `diffloc task=crossmodal`): Tables I,
+# III, IV and V on one dataset, every database a map option of the same task: the rendered TLS
+# cloud, lidar cloud and textured lidar mesh, and the mapping images with surfel-map depth
+# (map=images), all localised by the same Algorithm 1 on every xm_every-th query frame.
+xm_every=4
+xm_sequences="[query_same,query_reverse,changed]"
+# crossmodal_run DATASET MAP [OVERRIDE ...]: task=crossmodal with MAP on xm_sequences into
+# $runs/crossmodal_<dataset>_MAP; sets cmd. Stages are cached under DATASET/crossmodal/ (a
+# rerun only scores).
+crossmodal_run() {
+  local data=$1 map=$2
+  shift 2
+  cmd="diffloc task=crossmodal map=$map dataset=$data task.sequences=$xm_sequences"
+  cmd+=" task.every=$xm_every task.out_dir=$runs/crossmodal_$(basename "$data")_$map $*"
+  $cmd
+}
+# crossmodal_tables [DATASET]: experiments/results/crossmodal_table{1,3,4,5}_<dataset>.md/.json
+# (default data/indoor_seed0). Seed 1's hierarchical relocaliser on the same query frames comes
+# from the results.json of a `diffloc task=main` run on DATASET: $seed1_results if set (e.g.
+# outputs/<run>/results.json), else this function runs it (its stages are cached too).
+crossmodal_tables() {
+  local data=${1:-data/indoor_seed0} tag m cmds="" seed1 args=()
+  tag=$(basename "$data")
+  for m in tls cloud mesh images; do
+    crossmodal_run "$data" "$m"
+    cmds+="${cmds:+$nl}$cmd"
+    args+=(--run "$m=$runs/crossmodal_${tag}_$m/results.json")
+  done
+  seed1=${seed1_results:-}
+  if [[ -z $seed1 ]]; then
+    cmd="diffloc task=main dataset=$data hydra.run.dir=$runs/crossmodal_${tag}_seed1"
+    $cmd
+    seed1=$runs/crossmodal_${tag}_seed1/results.json
+  fi
+  cmds+="$nl# seed 1's rows: $seed1"
+  python3 experiments/crossmodal_tables.py --sequence query_same "${args[@]}" --seed1 "$seed1" \
+    --dataset "$data" --title "Table I (seed 2): same route as the mapping run" \
+    --command "$cmds" --out "experiments/results/crossmodal_table1_$tag"
+  python3 experiments/crossmodal_tables.py --sequence query_reverse "${args[@]}" \
+    --seed1 "$seed1" --dataset "$data" --command "$cmds" \
+    --title "Table III (seed 2): reverse direction, front-only real images vs 4-view renders" \
+    --note "The real-image database holds the mapping run's front camera only (the simulated \
+rig has no side cameras, so seed 2's front+side rows are missing); the rendered databases have \
+4 horizontal views per render position." \
+    --out "experiments/results/crossmodal_table3_$tag"
+  python3 experiments/crossmodal_tables.py --sequence changed "${args[@]}" --seed1 "$seed1" \
+    --dataset "$data" --title "Table IV (seed 2): changed scene" --command "$cmds" \
+    --out "experiments/results/crossmodal_table4_$tag"
+  python3 experiments/match_quality.py --dataset "$data" --every 8 --tag "$tag" \
+    --colored-map "$data/crossmodal/tls/map/colored_map.ply" --name "crossmodal_table5_$tag"
+}
+
+# crossmodal_lane [DATASET]: Table I's outdoor row, query_lane of DATASET (default
+# data/outdoor_seed0, scene=outdoor: 20 cm cells, 4 m render spacing, 2 m / 30 deg) in the four
+# databases: experiments/results/crossmodal_table1_<dataset>.md/.json; seed 1's row as above.
+crossmodal_lane() {
+  local data=${1:-data/outdoor_seed0} tag m cmds="" seed1 args=() xm_sequences="[query_lane]"
+  tag=$(basename "$data")
+  for m in tls cloud mesh images; do
+    crossmodal_run "$data" "$m" scene=outdoor
+    cmds+="${cmds:+$nl}$cmd"
+    args+=(--run "$m=$runs/crossmodal_${tag}_$m/results.json")
+  done
+  seed1=${seed1_results:-}
+  if [[ -z $seed1 ]]; then
+    cmd="diffloc task=main scene=outdoor dataset=$data hydra.run.dir=$runs/crossmodal_${tag}_seed1"
+    $cmd
+    seed1=$runs/crossmodal_${tag}_seed1/results.json
+  fi
+  cmds+="$nl# seed 1's rows: $seed1"
+  python3 experiments/crossmodal_tables.py --sequence query_lane "${args[@]}" --seed1 "$seed1" \
+    --dataset "$data" --title "Table I (seed 2), outdoors: the parallel lane" \
+    --command "$cmds" --out "experiments/results/crossmodal_table1_$tag"
+}
+
 # `bash experiments/run_tables.sh FUNCTION ARGS...` runs one of the functions above alone, e.g.
 #   bash experiments/run_tables.sh heldout_main main_outdoor
 if (($#)); then
@@ -123,6 +199,11 @@ experiment table3_noise_outdoor
 table "$runs/noise_outdoor" noise table3_noise_outdoor "$cmd" "$oracle_note"
 experiment table3_noise_outdoor_epipolar
 table "$runs/noise_outdoor_epipolar" noise table3_noise_outdoor_epipolar "$cmd" "$oracle_note"
+
+# Seed 2's Tables I, III, IV, V on the default indoor scene, Table I's outdoor row (every 4th
+# query frame).
+crossmodal_tables data/indoor_seed0
+crossmodal_lane data/outdoor_seed0
 
 # Indoors: main job and Tables I/II (XFeat, ORB) on seeds 1-5, Table III on seeds 1-3.
 heldout_main main

@@ -180,8 +180,12 @@ def test_a_task_without_a_dataset_says_how_to_simulate_it(tmp_path):
         ("unknown_key", "unknown config key scene.max_frames"),
         (
             "wrong_map",
-            "error: task=main cannot use map=tls: task=crossmodal takes map=tls, map=cloud or "
-            "map=mesh; every other task takes map=surfel",
+            "error: task=main cannot use map=tls: task=crossmodal takes map=tls, map=cloud, "
+            "map=mesh or map=images; every other task takes map=surfel",
+        ),
+        (
+            "images_no_surfels",
+            "build_map.json is missing: run `diffloc task=build_map dataset={data}`",
         ),
     ],
 )
@@ -202,6 +206,8 @@ def test_a_checked_error_prints_one_line_with_the_users_overrides(
         ],
         "unknown_key": ["+scene.max_frames=5", f"out_dir={tmp_path / 'sim'}"],
         "wrong_map": ["task=main", "map=tls", f"out_dir={tmp_path / 'sim'}"],
+        # the hint names task=build_map without the map option it cannot use
+        "images_no_surfels": ["task=crossmodal", "map=images", "map.every=3", f"dataset={data}"],
     }[case]
     done = _diffloc(*args, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     assert done.returncode == 1

@@ -1,10 +1,12 @@
 """Settings of ``diffloc task=crossmodal``: the ``map`` options ``tls`` / ``cloud`` / ``mesh``
-and the task node (render poses, RGB-D database, localiser, query sequences).
+/ ``images`` and the task node (render poses, RGB-D database, localiser, query sequences).
 
 The map options mirror :mod:`diffloc.crossmodal`: ``map=tls`` and ``map=cloud`` are the
 dataset's TLS and lidar point maps coloured from the mapping images and rendered as splats
 (:class:`PointMapConfig`), ``map=mesh`` is the textured mesh reconstructed from a point map
-(:class:`MeshMapConfig`). ``map=surfel`` (:class:`~diffloc.maps.surfel.SurfelMapConfig`) is
+(:class:`MeshMapConfig`); ``map=images`` is no rendered map but the mapping run's own images
+with depth from the surfel map, seed 2's real-image comparison (:class:`ImageMapConfig`).
+``map=surfel`` (:class:`~diffloc.maps.surfel.SurfelMapConfig`) is
 the surfel map of the other tasks; :func:`map_option` names the option a typed map node came
 from, so the CLI can refuse a map a task cannot use.
 
@@ -13,6 +15,8 @@ Example:
     (1, 2, 4, 8)
     >>> map_option(MeshMapConfig()), map_option(PointMapConfig(point_map="tls_map"))
     ('mesh', 'tls')
+    >>> map_option(ImageMapConfig(every=4))
+    'images'
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from diffloc.render.point_sizes import PointSizes
 __all__ = [
     "MAP_OPTIONS",
     "CrossmodalTaskConfig",
+    "ImageMapConfig",
     "MeshMapConfig",
     "PointMapConfig",
     "map_option",
@@ -39,7 +44,7 @@ __all__ = [
 POINT_MAP_OPTIONS = {"tls_map": "tls", "lidar_map": "cloud"}
 """The ``map`` option of each dataset point map rendered as a cloud."""
 
-MAP_OPTIONS = ("surfel", "tls", "cloud", "mesh")
+MAP_OPTIONS = ("surfel", "tls", "cloud", "mesh", "images")
 """Every option of the ``map`` group (``diffloc/conf/map/*.yaml``)."""
 
 PASSES = ("single", "multi")
@@ -106,6 +111,23 @@ class MeshMapConfig:
             raise ValueError(f"exposures must be one of {EXPOSURES}, got {self.exposures!r}")
 
 
+@dataclass
+class ImageMapConfig:
+    """``map=images``: a database of the mapping run's real images instead of renders (seed 2's
+    real-image rows): every ``every``-th ``mapping`` frame with its pose and z-depth rendered
+    from the surfel map (``<dataset>/map/surfel_map.ply``, ``diffloc task=build_map``); the
+    simulator's depth images are never read.
+
+    Attributes:
+        every: keep every n-th mapping frame (frames 0, n, 2n, ...).
+    """
+
+    every: int = 2
+
+    def __post_init__(self) -> None:
+        check_positive_int(self.every, "every")
+
+
 def map_option(config: object) -> str:
     """The ``map`` option (:data:`MAP_OPTIONS`) a built map node came from.
 
@@ -118,6 +140,8 @@ def map_option(config: object) -> str:
         return POINT_MAP_OPTIONS[config.point_map]
     if isinstance(config, MeshMapConfig):
         return "mesh"
+    if isinstance(config, ImageMapConfig):
+        return "images"
     raise TypeError(f"not a map config: {type(config).__name__}")
 
 

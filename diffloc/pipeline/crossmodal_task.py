@@ -1,8 +1,9 @@
-"""``diffloc task=crossmodal map=tls|cloud|mesh``: the stages in order, then the report.
+"""``diffloc task=crossmodal map=tls|cloud|mesh|images``: the stages in order, then the report.
 
 Render poses -> map -> RGB-D database -> localisation of each ``task.sequences`` (each a
-cached stage, :mod:`diffloc.pipeline.crossmodal_stage`) -> scores, ``results.md``,
-``results.json``, TUM files and plots in the run folder
+cached stage, :mod:`diffloc.pipeline.crossmodal_stage`; ``map=images``: the database of the
+mapping images, :mod:`diffloc.pipeline.crossmodal_images`, then the same localisation) ->
+scores, ``results.md``, ``results.json``, TUM files and plots in the run folder
 (:mod:`diffloc.pipeline.crossmodal_report`). A rerun with the same settings reuses every
 stage; a changed ``task.localizer`` setting runs only the localisation again.
 """
@@ -21,10 +22,12 @@ from diffloc.io.dataset import read_sequence
 from diffloc.io.trajectory import write_tum
 from diffloc.pipeline.crossmodal_config import (
     CrossmodalTaskConfig,
+    ImageMapConfig,
     MeshMapConfig,
     PointMapConfig,
     map_option,
 )
+from diffloc.pipeline.crossmodal_images import build_image_database
 from diffloc.pipeline.crossmodal_report import (
     markdown_table,
     plot_retrieved,
@@ -46,7 +49,7 @@ STAGES = ("poses", "map", "database")
 
 def run_crossmodal(
     dataset: str | os.PathLike,
-    map_config: PointMapConfig | MeshMapConfig,
+    map_config: PointMapConfig | MeshMapConfig | ImageMapConfig,
     task: CrossmodalTaskConfig,
     out: str | os.PathLike,
     show_progress: bool = True,
@@ -56,7 +59,7 @@ def run_crossmodal(
     Args:
         dataset: the dataset folder (point maps under ``map/``, the mapping sequence, the
             query sequences).
-        map_config: the ``map`` node (``map=tls``, ``cloud`` or ``mesh``).
+        map_config: the ``map`` node (``map=tls``, ``cloud``, ``mesh`` or ``images``).
         task: the ``task`` node.
         out: the run folder.
         show_progress: progress bars (off when ``CI=true``).
@@ -70,21 +73,27 @@ def run_crossmodal(
         FileNotFoundError: a missing point map or sequence.
         ValueError: a point map without normals, without an upward normal, or with an empty
             corridor (the message names the file and ``task.poses``).
+        MissingStageError: ``map=images`` without a surfel map (the message names the
+            ``task=build_map`` command).
     """
     start = time.perf_counter()
     dataset, out = Path(dataset), Path(out)
     option = map_option(map_config)
     camera = read_sequence(dataset, MAPPING).camera.scaled(task.image_scale)
-    poses = render_pose_stage(dataset, map_config.point_map, task.poses, option)
-    rgbd_map = build_rgbd_map(dataset, map_config, task.image_scale, show_progress)
-    database = build_rgbd_database(
-        dataset, map_config, task.database, rgbd_map, poses, camera, show_progress
-    )
+    if isinstance(map_config, ImageMapConfig):
+        database = build_image_database(dataset, map_config, task.database, camera, show_progress)
+        stages = {"database": database[1].summary.to_json()}
+    else:
+        poses = render_pose_stage(dataset, map_config.point_map, task.poses, option)
+        rgbd_map = build_rgbd_map(dataset, map_config, task.image_scale, show_progress)
+        database = build_rgbd_database(
+            dataset, map_config, task.database, rgbd_map, poses, camera, show_progress
+        )
+        outcomes = (poses[1], rgbd_map[1], database[1])
+        stages = {
+            name: outcome.summary.to_json() for name, outcome in zip(STAGES, outcomes, strict=True)
+        }
     db = database[0]
-    outcomes = (poses[1], rgbd_map[1], database[1])
-    stages = {
-        name: outcome.summary.to_json() for name, outcome in zip(STAGES, outcomes, strict=True)
-    }
     out.mkdir(parents=True, exist_ok=True)
     sequences = {}
     for name in task.sequences:
@@ -133,7 +142,7 @@ def _markdown(results: dict) -> str:
         [
             f"# Rendered-database localisation in `map={results['map']}` ({results['dataset']})",
             "",
-            f"Database: {results['database_images']} renders of {results['image_size']}, "
+            f"Database: {results['database_images']} images of {results['image_size']}, "
             f"hole share {100 * results['hole_share']:.1f} %; queries: every "
             f"{results['every']}-th frame of each sequence.",
             "",
