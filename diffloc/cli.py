@@ -15,6 +15,7 @@ Examples:
     diffloc -m +experiment=table3_noise              # a committed table's sweep
     diffloc task=export_colmap task.database=optimized  # the database as a COLMAP model
     diffloc task=crossmodal map=tls                 # seed 2: localise in renders of a map
+    diffloc task=crossmodal map=nerf                # ... of the trained radiance-field submaps
     diffloc task=main                               # all of the above, each stage cached
 
 Errors: a checked error (an ``OSError`` such as a missing dataset or database, a
@@ -224,7 +225,12 @@ def run_crossmodal_task(cfg: DictConfig) -> dict:
     fallback = crossmodal_folder(cfg.dataset) / map_option(map_config) / "results"
     out = _results_dir(cfg, fallback)
     results = run_crossmodal(
-        Path(cfg.dataset), map_config, to_object(cfg.task), out, show_progress=cfg.progress
+        Path(cfg.dataset),
+        map_config,
+        to_object(cfg.task),
+        out,
+        show_progress=cfg.progress,
+        nerf=to_object(cfg.nerf),
     )
     print((out / "results.md").read_text(encoding="utf-8"))
     print(f"results: {out / 'results.json'}")
@@ -254,7 +260,7 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
 }
 
 
-TASK_MAPS: dict[str, tuple[str, ...]] = {"crossmodal": ("tls", "cloud", "mesh")}
+TASK_MAPS: dict[str, tuple[str, ...]] = {"crossmodal": ("tls", "cloud", "mesh", "nerf")}
 """The ``map`` options of the tasks that render a map; every other task takes ``map=surfel``."""
 
 
@@ -372,16 +378,22 @@ def _users_overrides(task: str) -> list[str] | None:
     """The overrides the user typed, for a command that runs ``task``.
 
     ``task=...`` is left out, and so are ``task.*`` settings unless ``task`` is the task that
-    ran. ``None`` outside a Hydra run (the command line is unknown).
+    ran, and ``map=...`` / ``map.*`` when ``task`` cannot use the map that ran (``task=crossmodal
+    map=nerf`` names ``task=train_nerf``, which takes ``map=surfel``). ``None`` outside a Hydra
+    run (the command line is unknown).
     """
     if not HydraConfig.initialized():
         return None
     typed = HydraConfig.get().overrides.task
-    same = task == HydraConfig.get().runtime.choices.get("task")
+    choices = HydraConfig.get().runtime.choices
+    same = task == choices.get("task")
+    same_map = choices.get("map") in TASK_MAPS.get(task, ("surfel",))
     return [
         word
         for word in typed
-        if override_key(word) != "task" and (same or not override_key(word).startswith("task."))
+        if override_key(word) != "task"
+        and (same or not override_key(word).startswith("task."))
+        and (same_map or override_key(word).split(".")[0] not in ("map", "map/scene"))
     ]
 
 

@@ -30,7 +30,12 @@ from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.rig_calibration import RigCalibrationConfig
 from diffloc.pipeline.build_map import BuildMapConfig
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
-from diffloc.pipeline.crossmodal_config import CrossmodalTaskConfig, MeshMapConfig, PointMapConfig
+from diffloc.pipeline.crossmodal_config import (
+    CrossmodalTaskConfig,
+    MeshMapConfig,
+    NerfMapConfig,
+    PointMapConfig,
+)
 from diffloc.pipeline.database_stage import DatabaseConfig
 from diffloc.pipeline.nerf_config import TrainNerfConfig
 from diffloc.pipeline.reloc_stage import RelocStageConfig
@@ -119,8 +124,8 @@ class DifflocConfig:
 
     The groups fill it: ``task/`` (and ``task/scene/``, a task's settings that follow the
     scene kind), ``scene/``, ``map/`` (the surfel map of the seed 1 pipeline; the coloured TLS
-    / lidar clouds and the textured mesh of ``task=crossmodal``), ``features/``
-    (``db.features``), ``optim/`` (``db.optim``, ``db.optim_check``), ``retriever/``
+    / lidar clouds, the textured mesh and the radiance-field submaps of ``task=crossmodal``),
+    ``features/`` (``db.features``), ``optim/`` (``db.optim``, ``db.optim_check``), ``retriever/``
     (``reloc.retriever``), ``matcher/`` (the relocaliser's matching, in ``reloc.method``) and
     ``experiment/`` (named setups of the committed tables).
 
@@ -132,7 +137,7 @@ class DifflocConfig:
 
     task: Any = MISSING
     scene: Any = MISSING
-    map: Any = MISSING  # typed by map/<option>.yaml (surfel, tls, cloud, mesh)
+    map: Any = MISSING  # typed by map/<option>.yaml (surfel, tls, cloud, mesh, nerf)
     out_dir: str = MISSING
     dataset: str = MISSING
     db: DatabaseConfig = field(default_factory=DatabaseConfig)
@@ -157,6 +162,7 @@ GROUP_SCHEMAS: dict[str, type] = {
     "schema_map_tls": PointMapConfig,
     "schema_map_cloud": PointMapConfig,
     "schema_map_mesh": MeshMapConfig,
+    "schema_map_nerf": NerfMapConfig,
     "schema_reloc": RelocStageConfig,
     "schema_scene_indoor": IndoorSceneConfig,
     "schema_scene_outdoor": OutdoorSceneConfig,

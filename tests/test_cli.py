@@ -180,8 +180,8 @@ def test_a_task_without_a_dataset_says_how_to_simulate_it(tmp_path):
         ("unknown_key", "unknown config key scene.max_frames"),
         (
             "wrong_map",
-            "error: task=main cannot use map=tls: task=crossmodal takes map=tls, map=cloud or "
-            "map=mesh; every other task takes map=surfel",
+            "error: task=main cannot use map=tls: task=crossmodal takes map=tls, map=cloud, "
+            "map=mesh or map=nerf; every other task takes map=surfel",
         ),
     ],
 )

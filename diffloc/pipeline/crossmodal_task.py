@@ -1,8 +1,9 @@
-"""``diffloc task=crossmodal map=tls|cloud|mesh``: the stages in order, then the report.
+"""``diffloc task=crossmodal map=tls|cloud|mesh|nerf``: the stages in order, then the report.
 
-Render poses -> map -> RGB-D database -> localisation of each ``task.sequences`` (each a
-cached stage, :mod:`diffloc.pipeline.crossmodal_stage`) -> scores, ``results.md``,
-``results.json``, TUM files and plots in the run folder
+Render poses -> map (``map=nerf``: the trained radiance-field submaps,
+:mod:`diffloc.pipeline.crossmodal_nerf`) -> RGB-D database -> localisation of each
+``task.sequences`` (each a cached stage, :mod:`diffloc.pipeline.crossmodal_stage`) -> scores,
+``results.md``, ``results.json``, TUM files and plots in the run folder
 (:mod:`diffloc.pipeline.crossmodal_report`). A rerun with the same settings reuses every
 stage; a changed ``task.localizer`` setting runs only the localisation again.
 """
@@ -22,9 +23,11 @@ from diffloc.io.trajectory import write_tum
 from diffloc.pipeline.crossmodal_config import (
     CrossmodalTaskConfig,
     MeshMapConfig,
+    NerfMapConfig,
     PointMapConfig,
     map_option,
 )
+from diffloc.pipeline.crossmodal_nerf import build_nerf_map
 from diffloc.pipeline.crossmodal_report import (
     markdown_table,
     plot_retrieved,
@@ -38,6 +41,7 @@ from diffloc.pipeline.crossmodal_stage import (
     localize_sequence,
     render_pose_stage,
 )
+from diffloc.pipeline.nerf_config import TrainNerfConfig
 
 __all__ = ["run_crossmodal"]
 
@@ -46,20 +50,23 @@ STAGES = ("poses", "map", "database")
 
 def run_crossmodal(
     dataset: str | os.PathLike,
-    map_config: PointMapConfig | MeshMapConfig,
+    map_config: PointMapConfig | MeshMapConfig | NerfMapConfig,
     task: CrossmodalTaskConfig,
     out: str | os.PathLike,
     show_progress: bool = True,
+    nerf: TrainNerfConfig | None = None,
 ) -> dict:
     """Run (or reuse) every stage and write the results into ``out``.
 
     Args:
         dataset: the dataset folder (point maps under ``map/``, the mapping sequence, the
             query sequences).
-        map_config: the ``map`` node (``map=tls``, ``cloud`` or ``mesh``).
+        map_config: the ``map`` node (``map=tls``, ``cloud``, ``mesh`` or ``nerf``).
         task: the ``task`` node.
         out: the run folder.
         show_progress: progress bars (off when ``CI=true``).
+        nerf: the root ``nerf`` node, which selects the fields of ``map=nerf`` (default
+            settings if ``None``).
 
     Returns:
         The results (also ``out/results.json``): per sequence the figures of
@@ -70,13 +77,18 @@ def run_crossmodal(
         FileNotFoundError: a missing point map or sequence.
         ValueError: a point map without normals, without an upward normal, or with an empty
             corridor (the message names the file and ``task.poses``).
+        MissingStageError: ``map=nerf`` and a submap serving a render pose is not trained
+            with the ``nerf`` settings (the message names the ``task=train_nerf`` command).
     """
     start = time.perf_counter()
     dataset, out = Path(dataset), Path(out)
     option = map_option(map_config)
     camera = read_sequence(dataset, MAPPING).camera.scaled(task.image_scale)
     poses = render_pose_stage(dataset, map_config.point_map, task.poses, option)
-    rgbd_map = build_rgbd_map(dataset, map_config, task.image_scale, show_progress)
+    if isinstance(map_config, NerfMapConfig):
+        rgbd_map = build_nerf_map(dataset, map_config, nerf or TrainNerfConfig(), poses)
+    else:
+        rgbd_map = build_rgbd_map(dataset, map_config, task.image_scale, show_progress)
     database = build_rgbd_database(
         dataset, map_config, task.database, rgbd_map, poses, camera, show_progress
     )
