@@ -103,6 +103,8 @@ def markdown(record: dict) -> str:
             f"| {k} | {served[int(k)]} | {len(f['heldout_frames'])} | {f['psnr_db']:.2f} | "
             f"{100 * f['hole_share']:.1f} % | {f['render_cpu_s_per_image']:.2f} |"
         )
+    if record["made_by"]:
+        lines += ["", "Made by:", "", *(f"    {line}" for line in record["made_by"])]
     return "\n".join(lines) + "\n"
 
 
@@ -112,6 +114,7 @@ def main() -> None:
     parser.add_argument("--nerf", type=Path, required=True, help="results.json of map=nerf")
     parser.add_argument("--reference", action="append", default=[], help="name=results.json")
     parser.add_argument("--train-note", default="", help="how the fields were trained")
+    parser.add_argument("--made-by", action="append", default=[], help="a command line")
     parser.add_argument("--holdout-every", type=int, default=8)
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
@@ -122,6 +125,7 @@ def main() -> None:
         "nerf": json.loads(args.nerf.read_text()),
         "reference": {k: json.loads(Path(v).read_text()) for k, v in references.items()},
         "train_note": args.train_note,
+        "made_by": args.made_by,
         "fields": field_psnr(args.dataset, args.holdout_every, args.width),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
