@@ -16,6 +16,7 @@ Examples:
     diffloc task=export_colmap task.database=optimized  # the database as a COLMAP model
     diffloc task=crossmodal map=tls                 # seed 2: localise in renders of a map
     diffloc task=crossmodal map=images              # ... in the mapping images (comparison)
+    diffloc task=crossmodal map=nerf                # ... of the trained radiance-field submaps
     diffloc task=main                               # all of the above, each stage cached
 
 Errors: a checked error (an ``OSError`` such as a missing dataset or database, a
@@ -225,7 +226,12 @@ def run_crossmodal_task(cfg: DictConfig) -> dict:
     fallback = crossmodal_folder(cfg.dataset) / map_option(map_config) / "results"
     out = _results_dir(cfg, fallback)
     results = run_crossmodal(
-        Path(cfg.dataset), map_config, to_object(cfg.task), out, show_progress=cfg.progress
+        Path(cfg.dataset),
+        map_config,
+        to_object(cfg.task),
+        out,
+        show_progress=cfg.progress,
+        nerf=to_object(cfg.nerf),
     )
     print((out / "results.md").read_text(encoding="utf-8"))
     print(f"results: {out / 'results.json'}")
@@ -255,7 +261,7 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
 }
 
 
-TASK_MAPS: dict[str, tuple[str, ...]] = {"crossmodal": ("tls", "cloud", "mesh", "images")}
+TASK_MAPS: dict[str, tuple[str, ...]] = {"crossmodal": ("tls", "cloud", "mesh", "images", "nerf")}
 """The ``map`` options of the tasks that render a map; every other task takes ``map=surfel``."""
 
 

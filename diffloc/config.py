@@ -34,6 +34,7 @@ from diffloc.pipeline.crossmodal_config import (
     CrossmodalTaskConfig,
     ImageMapConfig,
     MeshMapConfig,
+    NerfMapConfig,
     PointMapConfig,
 )
 from diffloc.pipeline.database_stage import DatabaseConfig
@@ -124,8 +125,8 @@ class DifflocConfig:
 
     The groups fill it: ``task/`` (and ``task/scene/``, a task's settings that follow the
     scene kind), ``scene/``, ``map/`` (the surfel map of the seed 1 pipeline; the coloured TLS
-    / lidar clouds and the textured mesh of ``task=crossmodal``), ``features/``
-    (``db.features``), ``optim/`` (``db.optim``, ``db.optim_check``), ``retriever/``
+    / lidar clouds, the textured mesh and the radiance-field submaps of ``task=crossmodal``),
+    ``features/`` (``db.features``), ``optim/`` (``db.optim``, ``db.optim_check``), ``retriever/``
     (``reloc.retriever``), ``matcher/`` (the relocaliser's matching, in ``reloc.method``) and
     ``experiment/`` (named setups of the committed tables).
 
@@ -137,7 +138,7 @@ class DifflocConfig:
 
     task: Any = MISSING
     scene: Any = MISSING
-    map: Any = MISSING  # typed by map/<option>.yaml (surfel, tls, cloud, mesh, images)
+    map: Any = MISSING  # typed by map/<option>.yaml (surfel, tls, cloud, mesh, images, nerf)
     out_dir: str = MISSING
     dataset: str = MISSING
     db: DatabaseConfig = field(default_factory=DatabaseConfig)
@@ -163,6 +164,7 @@ GROUP_SCHEMAS: dict[str, type] = {
     "schema_map_cloud": PointMapConfig,
     "schema_map_mesh": MeshMapConfig,
     "schema_map_images": ImageMapConfig,
+    "schema_map_nerf": NerfMapConfig,
     "schema_reloc": RelocStageConfig,
     "schema_scene_indoor": IndoorSceneConfig,
     "schema_scene_outdoor": OutdoorSceneConfig,

@@ -146,7 +146,8 @@ def test_a_map_option_the_task_cannot_use_is_refused_before_any_work(task, optio
     with pytest.raises(
         ValueError,
         match=f"task={task} cannot use map={option}: task=crossmodal "
-        "takes map=tls, map=cloud, map=mesh or map=images; every other task takes map=surfel",
+        "takes map=tls, map=cloud, map=mesh, map=images or map=nerf; "
+        "every other task takes map=surfel",
     ):
         run(cfg)
     assert not (tmp_path / "none").exists()

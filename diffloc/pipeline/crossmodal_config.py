@@ -1,10 +1,12 @@
 """Settings of ``diffloc task=crossmodal``: the ``map`` options ``tls`` / ``cloud`` / ``mesh``
-/ ``images`` and the task node (render poses, RGB-D database, localiser, query sequences).
+/ ``images`` / ``nerf`` and the task node (render poses, RGB-D database, localiser, query
+sequences).
 
 The map options mirror :mod:`diffloc.crossmodal`: ``map=tls`` and ``map=cloud`` are the
 dataset's TLS and lidar point maps coloured from the mapping images and rendered as splats
 (:class:`PointMapConfig`), ``map=mesh`` is the textured mesh reconstructed from a point map
-(:class:`MeshMapConfig`); ``map=images`` is no rendered map but the mapping run's own images
+(:class:`MeshMapConfig`), ``map=nerf`` the radiance-field submaps of ``task=train_nerf``
+(:class:`NerfMapConfig`); ``map=images`` is no rendered map but the mapping run's own images
 with depth from the surfel map, seed 2's real-image comparison (:class:`ImageMapConfig`).
 ``map=surfel`` (:class:`~diffloc.maps.surfel.SurfelMapConfig`) is
 the surfel map of the other tasks; :func:`map_option` names the option a typed map node came
@@ -17,6 +19,8 @@ Example:
     ('mesh', 'tls')
     >>> map_option(ImageMapConfig(every=4))
     'images'
+    >>> map_option(NerfMapConfig(min_opacity=0.3))
+    'nerf'
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ __all__ = [
     "CrossmodalTaskConfig",
     "ImageMapConfig",
     "MeshMapConfig",
+    "NerfMapConfig",
     "PointMapConfig",
     "map_option",
 ]
@@ -44,7 +49,7 @@ __all__ = [
 POINT_MAP_OPTIONS = {"tls_map": "tls", "lidar_map": "cloud"}
 """The ``map`` option of each dataset point map rendered as a cloud."""
 
-MAP_OPTIONS = ("surfel", "tls", "cloud", "mesh", "images")
+MAP_OPTIONS = ("surfel", "tls", "cloud", "mesh", "images", "nerf")
 """Every option of the ``map`` group (``diffloc/conf/map/*.yaml``)."""
 
 PASSES = ("single", "multi")
@@ -128,6 +133,27 @@ class ImageMapConfig:
         check_positive_int(self.every, "every")
 
 
+@dataclass
+class NerfMapConfig:
+    """``map=nerf``: the radiance-field submaps trained by ``task=train_nerf`` (the root
+    ``nerf`` node says which: ``nerf.out_dir``, ``nerf.submaps``, ... as when they were
+    trained), each render pose rendered by the submap that serves it (seed 2 III-D3).
+
+    Attributes:
+        point_map: the point map the render poses are selected on (``"lidar_map"``: the
+            mapping run's, as the fields are).
+        min_opacity: rendered pixels of lower opacity are holes (no depth).
+    """
+
+    point_map: str = "lidar_map"
+    min_opacity: float = 0.5
+
+    def __post_init__(self) -> None:
+        _check_point_map(self.point_map)
+        if not 0.0 < self.min_opacity <= 1.0:
+            raise ValueError(f"min_opacity must be in (0, 1], got {self.min_opacity!r}")
+
+
 def map_option(config: object) -> str:
     """The ``map`` option (:data:`MAP_OPTIONS`) a built map node came from.
 
@@ -142,6 +168,8 @@ def map_option(config: object) -> str:
         return "mesh"
     if isinstance(config, ImageMapConfig):
         return "images"
+    if isinstance(config, NerfMapConfig):
+        return "nerf"
     raise TypeError(f"not a map config: {type(config).__name__}")
 
 
@@ -149,10 +177,10 @@ def map_option(config: object) -> str:
 class CrossmodalTaskConfig:
     """``task=crossmodal``: seed 2's localisation in a database rendered from the ``map``.
 
-    Render poses on the free-path corridor of the map's point cloud -> the map (coloured cloud
-    or textured mesh) -> its RGB-D database with features and NetVLAD -> Algorithm 1 on every
-    ``every``-th frame of each of ``sequences``; each step a cached stage under
-    ``<dataset>/crossmodal/``; results, TUM files and plots under the run folder.
+    Render poses on the free-path corridor of the map's point cloud -> the map (coloured cloud,
+    textured mesh or radiance-field submaps) -> its RGB-D database with features and NetVLAD
+    -> Algorithm 1 on every ``every``-th frame of each of ``sequences``; each step a cached
+    stage under ``<dataset>/crossmodal/``; results, TUM files and plots under the run folder.
 
     Attributes:
         out_dir: where results go; empty: the Hydra run folder

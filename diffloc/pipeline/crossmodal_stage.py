@@ -50,7 +50,12 @@ from diffloc.io.npz import read_npz_archive, write_npz
 from diffloc.io.ply import PointCloudData, read_point_cloud
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.pointcloud import PointMap
-from diffloc.pipeline.crossmodal_config import MeshMapConfig, PointMapConfig, map_option
+from diffloc.pipeline.crossmodal_config import (
+    MeshMapConfig,
+    NerfMapConfig,
+    PointMapConfig,
+    map_option,
+)
 from diffloc.pipeline.hints import Command
 from diffloc.pipeline.stage import (
     LockLevel,
@@ -65,6 +70,7 @@ from diffloc.render.point_render import render_points
 from diffloc.render.point_sizes import PointSizes
 
 __all__ = [
+    "MAP_OUTPUTS",
     "SequenceLocalization",
     "build_rgbd_database",
     "build_rgbd_map",
@@ -77,6 +83,13 @@ __all__ = [
 
 MAPPING = "mapping"
 """The sequence whose images colour or texture the map."""
+
+MAP_OUTPUTS: dict[type, str] = {
+    PointMapConfig: "colored_map.ply",
+    MeshMapConfig: "mesh",
+    NerfMapConfig: "fields",
+}
+"""The output of the map stage each map option renders the database from."""
 
 
 def crossmodal_folder(dataset: str | os.PathLike) -> Path:
@@ -352,7 +365,7 @@ def build_rgbd_map(
 
 def build_rgbd_database(
     dataset: Path,
-    config: PointMapConfig | MeshMapConfig,
+    config: PointMapConfig | MeshMapConfig | NerfMapConfig,
     database: DatabaseConfig,
     rgbd_map: tuple[RGBDMap, StageOutcome],
     poses: tuple[torch.Tensor, StageOutcome],
@@ -366,7 +379,8 @@ def build_rgbd_database(
         dataset: the dataset folder.
         config: the map settings (the render sizes of a cloud are part of the key).
         database: features and NetVLAD settings.
-        rgbd_map: the map and its outcome (:func:`build_rgbd_map`).
+        rgbd_map: the map and its outcome (:func:`build_rgbd_map`, or
+            :func:`~diffloc.pipeline.crossmodal_nerf.build_nerf_map`).
         poses: the (M, 4, 4) render poses and their outcome (:func:`render_pose_stage`).
         camera: the render camera.
         show_progress: progress bars.
@@ -376,7 +390,7 @@ def build_rgbd_database(
     renderer, map_outcome = rgbd_map
     T_wc, pose_outcome = poses
     sizes = asdict(config.sizes()) if isinstance(config, PointMapConfig) else None
-    map_output = "colored_map.ply" if isinstance(config, PointMapConfig) else "mesh"
+    map_output = MAP_OUTPUTS[type(config)]
     key = stage_key(
         {"database": asdict(database), "sizes": sizes, "camera": _camera(camera)},
         {

@@ -1,9 +1,12 @@
-"""``diffloc task=crossmodal map=tls|cloud|mesh|images``: the stages in order, then the report.
+"""``diffloc task=crossmodal map=tls|cloud|mesh|nerf|images``: the stages in order, then the
+report.
 
-Render poses -> map -> RGB-D database -> localisation of each ``task.sequences`` (each a
-cached stage, :mod:`diffloc.pipeline.crossmodal_stage`; ``map=images``: the database of the
-mapping images, :mod:`diffloc.pipeline.crossmodal_images`, then the same localisation) ->
-scores, ``results.md``, ``results.json``, TUM files and plots in the run folder
+Render poses -> map (``map=nerf``: the trained radiance-field submaps,
+:mod:`diffloc.pipeline.crossmodal_nerf`) -> RGB-D database -> localisation of each
+``task.sequences`` (each a cached stage, :mod:`diffloc.pipeline.crossmodal_stage`;
+``map=images``: the database of the mapping images, :mod:`diffloc.pipeline.crossmodal_images`,
+then the same localisation) -> scores, ``results.md``, ``results.json``, TUM files and plots in
+the run folder
 (:mod:`diffloc.pipeline.crossmodal_report`). A rerun with the same settings reuses every
 stage; a changed ``task.localizer`` setting runs only the localisation again.
 """
@@ -24,10 +27,12 @@ from diffloc.pipeline.crossmodal_config import (
     CrossmodalTaskConfig,
     ImageMapConfig,
     MeshMapConfig,
+    NerfMapConfig,
     PointMapConfig,
     map_option,
 )
 from diffloc.pipeline.crossmodal_images import build_image_database
+from diffloc.pipeline.crossmodal_nerf import build_nerf_map
 from diffloc.pipeline.crossmodal_report import (
     markdown_table,
     plot_retrieved,
@@ -41,6 +46,7 @@ from diffloc.pipeline.crossmodal_stage import (
     localize_sequence,
     render_pose_stage,
 )
+from diffloc.pipeline.nerf_config import TrainNerfConfig
 
 __all__ = ["run_crossmodal"]
 
@@ -49,20 +55,23 @@ STAGES = ("poses", "map", "database")
 
 def run_crossmodal(
     dataset: str | os.PathLike,
-    map_config: PointMapConfig | MeshMapConfig | ImageMapConfig,
+    map_config: PointMapConfig | MeshMapConfig | NerfMapConfig | ImageMapConfig,
     task: CrossmodalTaskConfig,
     out: str | os.PathLike,
     show_progress: bool = True,
+    nerf: TrainNerfConfig | None = None,
 ) -> dict:
     """Run (or reuse) every stage and write the results into ``out``.
 
     Args:
         dataset: the dataset folder (point maps under ``map/``, the mapping sequence, the
             query sequences).
-        map_config: the ``map`` node (``map=tls``, ``cloud``, ``mesh`` or ``images``).
+        map_config: the ``map`` node (``map=tls``, ``cloud``, ``mesh``, ``nerf`` or ``images``).
         task: the ``task`` node.
         out: the run folder.
         show_progress: progress bars (off when ``CI=true``).
+        nerf: the root ``nerf`` node, which selects the fields of ``map=nerf`` (default
+            settings if ``None``).
 
     Returns:
         The results (also ``out/results.json``): per sequence the figures of
@@ -75,6 +84,8 @@ def run_crossmodal(
             corridor (the message names the file and ``task.poses``).
         MissingStageError: ``map=images`` without a surfel map (the message names the
             ``task=build_map`` command).
+        MissingStageError: ``map=nerf`` and a submap serving a render pose is not trained
+            with the ``nerf`` settings (the message names the ``task=train_nerf`` command).
     """
     start = time.perf_counter()
     dataset, out = Path(dataset), Path(out)
@@ -85,7 +96,10 @@ def run_crossmodal(
         stages = {"database": database[1].summary.to_json()}
     else:
         poses = render_pose_stage(dataset, map_config.point_map, task.poses, option)
-        rgbd_map = build_rgbd_map(dataset, map_config, task.image_scale, show_progress)
+        if isinstance(map_config, NerfMapConfig):
+            rgbd_map = build_nerf_map(dataset, map_config, nerf or TrainNerfConfig(), poses)
+        else:
+            rgbd_map = build_rgbd_map(dataset, map_config, task.image_scale, show_progress)
         database = build_rgbd_database(
             dataset, map_config, task.database, rgbd_map, poses, camera, show_progress
         )

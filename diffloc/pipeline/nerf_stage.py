@@ -40,11 +40,27 @@ from diffloc.maps.nerf.export import export_field
 from diffloc.maps.nerf.module import NerfModule
 from diffloc.maps.nerf.submaps import cluster_trajectory, plot_submaps, save_submaps
 from diffloc.maps.nerf.train import fit_submap
-from diffloc.pipeline.hints import Command
+from diffloc.pipeline.hints import Command, StaleStageError
 from diffloc.pipeline.nerf_config import TrainNerfConfig
-from diffloc.pipeline.stage import LockLevel, StageSummary, open_stage, stage_key
+from diffloc.pipeline.stage import (
+    LockLevel,
+    StageSummary,
+    open_stage,
+    output_identity,
+    read_lock,
+    record_path,
+    stage_key,
+    verified_record,
+)
 
-__all__ = ["TRAINING_RECORD", "NerfSummary", "train_nerf_submap"]
+__all__ = [
+    "TRAINING_RECORD",
+    "NerfSummary",
+    "TrainedField",
+    "nerf_out_dir",
+    "read_trained_field",
+    "train_nerf_submap",
+]
 
 
 @dataclass(frozen=True)
@@ -135,6 +151,67 @@ def _check_finite(module: NerfModule, name: str) -> None:
         )
 
 
+def nerf_out_dir(dataset: Path, config: TrainNerfConfig) -> Path:
+    """Where ``task=train_nerf`` writes: ``nerf.out_dir``, or ``<dataset>/nerf`` if empty."""
+    return Path(config.out_dir) if config.out_dir else dataset / "nerf"
+
+
+def _command(dataset: Path, submap: int) -> Command:
+    """The command that trains ``submap`` (the user's ``nerf.*`` overrides replace the
+    selection when the ``diffloc`` command renders it)."""
+    return Command("train_nerf", (f"dataset={dataset}",), (f"nerf.submap={submap}",))
+
+
+@dataclass(frozen=True)
+class TrainedField:
+    """A committed field as :func:`read_trained_field` read it.
+
+    Attributes:
+        files: file name -> content of the exported field folder (safetensors + JSON).
+        identity: the field folder's identity recorded by its stage.
+        summary: the stage's summary.
+    """
+
+    files: dict[str, bytes]
+    identity: dict
+    summary: NerfSummary
+
+
+def read_trained_field(
+    dataset: str | os.PathLike, config: TrainNerfConfig, sequence_identity: dict
+) -> TrainedField:
+    """The field of submap ``config.submap`` exactly as ``task=train_nerf`` with ``config``
+    would reuse it, read under the submap folder's shared lock (nothing is trained).
+
+    Args:
+        dataset: dataset folder.
+        config: the ``nerf`` settings; ``config.submap`` selects the submap.
+        sequence_identity: identity of the mapping sequence folder (part of the key).
+
+    Raises:
+        MissingStageError: the submap was never trained; the message names the
+            ``diffloc task=train_nerf ... nerf.submap=<k>`` command that trains it.
+        StaleStageError: its field was trained with other ``nerf.*`` settings or data, or
+            changed since; the message names the same command.
+    """
+    dataset = Path(dataset)
+    run_dir = nerf_out_dir(dataset, config) / f"submap_{config.submap}"
+    command = _command(dataset, config.submap)
+    key = stage_key(asdict(config), {"sequence": sequence_identity})
+    with read_lock(run_dir, LockLevel.DATABASE):
+        record = verified_record(run_dir, "train_nerf", command)
+        if record["stage"]["key"] != key:
+            raise StaleStageError(
+                f"{record_path(run_dir, 'train_nerf')} holds a field trained with other nerf.* "
+                "settings or data than this run's",
+                command,
+            )
+        files = {p.name: p.read_bytes() for p in sorted((run_dir / "field").iterdir())}
+        return TrainedField(
+            files, output_identity(record, "field"), NerfSummary.from_record(record)
+        )
+
+
 def train_nerf_submap(
     dataset: str | os.PathLike, config: TrainNerfConfig, show_progress: bool = True
 ) -> NerfSummary:
@@ -154,7 +231,7 @@ def train_nerf_submap(
             training that diverged.
     """
     dataset = Path(dataset)
-    out_dir = Path(config.out_dir) if config.out_dir else dataset / "nerf"
+    out_dir = nerf_out_dir(dataset, config)
     seq = read_sequence(dataset, config.sequence)
     submaps = cluster_trajectory(seq.T_wc, config.submaps)
     if not 0 <= config.submap < len(submaps):
@@ -170,7 +247,7 @@ def train_nerf_submap(
     inputs = {"sequence": identity(dataset / config.sequence)}
     key = stage_key(asdict(config), inputs)
     training = {k: v for k, v in asdict(config).items() if k not in _NOT_TRAINING}
-    command = Command("train_nerf", (f"dataset={dataset}", f"nerf.submap={config.submap}"))
+    command = _command(dataset, config.submap)
     with open_stage(run_dir, "train_nerf", command, LockLevel.DATABASE) as stage:
         if (previous := stage.reusable(key, NerfSummary)) is not None:
             return previous
