@@ -31,6 +31,10 @@ CAMERA = PinholeCamera.from_fov(48, 36, 1.2)
 T_TRUE = se3_exp(torch.tensor([[0.1, 0.0, 0.2, 0.05, 0.25, 0.02]], dtype=torch.float64))
 
 
+SHORT = RenderRefineConfig(levels=(1.0,), iterations=5)
+"""One level, few iterations: enough for the tests of the acceptance rule."""
+
+
 def wall_and_floor(spacing: float = 0.05) -> tuple[torch.Tensor, torch.Tensor]:
     """A textured wall 3 m ahead and a floor strip 1 m below the camera (float64)."""
     g = torch.arange(-3.5, 3.5, spacing, dtype=torch.float64)
@@ -177,7 +181,7 @@ def test_photometric_residual_gradcheck_float64() -> None:
 
 def test_a_start_at_the_true_pose_is_not_made_worse(cloud) -> None:
     query = colour_of(cloud.render(T_TRUE, CAMERA))
-    result = refine_pose_by_rendering(cloud, query, T_TRUE, CAMERA)
+    result = refine_pose_by_rendering(cloud, query, T_TRUE, CAMERA, config=SHORT)
     t_err, r_err = errors(result.T_wc, T_TRUE)
     assert t_err < 1e-6
     assert r_err < 1e-4
@@ -189,7 +193,7 @@ def test_an_unrelated_query_leaves_the_pose_unchanged(cloud) -> None:
     )
     query = 0.3 + 0.4 * noise.double()
     T_start = T_TRUE @ se3_exp(perturbation(0.05, 2.0))
-    result = refine_pose_by_rendering(cloud, query, T_start, CAMERA)
+    result = refine_pose_by_rendering(cloud, query, T_start, CAMERA, config=SHORT)
     assert not bool(result.accepted[0])
     assert float(result.correlation[0]) < RenderRefineConfig().min_correlation
     assert torch.equal(result.T_wc, T_start)
