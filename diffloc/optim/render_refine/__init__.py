@@ -41,9 +41,9 @@ Coarse to fine
 Acceptance
     The refined pose replaces the initial one only if, at the finest level and over the pixels
     the map covers at the initial pose, (a) the mean robust cost per pixel fell by more than
-    ``min_improvement`` of itself, and (b) the render at the refined pose correlates with the
-    query by at least ``min_correlation`` (zero-mean normalised cross-correlation, averaged
-    over channels). (a) keeps a pose the optimiser cannot show to be better; (b) refuses a
+    ``min_improvement`` (5 %) of itself, and (b) the render at the refined pose correlates
+    with the query by at least ``min_correlation`` (zero-mean normalised cross-correlation,
+    averaged over channels). (a) keeps a pose the optimiser cannot show to be better; (b) refuses a
     "better" fit to an image the map does not explain (another place, an occluded view),
     where the cost falls by flattening the render rather than by aligning it.
 
