@@ -28,9 +28,11 @@ class RenderRefineConfig:
         min_pixels: fewer compared pixels than this at a level: the query is left alone
             there (too little of the map in view to say anything).
         min_improvement: the refined pose is accepted only if it lowers the finest-level cost
-            by more than this fraction (0.05: on indoor seed 0's real queries, refinements
-            that moved cm-accurate poses by 5-12 cm lowered the cost by only 1.5-2.5 %,
-            ``experiments/results/render_refine_indoor_seed0.md``).
+            by more than this fraction. 0.05: on indoor seed 0's real queries against the
+            coloured TLS cloud, refinements that moved cm-accurate poses by 6-40 cm lowered
+            the cost by 1.5-5.1 % (``experiments/results/render_refine_indoor_seed0.md``);
+            no threshold makes that safe when the map's render has its minimum off the
+            true pose.
         min_correlation: ... and only if the render at the refined pose correlates with the
             query by at least this (zero-mean normalised cross-correlation, averaged over the
             colour channels): an unrelated image lowers the cost too, but does not correlate.
