@@ -9,7 +9,8 @@ Writes ``experiments/results/render_refine_<label>.{json,md}``: median / p90 tra
 rotation error before and after, the fraction accepted, CPU and wall ms per query.
 
     python3 experiments/render_refine.py --scene data/indoor_seed0 \
-        --estimates outputs/seed0_indoor/query_same/estimates.tum --label indoor_seed0
+        --estimates outputs/seed0_indoor/query_same/estimates.tum --label indoor_seed0 \
+        --every 15 --max-queries 8
 """
 
 from __future__ import annotations
