@@ -249,18 +249,30 @@ def test_revalidation_under_stricter_thresholds_rescores_the_same_poses(main_run
     assert again["config"]["validation"]["theta_in"] == 10**6
 
 
-def test_revalidation_refuses_what_it_cannot_do_exactly(main_run, tmp_path):
+def test_revalidation_accepts_found_poses_the_run_did_not_accept(main_run, tmp_path):
+    """Single-image mode accepts the first inlier pose of a sequence, which the run (sequence
+    mode) did not accept: its pose comes from ``found.tum``; a run without ``found.tum`` (an
+    older diffloc) cannot give it and is refused."""
     _, out, results = main_run
     with pytest.raises(ValueError, match="new folder"):
         revalidate_run(out, out, ValidationConfig())
-    # Single-image mode accepts the first inlier pose of a sequence, which the run (sequence
-    # mode) did not accept, so it never wrote that pose.
-    found_not_accepted = any(
-        q["found"] and q["inliers"] >= 15 and not q["accepted"]
-        for name in results["sequences"]
-        for q in json.loads((out / name / "queries.json").read_text())
-    )
-    assert found_not_accepted
-    single = ValidationConfig(theta_in=15, temporal=False)
+    single = replace(ValidationConfig(**results["config"]["validation"]), temporal=False)
+    revalidate_run(out, tmp_path / "single", single)
+    newly = 0
+    for name in results["sequences"]:
+        before = json.loads((out / name / "queries.json").read_text())
+        after = json.loads((tmp_path / "single" / name / "queries.json").read_text())
+        found = (out / name / "found.tum").read_text().splitlines()
+        lines = (tmp_path / "single" / name / "estimates.tum").read_text().splitlines()
+        for q0, q1 in zip(before, after, strict=True):
+            if q1["accepted"] and not q0["accepted"]:
+                newly += 1
+                assert next(ln for ln in found if ln.startswith(f"{q1['timestamp']:.9f} ")) in lines
+        assert len(lines) == 1 + sum(q["accepted"] for q in after)
+    assert newly > 0
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    for name in results["sequences"]:
+        (old / name / "found.tum").unlink()
     with pytest.raises(ValueError, match="relocalise again"):
-        revalidate_run(out, tmp_path / "single", single)
+        revalidate_run(old, tmp_path / "single_old", single)

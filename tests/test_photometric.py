@@ -63,7 +63,7 @@ def make_check(wall_map: SurfelMap, keyframe_phase: float = 0.0) -> PhotometricC
         torch.zeros(3, CAMERA.height, CAMERA.width)
     ]
     return PhotometricCheck(
-        wall_map, poses, lambda k: CAMERA, lambda k: images[k], PhotometricConfig(scale=0.5)
+        wall_map, poses, lambda k: CAMERA, lambda k: images[k], PhotometricConfig(width_px=48)
     )
 
 
@@ -128,7 +128,7 @@ def test_bad_inputs_are_refused(wall_map):
 @pytest.mark.parametrize(
     "kwargs, key",
     [
-        ({"scale": 0.0}, "scale"),
+        ({"width_px": 0}, "width_px"),
         ({"cells": 0}, "cells"),
         ({"min_cells": 20}, "min_cells"),
         ({"depth_tolerance": -1.0}, "depth_tolerance"),

@@ -41,9 +41,10 @@ __all__ = [
 ]
 
 _SEED_KEY = "scene.seed"
-_NOT_VARIANT = ("task", "experiment", _SEED_KEY)
+_NOT_VARIANT = ("task", "experiment", "progress", _SEED_KEY)
 """Override keys that do not make a variant (besides ``hydra.*``): the task, the named setup
-(``+experiment=NAME``, the same for every job of its sweep) and the scene seed."""
+(``+experiment=NAME``, the same for every job of its sweep), progress bars (output only) and
+the scene seed."""
 
 
 def _parse_overrides(lines: Sequence[str], where: Path) -> list[Override]:

@@ -5,7 +5,9 @@ reuses the keyframe retriever, relocalises every query of each query sequence wi
 :class:`~diffloc.reloc.hierarchical.HierarchicalRelocalizer`, validates the poses, and writes
 into ``out``:
 
-- ``<sequence>/estimates.tum`` (accepted poses, TUM format for evo), ``groundtruth.tum``,
+- ``<sequence>/estimates.tum`` (accepted poses, TUM format for evo), ``found.tum`` (every
+  found pose, accepted or not: what a replay of other validation settings reads),
+  ``groundtruth.tum``,
   ``queries.json`` (per query: found, accepted by the configured validation and by seed 1's
   rule, correct, the found position, inliers, the photometric consistency of the found pose
   where it passed the inlier test (:mod:`diffloc.reloc.photometric`, null for no overlap),
@@ -334,6 +336,7 @@ def _report_sequence(
         *nearest_pose_offsets(torch.from_numpy(run.T_wc_true), T_wc_db_true.double())
     )
     write_localized_tum(out / "estimates.tum", run.timestamps, run.T_wc_est, run.accepted)
+    write_localized_tum(out / "found.tum", run.timestamps, run.T_wc_est, run.found)
     write_tum(out / "groundtruth.tum", run.timestamps, torch.from_numpy(run.T_wc_true))
     seed1_recall = recall(seed1, cfg.max_trans_m)
     seed1_precision = precision(seed1, cfg.max_trans_m)

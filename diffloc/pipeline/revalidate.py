@@ -11,10 +11,11 @@ stage. ``seed1_rule`` is replayed too (seed 1's tests under the new thresholds).
 
 What is written into ``dst``: ``results.json`` (with ``revalidated_from`` and the validation
 settings used in its ``config``), ``results.md``, per sequence ``queries.json`` with the new
-verdicts, ``estimates.tum`` (the accepted poses, taken from the source run, whose
-``estimates.tum`` holds the poses it accepted: the new accepted set must lie within it) and
-``groundtruth.tum``; and the source's ``.hydra`` folder, so held-out reports group the job
-as before. Plots are not redrawn.
+verdicts, ``estimates.tum`` (the accepted poses, taken from the source run's ``found.tum``,
+which holds every pose it found; a run of an older diffloc has only ``estimates.tum``, the poses
+it accepted, and the new accepted set must then lie within it), ``found.tum`` where the source
+has one, and ``groundtruth.tum``; and the source's ``.hydra`` folder, so held-out reports group
+the job as before. Plots are not redrawn.
 
 Usage (on the folder of a finished run)::
 
@@ -67,7 +68,8 @@ def record_errors(records: list[dict], accepted: np.ndarray) -> PoseErrors:
 
 
 def _accepted_tum_lines(source: Path, records: list[dict], accepted: np.ndarray) -> str:
-    """The source ``estimates.tum``: its header and the lines of the newly accepted queries."""
+    """The header and the lines of the newly accepted queries of the source's ``found.tum``
+    (or, from an older run, ``estimates.tum``)."""
     lines = [ln for ln in source.read_text().splitlines() if ln]
     out = [ln for ln in lines if ln.startswith("#")]
     by_time = {round(float(ln.split()[0]), 6): ln for ln in lines if not ln.startswith("#")}
@@ -78,7 +80,8 @@ def _accepted_tum_lines(source: Path, records: list[dict], accepted: np.ndarray)
         if line is None:
             raise ValueError(
                 f"{source}: no pose at t={record['timestamp']}, which the new validation "
-                "accepts; the source run did not accept it, so relocalise again instead"
+                "accepts; the source run (of an older diffloc, without found.tum) did not accept "
+                "it, so relocalise again instead"
             )
         out.append(line)
     return "\n".join(out) + ("\n" if out else "")
@@ -122,8 +125,11 @@ def revalidate_run(src: str | Path, dst: str | Path, config: ValidationConfig) -
             record["accepted"], record["accepted_seed1"] = bool(keep), bool(keep1)
             record["correct"] = bool(right)
         atomic_write_text(out / "queries.json", json.dumps(records, indent=1) + "\n")
-        tum = _accepted_tum_lines(src / name / "estimates.tum", records, accepted)
-        atomic_write_text(out / "estimates.tum", tum)
+        found = src / name / "found.tum"
+        source = found if found.is_file() else src / name / "estimates.tum"
+        atomic_write_text(out / "estimates.tum", _accepted_tum_lines(source, records, accepted))
+        if found.is_file():
+            shutil.copyfile(found, out / "found.tum")
         shutil.copyfile(src / name / "groundtruth.tum", out / "groundtruth.tum")
         rows.append(table_row(name, sequences[name]))
     headline = sequences.get("query_same") or next(iter(sequences.values()))

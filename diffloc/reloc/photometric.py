@@ -6,10 +6,10 @@ differs between the two places is everything the inliers do not cover (furniture
 parked car). This check compares the whole overlap of the query with the keyframe the pose was
 found from:
 
-1. the surfel map is rendered at the keyframe (z-depth ``d(p_k)`` per pixel ``p_k``, at
-   ``scale`` of the image resolution; once per keyframe, cached);
+1. the surfel map is rendered at the keyframe (z-depth ``d(p_k)`` per pixel ``p_k``, the
+   images scaled to ``width_px`` pixels wide, never up; once per keyframe, cached);
 2. every keyframe pixel with depth is lifted to ``X = T_wk K_k^-1 [p_k, 1] d(p_k)`` and
-   projected into the query at the pose, ``p = pi(K T_wc^-1 X)`` (same ``scale``);
+   projected into the query at the pose, ``p = pi(K T_wc^-1 X)`` (same width);
 3. a z-buffer of the warped points keeps, per query pixel, the nearest surface (within
    ``depth_tolerance``, relative): what the keyframe saw behind a nearer surface is hidden;
 4. the keyframe's grey values ``k(p_k)`` and the query's ``q(p)`` (bilinear) are compared per
@@ -26,8 +26,8 @@ Fewer than ``min_cells`` cells give NaN: the pose cannot be confirmed (no overla
 keyframe), which :class:`~diffloc.reloc.validation.PoseValidator` treats as a failed test.
 
 Example:
-    >>> PhotometricConfig().cells, PhotometricConfig().scale
-    (4, 0.25)
+    >>> PhotometricConfig().cells, PhotometricConfig().width_px
+    (4, 160)
 
 Usage::
 
@@ -58,7 +58,8 @@ class PhotometricConfig:
     """Settings of :class:`PhotometricCheck` (module docstring).
 
     Attributes:
-        scale: resolution of the comparison as a fraction of the query image (0, 1].
+        width_px: width of the compared images in pixels (a larger image is scaled down to
+            it, keeping its aspect; a smaller one is compared as it is).
         cells: the image is split into ``cells x cells`` cells, each scored by NCC.
         min_cell_pixels: fewest compared pixels of a scored cell.
         min_cells: fewest scored cells of a score (fewer: NaN).
@@ -66,16 +67,14 @@ class PhotometricConfig:
             the warped point's depth of a pixel the keyframe saw.
     """
 
-    scale: float = 0.25
+    width_px: int = 160
     cells: int = 4
     min_cell_pixels: int = 30
     min_cells: int = 3
     depth_tolerance: float = 0.05
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.scale) and 0 < self.scale <= 1):
-            raise ValueError(f"photometric.scale must be in (0, 1], got {self.scale}")
-        for name in ("cells", "min_cell_pixels", "min_cells"):
+        for name in ("width_px", "cells", "min_cell_pixels", "min_cells"):
             if getattr(self, name) < 1:
                 raise ValueError(f"photometric.{name} must be >= 1, got {getattr(self, name)}")
         if self.min_cells > self.cells**2:
@@ -84,6 +83,11 @@ class PhotometricConfig:
             )
         if not (math.isfinite(self.depth_tolerance) and self.depth_tolerance > 0):
             raise ValueError(f"photometric.depth_tolerance must be > 0, got {self.depth_tolerance}")
+
+
+def _compared(camera: PinholeCamera, width_px: int) -> PinholeCamera:
+    """``camera`` scaled down to ``width_px`` pixels wide (unchanged if it is not wider)."""
+    return camera.scaled(width_px / camera.width) if camera.width > width_px else camera
 
 
 def _grey(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -172,7 +176,7 @@ class PhotometricCheck:
         """The scaled camera, grey image (H, W) and surfel depth (H, W) of keyframe ``k``
         (one render per keyframe: the query's pose needs no render of its own)."""
         if k not in self._keyframes:
-            camera = self.keyframe_camera(k).scaled(self.config.scale)
+            camera = _compared(self.keyframe_camera(k), self.config.width_px)
             depth = self.renderer.render(self.keyframe_poses[k][None].float(), camera).depth[0]
             grey = _grey(self.keyframe_image(k), camera.height, camera.width)
             self._keyframes[k] = (camera.to(torch.float64), grey, depth)
@@ -211,7 +215,7 @@ class PhotometricCheck:
         points = transform_points(
             self.keyframe_poses[keyframe], k_camera.unproject(k_pixels.double(), z_k)
         )
-        query_camera = camera.scaled(cfg.scale).to(torch.float64)
+        query_camera = _compared(camera, cfg.width_px).to(torch.float64)
         in_query = transform_points(invert(T_wc.double()), points)
         uv, in_front = query_camera.project(in_query)
         inside = torch.nonzero(in_front & query_camera.in_image(uv)).squeeze(1)
