@@ -97,13 +97,13 @@ def _grey(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
     return F.interpolate(grey[None, None], size=(height, width), mode="area")[0, 0]
 
 
-def _sample(image: torch.Tensor, uv: torch.Tensor, mode: str) -> torch.Tensor:
-    """(N,) values of the (H, W) ``image`` at pixel coordinates ``uv`` (N, 2), pixel centres
-    at integers."""
+def _bilinear(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """(N,) bilinear values of the (H, W) ``image`` at pixel coordinates ``uv`` (N, 2), pixel
+    centres at integers."""
     height, width = image.shape
     scale = torch.tensor([2.0 / width, 2.0 / height], dtype=torch.float32)
     grid = (uv.to(torch.float32) + 0.5) * scale - 1.0
-    out = F.grid_sample(image[None, None], grid[None, None], mode=mode, align_corners=False)
+    out = F.grid_sample(image[None, None], grid[None, None], mode="bilinear", align_corners=False)
     return out[0, 0, 0]
 
 
@@ -231,7 +231,7 @@ class PhotometricCheck:
         uv, rows, cols, k_pixels = uv[seen], rows[seen], cols[seen], k_pixels[seen]
         cell = (rows * cfg.cells // height) * cfg.cells + cols * cfg.cells // width
         ncc = cell_ncc(
-            _sample(_grey(image, height, width), uv, "bilinear"),
+            _bilinear(_grey(image, height, width), uv),
             k_grey[k_pixels[:, 1], k_pixels[:, 0]],
             cell,
             cfg.cells**2,
