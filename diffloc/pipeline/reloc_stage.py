@@ -82,6 +82,7 @@ from diffloc.reloc.hierarchical import (
     RelocResult,
 )
 from diffloc.reloc.photometric import PhotometricCheck, PhotometricConfig
+from diffloc.reloc.repetition import RepeatedShift, RepetitionConfig, repeated_shift
 from diffloc.reloc.retrieval import (
     BowConfig,
     BowRetriever,
@@ -144,6 +145,8 @@ class RelocStageConfig:
         photometric: how the photometric consistency of a found pose is measured (every pose
             that passes the inlier test is measured, so a changed
             ``validation.min_photometric`` can be replayed by ``experiments/revalidate.py``).
+        repetition: how the repeated structure under a found pose is measured
+            (:mod:`diffloc.reloc.repetition`; measured and recorded like ``photometric``).
     """
 
     sequences: list[str] = field(default_factory=lambda: ["query_same", "changed"])
@@ -155,6 +158,7 @@ class RelocStageConfig:
     method: RelocConfig = field(default_factory=RelocConfig)
     validation: ValidationConfig = field(default_factory=ValidationConfig)
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
+    repetition: RepetitionConfig = field(default_factory=RepetitionConfig)
 
     def __post_init__(self) -> None:
         check_database_name(self.database)
@@ -244,6 +248,7 @@ class _SequenceRun:
     accepted_seed1: np.ndarray
     inliers: np.ndarray
     photometric: list[float | None]
+    repetition: list[RepeatedShift | None]
     timings: list[dict[str, float]]
     candidates: list[list[dict]]
 
@@ -261,8 +266,8 @@ def _relocalize_sequence(
     frames = list(range(0, len(sequence), cfg.query_stride))
     validator = PoseValidator(cfg.validation)
     seed1 = PoseValidator(cfg.validation.seed1_rule())
-    estimates, found, accepted, accepted_seed1, inliers, scores, timings, candidates = (
-        [] for _ in range(8)
+    estimates, found, accepted, accepted_seed1, inliers, scores, repeats, timings, candidates = (
+        [] for _ in range(9)
     )
     for i in progress(frames, f"relocalise {name}", show_progress):
         image = sequence.load_rgb(i)
@@ -271,13 +276,19 @@ def _relocalize_sequence(
         extract_ms = (time.perf_counter() - start) * 1e3
         result: RelocResult = relocalizer.relocalize(image, features, sequence.camera)
         timestamp = float(sequence.timestamps[i])
-        score = None
+        score, repeat = None, None
         if result.found and result.num_inliers >= cfg.validation.theta_in:
             start = time.perf_counter()
             score = photometric.score(image, result.T_wc, sequence.camera, result.canonical)
-            result.timings_ms["photometric"] = (time.perf_counter() - start) * 1e3
+            middle = time.perf_counter()
+            repeat = _repetition(result, relocalizer.db, cfg.repetition)
+            result.timings_ms["photometric"] = (middle - start) * 1e3
+            result.timings_ms["repetition"] = (time.perf_counter() - middle) * 1e3
         scores.append(score)
-        accepted.append(result.found and validator.validate_result(result, timestamp, score))
+        repeats.append(repeat)
+        accepted.append(
+            result.found and validator.validate_result(result, timestamp, score, repeat)
+        )
         accepted_seed1.append(result.found and seed1.validate_result(result, timestamp))
         estimates.append(result.T_wc if result.found else torch.full((4, 4), math.nan))
         found.append(result.found)
@@ -293,8 +304,26 @@ def _relocalize_sequence(
         accepted_seed1=np.array(accepted_seed1),
         inliers=np.array(inliers, dtype=np.float64),
         photometric=scores,
+        repetition=repeats,
         timings=timings,
         candidates=candidates,
+    )
+
+
+def _repetition(
+    result: RelocResult, db: VisualDatabase, config: RepetitionConfig
+) -> RepeatedShift | None:
+    """The repeated structure under the best candidate's inliers (``None`` for the ``naive``
+    method, whose inliers are not map points)."""
+    matches = result.best.inlier_matches
+    if matches is None:
+        return None
+    return repeated_shift(
+        matches[:, 1],
+        db.point_positions,
+        db.point_descriptors,
+        db.metric,
+        config,
     )
 
 
@@ -384,6 +413,16 @@ def _report_sequence(
                 {}
                 if run.photometric[q] is None
                 else {"photometric": finite_or_none(round(run.photometric[q], 4))}
+            ),
+            **(
+                {}
+                if run.repetition[q] is None
+                else {
+                    "repetition": {
+                        "support": run.repetition[q].support,
+                        "shift_m": round(run.repetition[q].shift_m, 4),
+                    }
+                }
             ),
             "translation_error_m": finite_or_none(raw.translation_m[q]),
             "rotation_error_deg": finite_or_none(raw.rotation_deg[q]),

@@ -184,6 +184,9 @@ class Candidate:
             the image that hold at least one inlier keypoint (inliers bunched on one repeated
             structure cover little of the image).
         canonical: the canonical keyframe.
+        inlier_matches: (n_in, 2) int64 ``(query keypoint, map point)`` of the inliers, for
+            the repetition test (:mod:`diffloc.reloc.repetition`); ``None`` for the ``naive``
+            method, whose 3D points are surfel centres, not map points.
     """
 
     T_wc: torch.Tensor
@@ -191,6 +194,7 @@ class Candidate:
     num_matches: int
     coverage: float
     canonical: int
+    inlier_matches: torch.Tensor | None = None
 
 
 class _Timer:
@@ -468,6 +472,7 @@ class HierarchicalRelocalizer:
             num_matches=int(len(uv) if mask is None else mask.sum()),
             coverage=grid_coverage(uv[inliers], camera, self.config.coverage_grid),
             canonical=canonical,
+            inlier_matches=None if points_world is not None else matches[inliers],
         )
 
     def _projection_search(

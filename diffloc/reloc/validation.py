@@ -33,7 +33,11 @@ make an *inlier pose* also need
   the query through the surfel map at that pose, agrees with the query image
   (:mod:`diffloc.reloc.photometric`, median NCC over image cells). A repeated place seen from
   the other side (the neighbouring room, the far end of a uniform facade) has as many
-  consistent inliers as the right one; the content the inliers do not cover differs.
+  consistent inliers as the right one; the content the inliers do not cover differs;
+- no repeated structure under it: fewer than ``max_repeated`` of its inliers have a twin in the
+  map at one common shift (:mod:`diffloc.reloc.repetition`). Where everything the query sees
+  repeats (a tiled floor filling the view, a uniform facade), a pose one period away is as
+  consistent, photometrically too, as the right one: the image does not fix the pose.
 
 :meth:`ValidationConfig.seed1_rule` switches them off, giving seed 1's rule.
 
@@ -53,6 +57,7 @@ import torch
 
 from diffloc.checks import check_finite, check_shape
 from diffloc.reloc.hierarchical import RelocResult
+from diffloc.reloc.repetition import RepeatedShift
 
 __all__ = ["PoseEvidence", "PoseValidator", "ValidationConfig"]
 
@@ -77,6 +82,8 @@ class ValidationConfig:
         min_photometric: lowest photometric consistency (median per-cell NCC of the keyframe
             warped into the query, :mod:`diffloc.reloc.photometric`; no overlap fails) of an
             inlier pose (``None`` disables it).
+        max_repeated: largest fraction of an inlier pose's inliers with a twin at one common
+            shift (:mod:`diffloc.reloc.repetition`; ``None`` disables the test).
         conflict_keeps_reference: an inlier pose that fails the distance test against a live
             reference (not older than ``max_reference_age_s``) is not verified and does not
             replace the reference (seed 1: every inlier pose replaces it, ``False``). A jump
@@ -93,6 +100,7 @@ class ValidationConfig:
     min_coverage: float = 0.0
     ambiguity_ratio: float | None = None
     min_photometric: float | None = None
+    max_repeated: float | None = None
     conflict_keeps_reference: bool = False
 
     def __post_init__(self) -> None:
@@ -115,17 +123,21 @@ class ValidationConfig:
         ncc = self.min_photometric
         if ncc is not None and not (math.isfinite(ncc) and -1.0 <= ncc <= 1.0):
             raise ValueError(f"validation.min_photometric must be in [-1, 1] or null, got {ncc}")
+        repeated = self.max_repeated
+        if repeated is not None and not (math.isfinite(repeated) and 0.0 <= repeated <= 1.0):
+            raise ValueError(f"validation.max_repeated must be in [0, 1] or null, got {repeated}")
 
     def seed1_rule(self) -> ValidationConfig:
         """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity,
-        photometric consistency, the reference age, the kept reference) off; the speed
-        allowance of sparse query streams stays."""
+        photometric consistency, repetition, the reference age, the kept reference) off; the
+        speed allowance of sparse query streams stays."""
         return replace(
             self,
             min_inlier_ratio=0.0,
             min_coverage=0.0,
             ambiguity_ratio=None,
             min_photometric=None,
+            max_repeated=None,
             max_reference_age_s=None,
             conflict_keeps_reference=False,
         )
@@ -145,6 +157,9 @@ class PoseEvidence:
             best one among them, at distance 0).
         photometric: the best candidate's photometric consistency (NaN: no overlap with its
             keyframe), or ``None`` when it was not measured.
+        repeated: how many of the best candidate's inliers have a twin at one common shift
+            (:attr:`~diffloc.reloc.repetition.RepeatedShift.support`), or ``None`` when it was
+            not measured.
     """
 
     position: torch.Tensor
@@ -153,13 +168,15 @@ class PoseEvidence:
     coverage: float
     rivals: tuple[tuple[int, float], ...]
     photometric: float | None = None
+    repeated: int | None = None
 
     @classmethod
     def from_result(
-        cls, result: RelocResult, photometric: float | None = None
+        cls, result: RelocResult, photometric: float | None = None, repeated: int | None = None
     ) -> PoseEvidence | None:
         """The evidence of a relocaliser's answer (``None`` when it found nothing), with the
-        best candidate's ``photometric`` consistency where it was measured."""
+        best candidate's ``photometric`` consistency and ``repeated`` inliers where they were
+        measured."""
         best = result.best
         if best is None:
             return None
@@ -168,14 +185,23 @@ class PoseEvidence:
             (c.num_inliers, float(torch.linalg.vector_norm(c.T_wc[:3, 3] - position)))
             for c in result.candidates
         )
-        return cls(position, best.num_inliers, best.num_matches, best.coverage, rivals, photometric)
+        return cls(
+            position,
+            best.num_inliers,
+            best.num_matches,
+            best.coverage,
+            rivals,
+            photometric,
+            repeated,
+        )
 
     @classmethod
     def from_record(cls, record: dict) -> PoseEvidence | None:
         """The evidence a relocalisation run recorded for one query in ``queries.json``
         (``found``, ``position_m``, ``candidates`` with ``inliers``, ``matches``,
-        ``coverage`` and ``distance_to_chosen_m``, and ``photometric`` where it was measured,
-        null for no overlap); ``None`` when it found nothing.
+        ``coverage`` and ``distance_to_chosen_m``, ``photometric`` where it was measured,
+        null for no overlap, and ``repetition`` with its ``support`` where it was measured);
+        ``None`` when it found nothing.
 
         Raises:
             ValueError: a found query without a position or candidates.
@@ -191,6 +217,7 @@ class PoseEvidence:
         photometric = None
         if "photometric" in record:
             photometric = math.nan if record["photometric"] is None else record["photometric"]
+        repeated = int(record["repetition"]["support"]) if "repetition" in record else None
         return cls(
             position,
             int(best["inliers"]),
@@ -198,6 +225,7 @@ class PoseEvidence:
             float(best["coverage"]),
             rivals,
             photometric,
+            repeated,
         )
 
 
@@ -218,12 +246,12 @@ class PoseValidator:
         self._last_time = 0.0
 
     def plausible(self, evidence: PoseEvidence) -> bool:
-        """The tests beyond seed 1's: inlier ratio, coverage, photometric consistency and no
-        well-supported rival.
+        """The tests beyond seed 1's: inlier ratio, coverage, photometric consistency, no
+        repeated structure and no well-supported rival.
 
         Raises:
-            ValueError: ``min_photometric`` is set but the evidence has no photometric
-                consistency (a run that did not measure it).
+            ValueError: ``min_photometric`` or ``max_repeated`` is set but the evidence lacks
+                that measurement (a run that did not measure it).
         """
         cfg = self.config
         if cfg.min_photometric is not None:
@@ -234,6 +262,15 @@ class PoseValidator:
                     "run it again, or set reloc.validation.min_photometric=null)"
                 )
             if not evidence.photometric >= cfg.min_photometric:  # NaN (no overlap) fails
+                return False
+        if cfg.max_repeated is not None:
+            if evidence.repeated is None:
+                raise ValueError(
+                    "validation.max_repeated is set but this answer's repeated structure was not "
+                    "measured (a relocalisation run of an older diffloc, or the naive method: "
+                    "run it again, or set reloc.validation.max_repeated=null)"
+                )
+            if evidence.repeated > cfg.max_repeated * evidence.num_inliers:
                 return False
         if evidence.num_inliers < cfg.min_inlier_ratio * max(evidence.num_matches, 1):
             return False
@@ -247,11 +284,18 @@ class PoseValidator:
         )
 
     def validate_result(
-        self, result: RelocResult, timestamp: float, photometric: float | None = None
+        self,
+        result: RelocResult,
+        timestamp: float,
+        photometric: float | None = None,
+        repetition: RepeatedShift | None = None,
     ) -> bool:
         """Whether a relocaliser's answer is verified (:meth:`validate_evidence`), with its
-        best candidate's ``photometric`` consistency where it was measured."""
-        return self.validate_evidence(PoseEvidence.from_result(result, photometric), timestamp)
+        best candidate's ``photometric`` consistency and ``repetition`` where they were
+        measured."""
+        repeated = None if repetition is None else repetition.support
+        evidence = PoseEvidence.from_result(result, photometric, repeated)
+        return self.validate_evidence(evidence, timestamp)
 
     def validate_evidence(self, evidence: PoseEvidence | None, timestamp: float) -> bool:
         """Whether an answer is verified (module docstring); ``False`` when nothing was found

@@ -1,0 +1,134 @@
+"""Repeated structure under a relocalised pose: the inliers' twins at one common shift.
+
+Where the scene repeats (a tiled floor, a row of identical windows, a facade of one module), a
+pose one period away explains the query as well as the right one: its inliers are the same
+keypoints matched to the copies of the same structure, and the content around them may repeat
+too. Neither inlier tests nor a photometric comparison can then tell the two poses apart; the
+map itself can. For the inliers ``(k, i)`` (query keypoint ``k``, map point ``i`` at ``X_i``) of
+a pose:
+
+1. the *twins* of ``i`` are the ``max_twins`` map points whose descriptors are nearest to
+   ``i``'s own (the map's descriptors compared with each other: the query keypoint's is biased
+   towards ``i``, since it was matched for being nearest to it) and that lie at least
+   ``min_shift_m`` from ``X_i`` (a second point of the same spot is no repetition);
+2. every twin votes for the shift ``t = X_j - X_i``;
+3. the *support* of a shift is the number of inliers with a twin within ``tolerance_m`` of it;
+   the best-supported shift is the repetition of the pose.
+
+A camera moved by ``t`` sees each supporting twin where the query sees its inlier, with the
+same appearance: a pose that many of its inliers are repeated for is ambiguous, and the
+validation (:class:`~diffloc.reloc.validation.ValidationConfig`, ``max_repeated``) refuses it.
+
+Example (two posts 2 m apart that look alike, and a sign; the query matched post 0 and
+the sign):
+    >>> positions = torch.tensor([[0.0, 0, 5], [2.0, 0, 5], [0.0, 3, 5]])
+    >>> descriptors = torch.tensor([[1.0, 0], [0.9, 0.1], [0.0, 1]])
+    >>> shift = repeated_shift(
+    ...     torch.tensor([0, 2]), positions, descriptors, "l2", RepetitionConfig(max_twins=1))
+    >>> shift.support, round(shift.shift_m, 2)
+    (1, 2.0)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from diffloc.checks import check_shape
+from diffloc.features.matching import Metric, descriptor_distances
+
+__all__ = ["RepeatedShift", "RepetitionConfig", "repeated_shift"]
+
+
+@dataclass(frozen=True)
+class RepetitionConfig:
+    """Settings of :func:`repeated_shift` (module docstring).
+
+    Attributes:
+        min_shift_m: nearest a twin may lie to its inlier's point (metres).
+        tolerance_m: twins whose shifts differ by at most this support the same shift.
+        max_twins: most twins per inlier (the nearest in descriptor space; a structure that
+            repeats more often than this votes for fewer of its shifts).
+    """
+
+    min_shift_m: float = 0.5
+    tolerance_m: float = 0.1
+    max_twins: int = 16
+
+    def __post_init__(self) -> None:
+        for name in ("min_shift_m", "tolerance_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"repetition.{name} must be > 0, got {value}")
+        if self.max_twins < 1:
+            raise ValueError(f"repetition.max_twins must be >= 1, got {self.max_twins}")
+
+
+@dataclass(frozen=True)
+class RepeatedShift:
+    """The best-supported shift of a pose's inliers onto their twins.
+
+    Attributes:
+        support: inliers with a twin at the shift (0: no inlier has a twin).
+        shift_m: length of the shift in metres (0 when ``support`` is 0).
+    """
+
+    support: int
+    shift_m: float
+
+
+def repeated_shift(
+    points: torch.Tensor,
+    point_positions: torch.Tensor,
+    point_descriptors: torch.Tensor,
+    metric: Metric,
+    config: RepetitionConfig,
+) -> RepeatedShift:
+    """The repetition of a pose's inliers (module docstring).
+
+    Args:
+        points: (N,) int64 map point of each inlier.
+        point_positions: (P, 3) positions of all map points (world frame, metres).
+        point_descriptors: (P, D) descriptors of all map points.
+        metric: the descriptor metric of the database (``"l2"``, ``"cosine"``, ``"hamming"``).
+        config: settings.
+
+    Returns:
+        The best-supported shift (support 0 without inliers or twins).
+
+    Raises:
+        ShapeError: inconsistent shapes.
+        IndexError: a point id outside the map.
+    """
+    check_shape(points, "N", "points")
+    check_shape(point_positions, "P,3", "point_positions")
+    check_shape(point_descriptors, "P,D", "point_descriptors")
+    if len(point_descriptors) != len(point_positions):
+        raise ValueError(
+            f"{len(point_descriptors)} point descriptors for {len(point_positions)} positions"
+        )
+    if len(points) == 0:
+        return RepeatedShift(0, 0.0)
+    if int(points.min()) < 0 or int(points.max()) >= len(point_positions):
+        raise IndexError(f"inlier points must be map points in [0, {len(point_positions)})")
+    distances = descriptor_distances(point_descriptors[points], point_descriptors, metric)
+    distances.scatter_(1, points[:, None], math.inf)  # (N, P), a point is not its own twin
+    k = min(config.max_twins, distances.shape[1] - 1)
+    if k < 1:
+        return RepeatedShift(0, 0.0)
+    twins = torch.topk(distances, k, dim=1, largest=False).indices  # (N, k)
+    positions = point_positions.to(torch.float64)
+    offsets = positions[twins] - positions[points][:, None]  # (N, k, 3)
+    is_twin = torch.linalg.vector_norm(offsets, dim=-1) >= config.min_shift_m
+    owner = torch.arange(len(points))[:, None].expand_as(is_twin)[is_twin]  # (M,)
+    offsets = offsets[is_twin]  # (M, 3)
+    if len(offsets) == 0:
+        return RepeatedShift(0, 0.0)
+    near = torch.nonzero(torch.cdist(offsets, offsets) <= config.tolerance_m)  # (pairs, 2)
+    # distinct inliers near each shift: unique (shift, inlier) pairs, counted per shift
+    pairs = torch.unique(near[:, 0] * len(points) + owner[near[:, 1]])
+    support = torch.bincount(pairs // len(points), minlength=len(offsets))
+    best = int(torch.argmax(support))
+    return RepeatedShift(int(support[best]), float(torch.linalg.vector_norm(offsets[best])))
