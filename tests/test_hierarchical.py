@@ -15,6 +15,7 @@ from evo.tools import file_interface
 from diffloc.cli import run
 from diffloc.database.database import VisualDatabase
 from diffloc.features.local import XFeatConfig, make_extractor
+from diffloc.geometry.se3 import invert, transform_points
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap
 from diffloc.pipeline import reloc_stage
@@ -186,6 +187,37 @@ def test_every_variant_localizes_the_tiny_queries_above_a_floor(relocalizer_part
     recall = sum(correct) / len(correct)
     floor = TINY_VARIANT_RECALL_FLOOR[points]
     assert recall >= floor, f"{points}: recall@0.3m {recall:.2f} < floor {floor} ({correct})"
+
+
+def test_candidates_name_their_inliers_and_runs_record_their_repetition(
+    main_run, relocalizer_parts
+):
+    """The inlier matches a candidate carries are its inliers (their map points project onto
+    their keypoints at the refined pose), and every inlier pose's repetition is recorded."""
+    database, retriever, centers, query = relocalizer_parts
+    extractor = make_extractor(XFeatConfig(max_keypoints=512))
+    image = query.load_rgb(0)
+    features = extractor.extract(image)
+    best = (
+        HierarchicalRelocalizer(database, retriever, RelocConfig())
+        .relocalize(image, features, query.camera)
+        .best
+    )
+    matches = best.inlier_matches
+    assert matches.shape == (best.num_inliers, 2)
+    points = transform_points(invert(best.T_wc), database.point_positions[matches[:, 1]].double())
+    uv, in_front = query.camera.to(torch.float64).project(points)
+    error = torch.linalg.vector_norm(uv - features.keypoints[matches[:, 0]].double(), dim=1)
+    assert bool(in_front.all()) and float(error.median()) < 2.0
+    naive = HierarchicalRelocalizer(database, retriever, RelocConfig(points="naive"), centers)
+    found = naive.relocalize(image, features, query.camera).best
+    assert found is None or found.inlier_matches is None
+    _, out, _ = main_run
+    queries = json.loads((out / "query_same" / "queries.json").read_text())
+    measured = [q for q in queries if "photometric" in q]
+    assert measured, "no inlier pose on the tiny scene"
+    for q in measured:
+        assert 0 <= q["repetition"]["support"] <= q["inliers"]
 
 
 def test_textureless_query_is_not_localized(relocalizer_parts):
