@@ -12,21 +12,23 @@ a pose:
    towards ``i``, since it was matched for being nearest to it) and that lie at least
    ``min_shift_m`` from ``X_i`` (a second point of the same spot is no repetition);
 2. every twin votes for the shift ``t = X_j - X_i``;
-3. the *support* of a shift is the number of inliers with a twin within ``tolerance_m`` of it;
-   the best-supported shift is the repetition of the pose.
+3. the shifts are voted on a grid of step ``tolerance_m / 2``: the *support* of a grid shift
+   is the number of inliers with a twin within ``tolerance_m / 2`` of it along every axis (so
+   two supporting twins agree to ``tolerance_m``); the best-supported shift is the repetition
+   of the pose.
 
 A camera moved by ``t`` sees each supporting twin where the query sees its inlier, with the
 same appearance: a pose that many of its inliers are repeated for is ambiguous, and the
 validation (:class:`~diffloc.reloc.validation.ValidationConfig`, ``max_repeated``) refuses it.
 
-Example (two posts 2 m apart that look alike, and a sign; the query matched post 0 and
-the sign):
-    >>> positions = torch.tensor([[0.0, 0, 5], [2.0, 0, 5], [0.0, 3, 5]])
-    >>> descriptors = torch.tensor([[1.0, 0], [0.9, 0.1], [0.0, 1]])
+Example (three posts 2 m apart, each looking most like the next one; the query matched the
+first two):
+    >>> positions = torch.tensor([[0.0, 0, 5], [2.0, 0, 5], [4.0, 0, 5]])
+    >>> descriptors = torch.tensor([[1.0, 0], [0.8, 0.2], [0.7, 0.3]])
     >>> shift = repeated_shift(
-    ...     torch.tensor([0, 2]), positions, descriptors, "l2", RepetitionConfig(max_twins=1))
+    ...     torch.tensor([0, 1]), positions, descriptors, "l2", RepetitionConfig(max_twins=1))
     >>> shift.support, round(shift.shift_m, 2)
-    (1, 2.0)
+    (2, 2.0)
 """
 
 from __future__ import annotations
@@ -41,6 +43,9 @@ from diffloc.features.matching import Metric, descriptor_distances
 
 __all__ = ["RepeatedShift", "RepetitionConfig", "repeated_shift"]
 
+_CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+"""(8, 3) the grid shifts around an offset, from the cell below it."""
+
 
 @dataclass(frozen=True)
 class RepetitionConfig:
@@ -48,7 +53,8 @@ class RepetitionConfig:
 
     Attributes:
         min_shift_m: nearest a twin may lie to its inlier's point (metres).
-        tolerance_m: twins whose shifts differ by at most this support the same shift.
+        tolerance_m: twins whose shifts differ by at most this (per axis) support the same
+            shift.
         max_twins: most twins per inlier (the nearest in descriptor space; a structure that
             repeats more often than this votes for fewer of its shifts).
     """
@@ -126,9 +132,23 @@ def repeated_shift(
     offsets = offsets[is_twin]  # (M, 3)
     if len(offsets) == 0:
         return RepeatedShift(0, 0.0)
-    near = torch.nonzero(torch.cdist(offsets, offsets) <= config.tolerance_m)  # (pairs, 2)
-    # distinct inliers near each shift: unique (shift, inlier) pairs, counted per shift
-    pairs = torch.unique(near[:, 0] * len(points) + owner[near[:, 1]])
-    support = torch.bincount(pairs // len(points), minlength=len(offsets))
+    # Vote on a grid of step tolerance / 2: an offset supports the 8 grid shifts within
+    # tolerance / 2 of it per axis; each inlier counts once per shift.
+    step = config.tolerance_m / 2
+    cells = (torch.floor(offsets / step).long()[:, None] + _CORNERS).reshape(-1, 3)  # (8M, 3)
+    low = cells.min(0).values
+    extent = cells.max(0).values - low + 1
+    index = cells - low
+    key = (index[:, 0] * extent[1] + index[:, 1]) * extent[2] + index[:, 2]  # (8M,)
+    pairs = torch.unique(key * len(points) + owner.repeat_interleave(8))
+    keys, support = torch.unique(pairs // len(points), return_counts=True)
     best = int(torch.argmax(support))
-    return RepeatedShift(int(support[best]), float(torch.linalg.vector_norm(offsets[best])))
+    cell = torch.stack(
+        [
+            keys[best] // (extent[1] * extent[2]),
+            keys[best] // extent[2] % extent[1],
+            keys[best] % extent[2],
+        ]
+    )
+    shift_m = float(torch.linalg.vector_norm((cell + low).double() * step))
+    return RepeatedShift(int(support[best]), shift_m)
