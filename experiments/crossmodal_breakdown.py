@@ -21,6 +21,11 @@ ONE outcome, the first stage that decides it:
 
 ``--min-photometric`` replays another threshold from the recorded scores
 (``accepted_without_photometric`` and ``photometric >= t``); by default the run's own verdict.
+Per map and sequence the report also gives the photometric test's effect: accepted poses,
+wrong accepted poses, precision and localisation rate without it (``accepted_without_photometric``)
+and with it, and per map the threshold rule of ``task.min_photometric``: the 1st percentile of
+the scores of the right poses the other tests accept, over the given sequences, rounded down
+to 0.1.
 
 Usage:
     PYTHONPATH=. python3 experiments/crossmodal_breakdown.py --dataset data/indoor_seed0 \\
@@ -111,7 +116,13 @@ def breakdown(
 ) -> dict:
     """Per-query rows and outcome counts of one map's localisation of ``sequence``."""
     folder = crossmodal_folder(dataset) / option
-    loc = SequenceLocalization.load(folder / f"localize_{sequence}" / "localization.npz")
+    path = folder / f"localize_{sequence}" / "localization.npz"
+    if not path.is_file():
+        raise SystemExit(
+            f"{path} is missing: run diffloc task=crossmodal map={option} dataset={dataset} "
+            f"task.sequences=[{sequence}] first"
+        )
+    loc = SequenceLocalization.load(path)
     T_render = RenderedDatabase.load(folder / "database" / "rgbd").T_wc
     T_gt = read_sequence(dataset, sequence).T_wc[loc.frames]  # ground truth: scoring only
     accepted = loc.accepted.astype(bool)
@@ -132,6 +143,7 @@ def breakdown(
     near = (distance <= spacing_m) & (angle <= np.radians(RETRIEVAL_ANGLE_DEG))
     near_renders = near.sum(1).numpy()
     verdicts = outcomes(loc, accepted, correct, reference_hit, near_renders, theta_in)
+    geometric = loc.accepted_without_photometric.astype(bool)
     rows = [
         {
             "frame": int(loc.frames[q]),
@@ -153,12 +165,43 @@ def breakdown(
     counts = Counter(verdicts)
     return {
         "map": option,
+        "sequence": sequence,
         "queries": len(rows),
+        "photometric": {
+            "without": _effect(geometric, correct),
+            "with": _effect(accepted, correct),
+            "right_scores": loc.photometric[geometric & correct].tolist(),
+        },
         "top1_retrieval_rate": float(top1_hit.mean()),
         "reference_hit_rate": float(reference_hit.mean()),
         "counts": {name: counts.get(name, 0) for name in OUTCOMES},
         "rows": rows,
     }
+
+
+def _effect(accepted: np.ndarray, correct: np.ndarray) -> dict:
+    """Accepted and wrong accepted poses, precision and localisation rate of a verdict."""
+    count, right = int(accepted.sum()), int((accepted & correct).sum())
+    return {
+        "accepted": count,
+        "wrong": count - right,
+        "precision": right / count if count else None,
+        "rate": right / len(accepted),
+    }
+
+
+def threshold_rule(scores: list[float]) -> float | None:
+    """The 1st percentile of right poses' photometric scores, rounded down to 0.1 (``None``
+    without scores)."""
+    values = np.asarray(scores, dtype=np.float64)
+    values = values[~np.isnan(values)]
+    if not len(values):
+        return None
+    return float(np.floor(np.percentile(values, 1) * 10) / 10)
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.1f}"
 
 
 def _cell(value: object) -> str:
@@ -171,6 +214,10 @@ def _cell(value: object) -> str:
     return str(value)
 
 
+def _label(entry: dict) -> str:
+    return f"{entry['map']} {entry['sequence']}"
+
+
 def _frames(rows: list[dict]) -> str:
     frames = [r["frame"] for r in rows]
     return ", ".join(map(str, frames[:3])) + (f", ... {frames[-1]}" if len(frames) > 3 else "")
@@ -179,8 +226,9 @@ def _frames(rows: list[dict]) -> str:
 def markdown(report: dict) -> str:
     """The summary table (outcome counts per map) and one per-query table per map."""
     maps = report["maps"]
+    sequences = ", ".join(f"`{s}`" for s in report["sequences"])
     lines = [
-        f"# Where the localisation rate is lost: `{report['sequence']}` of {report['dataset']}",
+        f"# Where the localisation rate is lost: {sequences} of {report['dataset']}",
         "",
         "Made by:",
         "",
@@ -196,7 +244,31 @@ def markdown(report: dict) -> str:
             else "the runs' own validation."
         ),
         "",
-        "| outcome | " + " | ".join(m["map"] for m in maps) + " |",
+        "## The photometric test (without -> with)",
+        "",
+        "| map | sequence | accepted | wrong accepted | precision [%] | rate [%] |",
+        "|:---|:---|---:|---:|---:|---:|",
+    ]
+    for m in maps:
+        a, b = m["photometric"]["without"], m["photometric"]["with"]
+        lines.append(
+            f"| {m['map']} | {m['sequence']} | {a['accepted']} -> {b['accepted']} | "
+            f"{a['wrong']} -> {b['wrong']} | {_pct(a['precision'])} -> {_pct(b['precision'])} | "
+            f"{_pct(a['rate'])} -> {_pct(b['rate'])} |"
+        )
+    lines += [
+        "",
+        "Threshold rule per map (1st percentile of the right poses' scores that pass "
+        "the other tests, over these sequences, rounded down to 0.1):",
+        "",
+    ]
+    for option, rule in report["threshold_rule"].items():
+        lines.append(f"- {option}: {'-' if rule is None else f'{rule:g}'}")
+    lines += [
+        "",
+        "## Outcomes",
+        "",
+        "| outcome | " + " | ".join(_label(m) for m in maps) + " |",
         "|:---|" + "---:|" * len(maps),
     ]
     for name in OUTCOMES:
@@ -208,7 +280,7 @@ def markdown(report: dict) -> str:
         lines.append(f"| {label} [%] | " + " | ".join(f"{100 * m[key]:.1f}" for m in maps) + " |")
     columns = list(maps[0]["rows"][0])
     for m in maps:
-        lines += ["", f"## {m['map']}", "", "| " + " | ".join(columns) + " |"]
+        lines += ["", f"## {_label(m)}", "", "| " + " | ".join(columns) + " |"]
         lines.append("|" + "---|" * len(columns))
         lines += ["| " + " | ".join(_cell(r[c]) for c in columns) + " |" for r in m["rows"]]
     return "\n".join(lines) + "\n"
@@ -218,7 +290,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", type=Path, required=True)
     parser.add_argument("--map", action="append", required=True, help="a map option")
-    parser.add_argument("--sequence", default="query_same")
+    parser.add_argument("--sequence", action="append", required=True)
     parser.add_argument("--spacing-m", type=float, default=2.0, help="render spacing")
     parser.add_argument("--loose-m", type=float, default=1.0, help="loose position bound")
     parser.add_argument("--theta-in", type=int, default=THETA_IN)
@@ -230,17 +302,25 @@ def main() -> None:
         breakdown(
             args.dataset,
             option,
-            args.sequence,
+            sequence,
             args.spacing_m,
             args.loose_m,
             args.theta_in,
             args.min_photometric,
         )
         for option in args.map
+        for sequence in args.sequence
     ]
+    rules = {
+        option: threshold_rule(
+            [x for m in maps if m["map"] == option for x in m["photometric"]["right_scores"]]
+        )
+        for option in args.map
+    }
     report = {
         "dataset": str(args.dataset),
-        "sequence": args.sequence,
+        "sequences": args.sequence,
+        "threshold_rule": rules,
         "spacing_m": args.spacing_m,
         "loose_m": args.loose_m,
         "theta_in": args.theta_in,
@@ -250,7 +330,7 @@ def main() -> None:
     }
     atomic_write_text(args.out.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
     atomic_write_text(args.out.with_suffix(".md"), markdown(report))
-    print(markdown(report).split("\n## ")[0])
+    print(markdown(report).split("\n## Outcomes")[0])
 
 
 if __name__ == "__main__":
