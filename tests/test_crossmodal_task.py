@@ -179,3 +179,9 @@ def test_the_mesh_map_stage_never_reads_the_ground_truth(dataset, tmp_path, monk
     assert float(error) < 0.1
     _refuse(monkeypatch, ("build_textured_mesh",))
     assert crossmodal_stage.build_rgbd_map(root, config, 1.0)[1] == outcome
+
+
+def test_a_photometric_threshold_of_an_unknown_map_is_refused():
+    cfg = compose_config(["task=crossmodal", "map=tls", "+task.min_photometric.lidar=0.5"])
+    with pytest.raises(ValueError, match="task.min_photometric.lidar: not a map option"):
+        run(cfg)

@@ -33,6 +33,8 @@ Usage::
 
     check = PhotometricCheck(surfel_map, db.T_wc, db.camera, keyframe_image)
     score = check.score(query_image, result.T_wc, camera, result.canonical)   # in [-1, 1]
+    # a reference with depth of its own (an RGB-D database image): steps 2-5 alone
+    score = warped_ncc(grey, depth, ref_camera, T_w_ref, query_image, camera, T_wc, config)
 """
 
 from __future__ import annotations
