@@ -278,6 +278,8 @@ def markdown(report: dict) -> str:
         ("reference_hit_rate", "reference near"),
     ):
         lines.append(f"| {label} [%] | " + " | ".join(f"{100 * m[key]:.1f}" for m in maps) + " |")
+    if report["note"]:
+        lines += ["", report["note"]]
     columns = list(maps[0]["rows"][0])
     for m in maps:
         lines += ["", f"## {_label(m)}", "", "| " + " | ".join(columns) + " |"]
@@ -296,6 +298,7 @@ def main() -> None:
     parser.add_argument("--theta-in", type=int, default=THETA_IN)
     parser.add_argument("--min-photometric", type=float, help="replay this threshold")
     parser.add_argument("--command", required=True, help="the command of the runs read")
+    parser.add_argument("--note", default="", help="a paragraph under the outcome counts")
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
     args = parser.parse_args()
     maps = [
@@ -326,6 +329,7 @@ def main() -> None:
         "theta_in": args.theta_in,
         "min_photometric": args.min_photometric,
         "command": args.command,
+        "note": args.note,
         "maps": maps,
     }
     atomic_write_text(args.out.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
