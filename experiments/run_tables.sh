@@ -101,38 +101,52 @@ crossmodal_run() {
   cmd+=" task.every=$xm_every task.out_dir=$runs/crossmodal_$(basename "$data")_$map $*"
   $cmd
 }
-# crossmodal_tables [DATASET]: experiments/results/crossmodal_table{1,3,4,5}_<dataset>.md/.json
-# (default data/indoor_seed0). Seed 1's hierarchical relocaliser on the same query frames comes
-# from the results.json of a `diffloc task=main` run on DATASET: $seed1_results if set (e.g.
-# outputs/<run>/results.json), else this function runs it (its stages are cached too).
-crossmodal_tables() {
-  local data=${1:-data/indoor_seed0} tag m cmds="" seed1 args=()
+# crossmodal_runs DATASET SCENE: task=crossmodal with every map option on DATASET (scene=SCENE),
+# and seed 1's hierarchical relocaliser on the same queries, for reference: the results.json of
+# a `diffloc task=main` run on DATASET, $seed1_results if set (e.g. outputs/<run>/results.json),
+# else this function runs it (its stages are cached too). Sets cmds (the commands, one a line,
+# for the tables' headers), runs_args (--run MAP=results.json ...) and seed1.
+crossmodal_runs() {
+  local data=$1 scene=$2 tag m
   tag=$(basename "$data")
+  cmds="" runs_args=()
   for m in tls cloud mesh images; do
-    crossmodal_run "$data" "$m"
+    crossmodal_run "$data" "$m" "scene=$scene"
     cmds+="${cmds:+$nl}$cmd"
-    args+=(--run "$m=$runs/crossmodal_${tag}_$m/results.json")
+    runs_args+=(--run "$m=$runs/crossmodal_${tag}_$m/results.json")
   done
   seed1=${seed1_results:-}
   if [[ -z $seed1 ]]; then
-    cmd="diffloc task=main dataset=$data hydra.run.dir=$runs/crossmodal_${tag}_seed1"
+    cmd="diffloc task=main scene=$scene dataset=$data hydra.run.dir=$runs/crossmodal_${tag}_seed1"
     $cmd
     seed1=$runs/crossmodal_${tag}_seed1/results.json
   fi
   cmds+="$nl# seed 1's rows: $seed1"
-  python3 experiments/crossmodal_tables.py --sequence query_same "${args[@]}" --seed1 "$seed1" \
-    --dataset "$data" --title "Table I (seed 2): same route as the mapping run" \
-    --command "$cmds" --out "experiments/results/crossmodal_table1_$tag"
-  python3 experiments/crossmodal_tables.py --sequence query_reverse "${args[@]}" \
-    --seed1 "$seed1" --dataset "$data" --command "$cmds" \
-    --title "Table III (seed 2): reverse direction, front-only real images vs 4-view renders" \
+}
+# crossmodal_table SEQUENCE NAME TITLE [OPTION ...]: experiments/results/NAME.md/.json, the
+# table of SEQUENCE over the runs of the last crossmodal_runs on $data.
+crossmodal_table() {
+  local sequence=$1 name=$2 title=$3
+  shift 3
+  python3 experiments/crossmodal_tables.py --sequence "$sequence" "${runs_args[@]}" \
+    --seed1 "$seed1" --dataset "$data" --title "$title" --command "$cmds" \
+    --out "experiments/results/$name" "$@"
+}
+
+# crossmodal_tables [DATASET]: experiments/results/crossmodal_table{1,3,4,5}_<dataset>.md/.json
+# (default data/indoor_seed0).
+crossmodal_tables() {
+  local data=${1:-data/indoor_seed0} tag
+  tag=$(basename "$data")
+  crossmodal_runs "$data" indoor
+  crossmodal_table query_same "crossmodal_table1_$tag" \
+    "Table I (seed 2): same route as the mapping run"
+  crossmodal_table query_reverse "crossmodal_table3_$tag" \
+    "Table III (seed 2): reverse direction, front-only real images vs 4-view renders" \
     --note "The real-image database holds the mapping run's front camera only (the simulated \
 rig has no side cameras, so seed 2's front+side rows are missing); the rendered databases have \
-4 horizontal views per render position." \
-    --out "experiments/results/crossmodal_table3_$tag"
-  python3 experiments/crossmodal_tables.py --sequence changed "${args[@]}" --seed1 "$seed1" \
-    --dataset "$data" --title "Table IV (seed 2): changed scene" --command "$cmds" \
-    --out "experiments/results/crossmodal_table4_$tag"
+4 horizontal views per render position."
+  crossmodal_table changed "crossmodal_table4_$tag" "Table IV (seed 2): changed scene"
   python3 experiments/match_quality.py --dataset "$data" --every 8 --tag "$tag" \
     --colored-map "$data/crossmodal/tls/map/colored_map.ply" --name "crossmodal_table5_$tag"
 }
@@ -141,23 +155,10 @@ rig has no side cameras, so seed 2's front+side rows are missing); the rendered 
 # data/outdoor_seed0, scene=outdoor: 20 cm cells, 4 m render spacing, 2 m / 30 deg) in the four
 # databases: experiments/results/crossmodal_table1_<dataset>.md/.json; seed 1's row as above.
 crossmodal_lane() {
-  local data=${1:-data/outdoor_seed0} tag m cmds="" seed1 args=() xm_sequences="[query_lane]"
-  tag=$(basename "$data")
-  for m in tls cloud mesh images; do
-    crossmodal_run "$data" "$m" scene=outdoor
-    cmds+="${cmds:+$nl}$cmd"
-    args+=(--run "$m=$runs/crossmodal_${tag}_$m/results.json")
-  done
-  seed1=${seed1_results:-}
-  if [[ -z $seed1 ]]; then
-    cmd="diffloc task=main scene=outdoor dataset=$data hydra.run.dir=$runs/crossmodal_${tag}_seed1"
-    $cmd
-    seed1=$runs/crossmodal_${tag}_seed1/results.json
-  fi
-  cmds+="$nl# seed 1's rows: $seed1"
-  python3 experiments/crossmodal_tables.py --sequence query_lane "${args[@]}" --seed1 "$seed1" \
-    --dataset "$data" --title "Table I (seed 2), outdoors: the parallel lane" \
-    --command "$cmds" --out "experiments/results/crossmodal_table1_$tag"
+  local data=${1:-data/outdoor_seed0} xm_sequences="[query_lane]"
+  crossmodal_runs "$data" outdoor
+  crossmodal_table query_lane "crossmodal_table1_$(basename "$data")" \
+    "Table I (seed 2), outdoors: the parallel lane"
 }
 
 # `bash experiments/run_tables.sh FUNCTION ARGS...` runs one of the functions above alone, e.g.

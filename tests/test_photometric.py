@@ -12,7 +12,7 @@ from diffloc.checks import ShapeError
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import transform_points
 from diffloc.maps.surfel import SurfelMap
-from diffloc.reloc.photometric import PhotometricCheck, PhotometricConfig, cell_ncc
+from diffloc.reloc.photometric import PhotometricCheck, PhotometricConfig, cell_ncc, warped_ncc
 from diffloc.reloc.validation import PoseEvidence, PoseValidator, ValidationConfig
 
 CAMERA = PinholeCamera.from_fov(96, 72, 1.2)
@@ -34,16 +34,21 @@ def pose(x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> torch.Tensor:
     return T
 
 
-def image_of_wall(T_wc: torch.Tensor, phase: float = 0.0) -> torch.Tensor:
-    """(3, H, W) image of the textured wall z = WALL_Z seen from ``T_wc`` (exact ray casting)."""
+def wall_hits(T_wc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """World points (H * W, 3) of the wall z = WALL_Z seen through every pixel from ``T_wc``
+    (exact ray casting) and their (H, W) z-depth in the camera."""
     rows, cols = torch.meshgrid(
         torch.arange(CAMERA.height), torch.arange(CAMERA.width), indexing="ij"
     )
     uv = torch.stack((cols, rows), -1).reshape(-1, 2).double()
     rays = transform_points(T_wc, CAMERA.to(torch.float64).unproject(uv)) - T_wc[:3, 3]
     t = (WALL_Z - T_wc[2, 3]) / rays[:, 2]
-    hits = T_wc[:3, 3] + t[:, None] * rays
-    grey = texture(hits, phase).reshape(CAMERA.height, CAMERA.width).float()
+    return T_wc[:3, 3] + t[:, None] * rays, t.reshape(CAMERA.height, CAMERA.width).float()
+
+
+def image_of_wall(T_wc: torch.Tensor, phase: float = 0.0) -> torch.Tensor:
+    """(3, H, W) image of the textured wall z = WALL_Z seen from ``T_wc``."""
+    grey = texture(wall_hits(T_wc)[0], phase).reshape(CAMERA.height, CAMERA.width).float()
     return grey.expand(3, -1, -1).clone()
 
 
@@ -123,6 +128,26 @@ def test_bad_inputs_are_refused(wall_map):
         check.score(image, torch.full((4, 4), math.nan, dtype=torch.float64), CAMERA, 0)
     with pytest.raises(IndexError, match="keyframe 7"):
         check.score(image, T, CAMERA, 7)
+
+
+def test_an_rgbd_reference_is_warped_by_its_own_depth():
+    """A rendered (or real RGB-D) reference needs no surfel map: its own depth lifts it."""
+    T_ref, T_query = pose(0.0), pose(0.3, -0.1, 0.05)
+    grey, depth = image_of_wall(T_ref)[0], wall_hits(T_ref)[1]
+    image, config = image_of_wall(T_query), PhotometricConfig(width_px=48)
+    right = warped_ncc(grey, depth, CAMERA, T_ref, image, CAMERA, T_query, config)
+    wrong = warped_ncc(grey, depth, CAMERA, T_ref, image, CAMERA, pose(0.6, -0.1, 0.05), config)
+    holes = torch.zeros_like(depth)  # a reference without depth has nothing to compare
+    assert right > 0.95
+    assert wrong < 0.6
+    assert math.isnan(warped_ncc(grey, holes, CAMERA, T_ref, image, CAMERA, T_query, config))
+
+
+def test_a_reference_depth_of_another_size_is_refused():
+    T = pose()
+    grey, depth = image_of_wall(T)[0], wall_hits(T)[1]
+    with pytest.raises(ShapeError, match="reference_depth"):
+        warped_ncc(grey, depth[:-1], CAMERA, T, image_of_wall(T), CAMERA, T, PhotometricConfig())
 
 
 @pytest.mark.parametrize(

@@ -28,6 +28,7 @@ from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import se3_exp
 from diffloc.io.dataset import read_sequence
 from diffloc.io.mesh_obj import read_textured_mesh_obj
+from diffloc.reloc.photometric import grey_image, warped_ncc
 from diffloc.reloc.rendered import (
     RenderedCandidate,
     RenderedDatabaseLocalizer,
@@ -329,6 +330,31 @@ def test_validation_accepts_the_right_pose_and_rejects_a_repeated_place(scene, m
     )
     assert all(c.success for c in ambiguous.candidates)
     assert ambiguous.success and not ambiguous.accepted
+
+
+def test_photometric_consistency_scores_the_pose_and_feeds_the_acceptance(scene, mesh_database):
+    """The pose found scores high against its reference, the same query placed 0.5 m off
+    scores low, and the score decides the acceptance at ``min_photometric``."""
+    _, mapping = scene
+    image, T_query = _near_frame_2(scene)
+    config = RenderedLocalizerConfig(stop_inliers=None)
+    localizer = RenderedDatabaseLocalizer(mesh_database, config)
+    found = localizer.localize(image, mapping.camera, torch.tensor([2]))
+    assert found.accepted and found.accepted_without_photometric
+    assert found.photometric > 0.8
+    db = mesh_database
+    off = found.T_wc.clone()
+    off[:3, 3] += off[:3, 0] * 0.5  # 0.5 m to the camera's right
+    grey = grey_image(db.rgb[2], db.camera.height, db.camera.width)
+    wrong = warped_ncc(
+        grey, db.depth[2, 0], db.camera, db.T_wc[2], image, mapping.camera, off, config.photometric
+    )
+    assert wrong < 0.5
+    validation = replace(config.validation, min_photometric=found.photometric + 0.01)
+    strict = RenderedDatabaseLocalizer(db, replace(config, validation=validation))
+    result = strict.localize(image, mapping.camera, torch.tensor([2]))
+    assert result.photometric == pytest.approx(found.photometric)
+    assert result.accepted_without_photometric and not result.accepted
 
 
 T_EYE = torch.eye(4, dtype=torch.float64)

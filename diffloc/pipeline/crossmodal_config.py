@@ -26,7 +26,7 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from diffloc.checks import check_positive_int
 from diffloc.crossmodal.database import DatabaseConfig as RGBDDatabaseConfig
@@ -191,6 +191,10 @@ class CrossmodalTaskConfig:
         poses: render-pose selection (5 cm cells, 2 m spacing indoors; 20 cm, 4 m outdoors).
         database: features and NetVLAD of the rendered database.
         localizer: Algorithm 1 with re-ranking and validation.
+        min_photometric: per ``map`` option, the lowest photometric consistency of an
+            accepted pose (``localizer.validation.min_photometric`` for that map; an option
+            not listed keeps the localizer's own, by default off). Set per scene kind
+            (``task/scene/crossmodal_<scene>.yaml``), see :meth:`localizer_for`.
         loose_m: position bound of the loose localisation criterion (with 30 deg): 1 m
             indoors, 2 m outdoors (seed 2).
         plot_queries: queries shown beside their retrieved render per sequence.
@@ -206,6 +210,7 @@ class CrossmodalTaskConfig:
     poses: PoseSelectionConfig = field(default_factory=PoseSelectionConfig)
     database: RGBDDatabaseConfig = field(default_factory=RGBDDatabaseConfig)
     localizer: RenderedLocalizerConfig = field(default_factory=RenderedLocalizerConfig)
+    min_photometric: dict[str, float] = field(default_factory=dict)
     loose_m: float = 1.0
     plot_queries: int = 4
 
@@ -218,3 +223,28 @@ class CrossmodalTaskConfig:
             raise ValueError(f"image_scale must be in (0, 1], got {self.image_scale!r}")
         if not 0.0 < self.loose_m < math.inf:
             raise ValueError(f"loose_m must be a positive finite number, got {self.loose_m!r}")
+        for option, value in self.min_photometric.items():
+            if option not in MAP_OPTIONS:
+                raise ValueError(
+                    f"task.min_photometric.{option}: not a map option (one of {MAP_OPTIONS})"
+                )
+            if not (math.isfinite(value) and -1.0 <= value <= 1.0):
+                raise ValueError(f"task.min_photometric.{option} must be in [-1, 1], got {value}")
+
+    def localizer_for(self, option: str) -> RenderedLocalizerConfig:
+        """The localiser settings of the ``map`` option ``option``: ``localizer`` with the
+        validation's ``min_photometric`` from :attr:`min_photometric` where it lists the
+        option (a localiser without validation stays without).
+
+        Example:
+            >>> task = CrossmodalTaskConfig(min_photometric={"images": 0.7})
+            >>> task.localizer_for("images").validation.min_photometric
+            0.7
+            >>> task.localizer_for("tls").validation.min_photometric is None
+            True
+        """
+        validation = self.localizer.validation
+        if option not in self.min_photometric or validation is None:
+            return self.localizer
+        threshold = self.min_photometric[option]
+        return replace(self.localizer, validation=replace(validation, min_photometric=threshold))

@@ -428,8 +428,15 @@ class SequenceLocalization:
         accepted: (Q,) bool, found and passed the validation (the answer).
         reference: (Q,) int64 database image the pose came from (-1: none).
         top1: (Q,) int64 first retrieved database image (-1: none).
+        num_matches: (Q,) int64 LighterGlue matches with the reference.
+        num_points: (Q,) int64 of those, matches whose reference keypoint has depth.
         num_inliers: (Q,) int64 PnP inliers of the answer.
-        time_ms: (Q,) float64 wall time per query (features, retrieval, matching, PnP).
+        photometric: (Q,) float64 photometric consistency of the pose found (NaN: no pose
+            or too little overlap).
+        accepted_without_photometric: (Q,) bool, found and passed every validation test but
+            the photometric one (a replay of another threshold needs it).
+        time_ms: (Q,) float64 wall time per query (features, retrieval, matching, PnP,
+            photometric consistency).
     """
 
     frames: np.ndarray
@@ -438,7 +445,11 @@ class SequenceLocalization:
     accepted: np.ndarray
     reference: np.ndarray
     top1: np.ndarray
+    num_matches: np.ndarray
+    num_points: np.ndarray
     num_inliers: np.ndarray
+    photometric: np.ndarray
+    accepted_without_photometric: np.ndarray
     time_ms: np.ndarray
 
     @classmethod
@@ -493,7 +504,13 @@ def localize_sequence(
                     [int(r.retrieved[0]) if len(r.retrieved) else -1 for r in results],
                     dtype=np.int64,
                 ),
+                "num_matches": np.array([r.num_matches for r in results], dtype=np.int64),
+                "num_points": np.array([r.num_points for r in results], dtype=np.int64),
                 "num_inliers": np.array([r.num_inliers for r in results], dtype=np.int64),
+                "photometric": np.array([r.photometric for r in results], dtype=np.float64),
+                "accepted_without_photometric": np.array(
+                    [r.accepted_without_photometric for r in results]
+                ),
                 "time_ms": np.array([r.time_ms for r in results], dtype=np.float64),
             }
             with atomic_open(stage.workdir() / "localization.npz", "wb") as handle:

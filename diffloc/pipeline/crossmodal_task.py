@@ -112,7 +112,7 @@ def run_crossmodal(
     sequences = {}
     for name in task.sequences:
         loc, outcome = localize_sequence(
-            dataset, option, name, task.every, task.localizer, database, show_progress
+            dataset, option, name, task.every, task.localizer_for(option), database, show_progress
         )
         stages[f"localize_{name}"] = outcome.summary.to_json()
         seq = read_sequence(dataset, name)  # ground truth: scoring only

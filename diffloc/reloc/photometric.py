@@ -33,6 +33,8 @@ Usage::
 
     check = PhotometricCheck(surfel_map, db.T_wc, db.camera, keyframe_image)
     score = check.score(query_image, result.T_wc, camera, result.canonical)   # in [-1, 1]
+    # a reference with depth of its own (an RGB-D database image): steps 2-5 alone
+    score = warped_ncc(grey, depth, ref_camera, T_w_ref, query_image, camera, T_wc, config)
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ from diffloc.geometry.se3 import invert, transform_points
 from diffloc.maps.surfel import SurfelMap
 from diffloc.render.surfel_render import SurfelIndexRenderer
 
-__all__ = ["PhotometricCheck", "PhotometricConfig", "cell_ncc"]
+__all__ = ["PhotometricCheck", "PhotometricConfig", "cell_ncc", "grey_image", "warped_ncc"]
 
 
 @dataclass(frozen=True)
@@ -90,7 +92,7 @@ def _compared(camera: PinholeCamera, width_px: int) -> PinholeCamera:
     return camera.scaled(width_px / camera.width) if camera.width > width_px else camera
 
 
-def _grey(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
+def grey_image(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """(H, W) float32 luma of a (3, H0, W0) image, area-resampled to (height, width)."""
     weights = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float32)
     grey = (image.to(torch.float32) * weights[:, None, None]).sum(0)
@@ -178,14 +180,15 @@ class PhotometricCheck:
         if k not in self._keyframes:
             camera = _compared(self.keyframe_camera(k), self.config.width_px)
             depth = self.renderer.render(self.keyframe_poses[k][None].float(), camera).depth[0]
-            grey = _grey(self.keyframe_image(k), camera.height, camera.width)
+            grey = grey_image(self.keyframe_image(k), camera.height, camera.width)
             self._keyframes[k] = (camera.to(torch.float64), grey, depth)
         return self._keyframes[k]
 
     def score(
         self, image: torch.Tensor, T_wc: torch.Tensor, camera: PinholeCamera, keyframe: int
     ) -> float:
-        """Median per-cell NCC between the query and keyframe ``keyframe`` warped to it.
+        """Median per-cell NCC between the query and keyframe ``keyframe`` warped to it
+        (:func:`warped_ncc` of the keyframe's scaled grey image and surfel depth).
 
         Args:
             image: (3, H, W) query image in [0, 1].
@@ -201,43 +204,92 @@ class PhotometricCheck:
             ValueError: a non-finite pose.
             IndexError: a keyframe the database does not hold.
         """
-        check_shape(image, "3,H,W", "image")
-        check_shape(T_wc, "4,4", "T_wc")
-        check_finite(T_wc, "T_wc")
         if not 0 <= keyframe < len(self.keyframe_poses):
             raise IndexError(
                 f"keyframe {keyframe} is not in the database of {len(self.keyframe_poses)}"
             )
-        cfg = self.config
         k_camera, k_grey, k_depth = self._keyframe(keyframe)
-        k_pixels = torch.nonzero(k_depth > 0).flip(1)  # (N, 2) (u, v) with depth
-        z_k = k_depth[k_pixels[:, 1], k_pixels[:, 0]].double()
-        points = transform_points(
-            self.keyframe_poses[keyframe], k_camera.unproject(k_pixels.double(), z_k)
+        return warped_ncc(
+            k_grey,
+            k_depth,
+            k_camera,
+            self.keyframe_poses[keyframe],
+            image,
+            camera,
+            T_wc,
+            self.config,
         )
-        query_camera = _compared(camera, cfg.width_px).to(torch.float64)
-        in_query = transform_points(invert(T_wc.double()), points)
-        uv, in_front = query_camera.project(in_query)
-        inside = torch.nonzero(in_front & query_camera.in_image(uv)).squeeze(1)
-        uv, z_q, k_pixels = uv[inside], in_query[inside, 2], k_pixels[inside]
-        # z-buffer of the warped points: only the nearest surface of a query pixel is seen
-        height, width = query_camera.height, query_camera.width
-        cols = uv[:, 0].round().long().clamp(0, width - 1)
-        rows = uv[:, 1].round().long().clamp(0, height - 1)
-        flat = rows * width + cols
-        nearest = torch.full((height * width,), math.inf, dtype=torch.float64)
-        nearest.scatter_reduce_(0, flat, z_q, "amin")
-        seen = z_q <= nearest[flat] * (1 + cfg.depth_tolerance)
-        uv, rows, cols, k_pixels = uv[seen], rows[seen], cols[seen], k_pixels[seen]
-        cell = (rows * cfg.cells // height) * cfg.cells + cols * cfg.cells // width
-        ncc = cell_ncc(
-            _bilinear(_grey(image, height, width), uv),
-            k_grey[k_pixels[:, 1], k_pixels[:, 0]],
-            cell,
-            cfg.cells**2,
-            cfg.min_cell_pixels,
-        )
-        scored = ncc[~ncc.isnan()]
-        if len(scored) < cfg.min_cells:
-            return math.nan
-        return float(scored.median())
+
+
+def warped_ncc(
+    reference_grey: torch.Tensor,
+    reference_depth: torch.Tensor,
+    reference_camera: PinholeCamera,
+    T_w_reference: torch.Tensor,
+    image: torch.Tensor,
+    camera: PinholeCamera,
+    T_wc: torch.Tensor,
+    config: PhotometricConfig,
+) -> float:
+    """Median per-cell NCC between a query and a reference image with depth warped to it
+    (module docstring, steps 2-5): the core of :meth:`PhotometricCheck.score`, and the whole
+    test where the reference already has depth (a rendered or real-image RGB-D database).
+
+    Every reference pixel is compared at its own resolution; the query is scaled down to
+    ``config.width_px`` pixels wide.
+
+    Args:
+        reference_grey: (h, w) grey reference image.
+        reference_depth: (h, w) its z-depth, 0 = none.
+        reference_camera: the reference camera (batch shape ``()``, size w x h).
+        T_w_reference: (4, 4) reference camera-to-world pose.
+        image: (3, H, W) query image in [0, 1].
+        camera: the query camera (batch shape ``()``).
+        T_wc: (4, 4) the query's camera-to-world pose to test.
+        config: settings.
+
+    Returns:
+        The score in [-1, 1], NaN with fewer than ``config.min_cells`` scored cells.
+
+    Raises:
+        ShapeError: a reference image or depth not of the reference camera's size, a query
+            image that is not (3, H, W) or a pose that is not (4, 4).
+        ValueError: a non-finite pose.
+    """
+    size = f"{reference_camera.height},{reference_camera.width}"
+    check_shape(reference_grey, size, "reference_grey")
+    check_shape(reference_depth, size, "reference_depth")
+    check_shape(image, "3,H,W", "image")
+    for name, T in (("T_w_reference", T_w_reference), ("T_wc", T_wc)):
+        check_shape(T, "4,4", name)
+        check_finite(T, name)
+    cfg, k_camera = config, reference_camera.to(torch.float64)
+    k_pixels = torch.nonzero(reference_depth > 0).flip(1)  # (N, 2) (u, v) with depth
+    z_k = reference_depth[k_pixels[:, 1], k_pixels[:, 0]].double()
+    points = transform_points(T_w_reference.double(), k_camera.unproject(k_pixels.double(), z_k))
+    query_camera = _compared(camera, cfg.width_px).to(torch.float64)
+    in_query = transform_points(invert(T_wc.double()), points)
+    uv, in_front = query_camera.project(in_query)
+    inside = torch.nonzero(in_front & query_camera.in_image(uv)).squeeze(1)
+    uv, z_q, k_pixels = uv[inside], in_query[inside, 2], k_pixels[inside]
+    # z-buffer of the warped points: only the nearest surface of a query pixel is seen
+    height, width = query_camera.height, query_camera.width
+    cols = uv[:, 0].round().long().clamp(0, width - 1)
+    rows = uv[:, 1].round().long().clamp(0, height - 1)
+    flat = rows * width + cols
+    nearest = torch.full((height * width,), math.inf, dtype=torch.float64)
+    nearest.scatter_reduce_(0, flat, z_q, "amin")
+    seen = z_q <= nearest[flat] * (1 + cfg.depth_tolerance)
+    uv, rows, cols, k_pixels = uv[seen], rows[seen], cols[seen], k_pixels[seen]
+    cell = (rows * cfg.cells // height) * cfg.cells + cols * cfg.cells // width
+    ncc = cell_ncc(
+        _bilinear(grey_image(image, height, width), uv),
+        reference_grey[k_pixels[:, 1], k_pixels[:, 0]],
+        cell,
+        cfg.cells**2,
+        cfg.min_cell_pixels,
+    )
+    scored = ncc[~ncc.isnan()]
+    if len(scored) < cfg.min_cells:
+        return math.nan
+    return float(scored.median())

@@ -35,8 +35,12 @@ ground truth, passes :meth:`~diffloc.reloc.validation.PoseValidator.plausible` i
 mode (``config.validation``): at least ``theta_in`` inliers, an inlier ratio (inliers / points
 with depth), inliers spread over the query image (the share of a ``coverage_grid`` x
 ``coverage_grid`` grid holding one) and no rival candidate of another reference farther than
-``theta_dist_m`` with ``ambiguity_ratio`` times its inliers. A user can live with "not
-localized" (:attr:`RenderedLocalization.accepted` false), not with a confident wrong pose.
+``theta_dist_m`` with ``ambiguity_ratio`` times its inliers, and, with ``min_photometric`` set,
+photometric consistency: the reference image, lifted by its own depth and warped into the query
+at the pose, agrees with the query (:func:`~diffloc.reloc.photometric.warped_ncc`, median NCC
+over image cells; measured for every pose found and recorded, so a replay can choose another
+threshold). A user can live with "not localized" (:attr:`RenderedLocalization.accepted`
+false), not with a confident wrong pose.
 
 Usage (needs a :class:`~diffloc.crossmodal.database.RenderedDatabase`;
 ``tests/test_rendered_localization.py`` runs it on the tiny scene)::
@@ -52,7 +56,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -62,6 +66,7 @@ from diffloc.features.local import Features, XFeatConfig, XFeatExtractor
 from diffloc.features.matching import LighterGlueConfig, LighterGlueMatcher
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.reloc.hierarchical import grid_coverage
+from diffloc.reloc.photometric import PhotometricConfig, grey_image, warped_ncc
 from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
 from diffloc.reloc.rerank import MutualNNReranker, RerankConfig
 from diffloc.reloc.retrieval import (
@@ -149,6 +154,11 @@ class RenderedLocalizerConfig:
 
     Held-out seeds are reported in ``experiments/results/rendered_localization_*.md``.
 
+    ``validation.min_photometric`` is off here; ``task=crossmodal`` sets it per map
+    (``task.min_photometric`` in ``task/scene/crossmodal_indoor.yaml``, chosen on indoor seed
+    0: 0.4 for the rendered maps, 0.7 for the real images;
+    ``experiments/results/crossmodal_photometric_indoor_seed0.md``).
+
     Attributes:
         retriever: ``"netvlad"`` or ``"bow"``.
         top_k: retrieved images tried (1 = Algorithm 1).
@@ -164,7 +174,10 @@ class RenderedLocalizerConfig:
             inliers is a candidate's coverage.
         validation: single-image thresholds a pose must pass to be accepted
             (``temporal=False``; ``theta_dist_m`` is the distance beyond which a candidate of
-            another reference is a rival); ``None`` accepts every pose found.
+            another reference is a rival; ``min_photometric`` the lowest photometric
+            consistency); ``None`` accepts every pose found.
+        photometric: settings of the photometric consistency of a pose found (measured
+            whether or not ``validation.min_photometric`` is set).
         bow: bag-of-words settings (vocabulary trained on the database's descriptors).
         rerank: re-ranking of the global retrieval's best by mutual-nearest-neighbour
             matches before ``top_k`` are matched (``None``: the global order).
@@ -181,6 +194,7 @@ class RenderedLocalizerConfig:
     pnp: PnPRansacConfig = field(default_factory=lambda: PnPRansacConfig(min_inliers=6))
     coverage_grid: int = 4
     validation: ValidationConfig | None = field(default_factory=single_image_validation)
+    photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     bow: BowConfig = field(default_factory=BowConfig)
     rerank: RerankConfig | None = field(default_factory=RerankConfig)
     seed: int = 0
@@ -254,7 +268,13 @@ class RenderedLocalization:
         num_matches: LighterGlue matches with the reference.
         num_points: of those, matches whose reference keypoint has depth.
         num_inliers: PnP inliers (0 without a PnP attempt).
-        time_ms: wall time of the query (features, retrieval, matching, PnP), milliseconds.
+        photometric: photometric consistency of the pose with its reference image (NaN: no
+            pose, or too little overlap to score).
+        accepted_without_photometric: a pose was found and passed every validation test but
+            the photometric one (``accepted`` for another ``min_photometric`` is this and
+            ``photometric >= min_photometric``).
+        time_ms: wall time of the query (features, retrieval, matching, PnP, photometric
+            consistency), milliseconds.
         cpu_ms: CPU time of the process over the same span (all its threads), milliseconds.
     """
 
@@ -267,32 +287,42 @@ class RenderedLocalization:
     num_matches: int
     num_points: int
     num_inliers: int
+    photometric: float
+    accepted_without_photometric: bool
     time_ms: float
     cpu_ms: float
 
 
 def pose_evidence(
-    best: RenderedCandidate, candidates: tuple[RenderedCandidate, ...]
+    best: RenderedCandidate,
+    candidates: tuple[RenderedCandidate, ...],
+    photometric: float | None = None,
 ) -> PoseEvidence:
     """The validation's evidence of the chosen candidate: its inliers over its points with
-    depth, its coverage, and every successful candidate as a rival (inliers, distance to the
-    chosen pose; the chosen one among them at distance 0)."""
+    depth, its coverage, every successful candidate as a rival (inliers, distance to the
+    chosen pose; the chosen one among them at distance 0) and its ``photometric``
+    consistency (``None``: not measured)."""
     position = best.T_wc[:3, 3]
     rivals = tuple(
         (c.num_inliers, float(torch.linalg.vector_norm(c.T_wc[:3, 3] - position)))
         for c in candidates
         if c.success
     )
-    return PoseEvidence(position, best.num_inliers, best.num_points, best.coverage, rivals)
+    return PoseEvidence(
+        position, best.num_inliers, best.num_points, best.coverage, rivals, photometric
+    )
 
 
 def accept_pose(
     best: RenderedCandidate,
     candidates: tuple[RenderedCandidate, ...],
     validation: ValidationConfig | None,
+    photometric: float | None = None,
 ) -> bool:
     """Whether the chosen candidate is accepted: a pose was found and it passes the
-    single-image validation (module docstring; ``None`` accepts every pose found).
+    single-image validation (module docstring; ``None`` accepts every pose found), with its
+    ``photometric`` consistency (NaN fails; ``None``, not measured, is refused when
+    ``validation.min_photometric`` is set).
 
     Example:
         >>> T = torch.eye(4, dtype=torch.float64)
@@ -303,6 +333,9 @@ def accept_pose(
         ...                          ambiguity_ratio=0.5)
         >>> accept_pose(best, (best,), check), accept_pose(best, (best, rival), check)
         (True, False)
+        >>> check = replace(check, min_photometric=0.5)
+        >>> accept_pose(best, (best,), check, 0.8), accept_pose(best, (best,), check, 0.2)
+        (True, False)
     """
     if not best.success:
         return False
@@ -310,7 +343,7 @@ def accept_pose(
         return True
     if best.num_inliers < validation.theta_in:
         return False
-    return PoseValidator(validation).plausible(pose_evidence(best, candidates))
+    return PoseValidator(validation).plausible(pose_evidence(best, candidates, photometric))
 
 
 def lift_keypoints(
@@ -430,18 +463,41 @@ class RenderedDatabaseLocalizer:
             for reference in retrieved.tolist()
         )
         best, candidates = choose_candidate(attempts, self.config.select, self.config.stop_inliers)
+        photometric = self._photometric(image, camera, best) if best.success else math.nan
+        validation = self.config.validation
+        geometric = None if validation is None else replace(validation, min_photometric=None)
         return RenderedLocalization(
             T_wc=best.T_wc,
             success=best.success,
-            accepted=accept_pose(best, candidates, self.config.validation),
+            accepted=accept_pose(best, candidates, validation, photometric),
             reference=best.reference,
             retrieved=retrieved,
             candidates=candidates,
             num_matches=best.num_matches,
             num_points=best.num_points,
             num_inliers=best.num_inliers,
+            photometric=photometric,
+            accepted_without_photometric=accept_pose(best, candidates, geometric),
             time_ms=1000.0 * (time.perf_counter() - start),
             cpu_ms=1000.0 * (time.process_time() - start_cpu),
+        )
+
+    def _photometric(
+        self, image: torch.Tensor, camera: PinholeCamera, best: RenderedCandidate
+    ) -> float:
+        """Photometric consistency of the pose found: its reference image and depth warped
+        into the query (:func:`~diffloc.reloc.photometric.warped_ncc`)."""
+        db, r = self.database, best.reference
+        grey = grey_image(db.rgb[r], db.camera.height, db.camera.width)
+        return warped_ncc(
+            grey,
+            db.depth[r, 0],
+            db.camera,
+            db.T_wc[r],
+            image,
+            camera,
+            best.T_wc,
+            self.config.photometric,
         )
 
     def _retrieve(self, image: torch.Tensor, query: Features) -> torch.Tensor:

@@ -1,0 +1,58 @@
+"""experiments/crossmodal_breakdown.py: each query's outcome is the first stage that decides it."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+from diffloc.pipeline.crossmodal_stage import SequenceLocalization
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location(
+        "crossmodal_breakdown", ROOT / "experiments/crossmodal_breakdown.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_every_query_gets_the_first_stage_that_decides_it():
+    script = load_script()
+    # columns: success, accepted, accepted without photometric, inliers, correct,
+    # reference near, renders near
+    cases = {
+        "localized": (True, True, True, 300, True, True, 3),
+        "wrong accepted": (True, True, True, 300, False, False, 3),
+        "no pose": (False, False, False, 0, False, True, 3),
+        "right pose rejected: inliers": (True, False, False, 120, True, True, 3),
+        "right pose rejected: coverage or rival": (True, False, False, 300, True, True, 3),
+        "right pose rejected: photometric": (True, False, True, 300, True, True, 3),
+        "wrong pose, no render near": (True, False, False, 90, False, False, 0),
+        "wrong pose, far reference": (True, False, False, 90, False, False, 2),
+        "wrong pose, near reference": (True, False, False, 90, False, True, 2),
+    }
+    assert tuple(cases) == script.OUTCOMES
+    success, accepted, geometric, inliers, correct, near, renders = map(
+        np.array, zip(*cases.values(), strict=True)
+    )
+    q = len(cases)
+    loc = SequenceLocalization(
+        frames=np.arange(q),
+        T_wc=np.tile(np.eye(4), (q, 1, 1)),
+        success=success,
+        accepted=accepted,
+        reference=np.zeros(q, dtype=np.int64),
+        top1=np.zeros(q, dtype=np.int64),
+        num_matches=inliers + 100,
+        num_points=inliers + 50,
+        num_inliers=inliers,
+        photometric=np.full(q, 0.5),
+        accepted_without_photometric=geometric,
+        time_ms=np.ones(q),
+    )
+    assert script.outcomes(loc, accepted, correct, near, renders, 150) == list(cases)
