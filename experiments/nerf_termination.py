@@ -27,6 +27,19 @@ from diffloc.maps.nerf.renderer import render_image
 from diffloc.maps.nerf.submaps import SubmapConfig, cluster_trajectory
 
 
+def count_evaluations(field) -> list[int]:
+    """Make ``field.geometry`` count the points it evaluates (the density evaluations of an
+    RGB-D render); returns the counter, ``[points]``."""
+    counter, geometry = [0], field.geometry
+
+    def counted(points):
+        counter[0] += len(points)
+        return geometry(points)
+
+    field.geometry = counted
+    return counter
+
+
 def render(field, grid, camera, pose, code, stop: float) -> tuple[dict, float]:
     """One RGB-D render with ``stop_transmittance = stop`` and its process CPU seconds."""
     grid.config = dataclasses.replace(grid.config, stop_transmittance=stop)
@@ -56,6 +69,8 @@ def main() -> None:
     stops = [0.0] + [float(s) for s in args.stops.split(",")]
     load_start = os.getloadavg()[0]
     cpu: dict[float, list[float]] = {s: [] for s in stops}
+    evaluations = {s: 0 for s in stops}
+    counter = count_evaluations(field)
     diff: dict[float, dict[str, float]] = {
         s: {"rgb": 0.0, "opacity": 0.0, "depth_m": 0.0} for s in stops
     }
@@ -63,7 +78,9 @@ def main() -> None:
         pose = seq.T_wc[frame].float()
         reference = None
         for stop in stops:
+            counter[0] = 0
             out, seconds = render(field, grid, camera, pose, code, stop)
+            evaluations[stop] += counter[0]
             cpu[stop].append(seconds)
             reference = out if reference is None else reference
             for key, name in (("rgb", "rgb"), ("opacity", "opacity"), ("depth", "depth_m")):
@@ -79,16 +96,25 @@ def main() -> None:
         "load_avg_end": os.getloadavg()[0],
         "cpu_s_median": {str(s): round(statistics.median(cpu[s]), 3) for s in stops},
         "cpu_s": {str(s): [round(c, 3) for c in cpu[s]] for s in stops},
+        "density_evaluations_per_ray": {
+            str(s): round(evaluations[s] / (len(frames) * camera.width * camera.height), 2)
+            for s in stops
+        },
         "max_abs_change": {str(s): diff[s] for s in stops},
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(record, indent=1) + "\n")
-    print("| stop_transmittance | median CPU s | max change rgb | opacity | depth, m |")
-    print("|---|---|---|---|---|")
+    print(
+        "| stop_transmittance | median CPU s | evaluations per ray | max change rgb | opacity |"
+        " depth, m |"
+    )
+    print("|---|---|---|---|---|---|")
     for s in stops:
         d = diff[s]
         print(
-            f"| {s:g} | {statistics.median(cpu[s]):.2f} | {d['rgb']:.1e} | {d['opacity']:.1e} "
+            f"| {s:g} | {statistics.median(cpu[s]):.2f} "
+            f"| {record['density_evaluations_per_ray'][str(s)]:.1f} | {d['rgb']:.1e} "
+            f"| {d['opacity']:.1e} "
             f"| {d['depth_m']:.1e} |"
         )
 

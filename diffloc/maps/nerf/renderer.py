@@ -115,7 +115,10 @@ def render_rays(
     so that the normal loss needs no second evaluation nor double backward); the others
     count as zero, which changes the result by at most those thresholds. With grad enabled,
     a no-grad pre-pass finds the weights first and only samples above ``grad_min_weight``
-    (and the lidar window) are differentiable; the others enter as constants.
+    (and the lidar window) are differentiable; the others enter as constants. Early ray
+    termination (``stop_transmittance`` without grad, ``grad_stop_transmittance`` with):
+    samples after a ray's transmittance has fallen to the threshold are not evaluated
+    (:class:`_Marcher`), which changes colour and opacity by at most the threshold.
 
     Args:
         field: the radiance field.
