@@ -68,6 +68,7 @@ VARIANTS = {
     "rgb_only": ({"depth_weight": 0.0, "normal_weight": 0.0}, {}),
     "rgb_depth": ({"normal_weight": 0.0}, {}),
     "grid": ({}, {"guided_samples": 0}),
+    "noskip": ({}, {"skip_density": 0.0}),
     "uniform": (
         {},
         {"importance_samples": 0, "guided_samples": 0, "uniform_samples": 40, "skip_density": 0},
@@ -247,7 +248,12 @@ def run_variant(
 
 
 # sampler runs of a record: (key suffix, label); "full" is the default (grid + lidar-guided).
-SAMPLERS = (("_uniform", "uniform (40 per ray)"), ("_grid", "grid"), ("", "grid + lidar-guided"))
+SAMPLERS = (
+    ("_uniform", "uniform (40 per ray)"),
+    ("_grid", "grid"),
+    ("", "grid + lidar-guided"),
+    ("_noskip", "grid + lidar-guided, no skipping"),
+)
 
 
 def sampling_comparison(record: dict) -> dict:
