@@ -12,8 +12,9 @@ Training time excludes evaluation; ``train_s`` is wall time on a shared machine,
 ``time_to_25db_s`` / ``cpu_to_25db_s`` are the wall / CPU time of the first evaluation at or
 above 25 dB. ``--clock cpu`` puts the evaluation marks and the budget on CPU time (for a
 loaded machine); the goals are wall-clock figures on a quiet one (``--clock wall``).
-``--variants full,uniform`` compares the density-grid + lidar-guided sampler with uniform
-sampling (``sampling_vs_uniform``, ``--sampling-md`` writes it as a table).
+``--variants full,grid,uniform,noskip`` compares samplers (density grid + lidar-guided, grid
+only, uniform, grid without empty-cell skipping; ``sampling``; ``--sampling-md`` /
+``--sampling-png`` write the table / PSNR-vs-CPU plot; ``--eval-every-s`` sets the marks).
 
     PYTHONPATH=. OMP_NUM_THREADS=2 python3 experiments/bench_nerf.py --budget-s 600 \
         --out experiments/results/bench_nerf.jsonl
