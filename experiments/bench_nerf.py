@@ -12,8 +12,9 @@ Training time excludes evaluation; ``train_s`` is wall time on a shared machine,
 ``time_to_25db_s`` / ``cpu_to_25db_s`` are the wall / CPU time of the first evaluation at or
 above 25 dB. ``--clock cpu`` puts the evaluation marks and the budget on CPU time (for a
 loaded machine); the goals are wall-clock figures on a quiet one (``--clock wall``).
-``--variants full,uniform`` compares the density-grid + lidar-guided sampler with uniform
-sampling (``sampling_vs_uniform``, ``--sampling-md`` writes it as a table).
+``--variants full,grid,uniform,noskip`` compares samplers (density grid + lidar-guided, grid
+only, uniform, grid without empty-cell skipping; ``sampling``; ``--sampling-md`` /
+``--sampling-png`` write the table / PSNR-vs-CPU plot; ``--eval-every-s`` sets the marks).
 
     PYTHONPATH=. OMP_NUM_THREADS=2 python3 experiments/bench_nerf.py --budget-s 600 \
         --out experiments/results/bench_nerf.jsonl
@@ -43,7 +44,10 @@ import lightning as L
 import numpy as np
 import torch
 import torch.nn.functional as F
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
+from diffloc.eval.curves import common_level, time_to_reach
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.io.dataset import read_sequence
 from diffloc.io.sequence import SequenceData
@@ -64,6 +68,8 @@ VARIANTS = {
     "full": ({}, {}),
     "rgb_only": ({"depth_weight": 0.0, "normal_weight": 0.0}, {}),
     "rgb_depth": ({"normal_weight": 0.0}, {}),
+    "grid": ({}, {"guided_samples": 0}),
+    "noskip": ({}, {"skip_density": 0.0}),
     "uniform": (
         {},
         {"importance_samples": 0, "guided_samples": 0, "uniform_samples": 40, "skip_density": 0},
@@ -155,12 +161,20 @@ class TimedEvaluation(L.Callback):
     """Evaluate at training-time marks (evaluation time excluded) and stop at the budget.
     Marks and budget are on ``clock``: ``"wall"`` or ``"cpu"`` (process time, all threads)."""
 
-    def __init__(self, seq: SequenceData, rays: SubmapRays, budget_s: float, clock: str) -> None:
+    def __init__(
+        self,
+        seq: SequenceData,
+        rays: SubmapRays,
+        budget_s: float,
+        clock: str,
+        every_s: float | None = None,
+    ) -> None:
         self.seq, self.rays, self.budget_s = seq, rays, budget_s
         self.elapsed = self.train_cpu_s if clock == "cpu" else self.train_s
         self.curve: list[tuple[float, int, float]] = []
         self.excluded = self.excluded_cpu = 0.0
-        self.marks = [m for m in EVAL_AT_S if m < budget_s] + [budget_s]
+        marks = EVAL_AT_S if every_s is None else np.arange(every_s, budget_s, every_s)
+        self.marks = [float(m) for m in marks if m < budget_s] + [budget_s]
 
     def train_s(self) -> float:
         return time.perf_counter() - self.start - self.excluded
@@ -214,8 +228,9 @@ def run_variant(
     budget_s: float,
     out: Path,
     clock: str,
+    every_s: float | None = None,
 ) -> dict:
-    timer = TimedEvaluation(seq, rays, budget_s, clock)
+    timer = TimedEvaluation(seq, rays, budget_s, clock, every_s)
     module = fit_submap(rays, config, out, epochs=10**6, callbacks=[timer], show_progress=False)
     train_s, train_cpu_s = timer.train_s(), timer.train_cpu_s()
     result = evaluate(module, seq, rays, full=True)
@@ -233,25 +248,39 @@ def run_variant(
     return result
 
 
+# sampler runs of a record: (key suffix, label); "full" is the default (grid + lidar-guided).
+SAMPLERS = (
+    ("_uniform", "uniform (40 per ray)"),
+    ("_grid", "grid"),
+    ("", "grid + lidar-guided"),
+    ("_noskip", "grid + lidar-guided, no skipping"),
+)
+
+
 def sampling_comparison(record: dict) -> dict:
-    """Grid + lidar-guided sampling against uniform: the CPU seconds each needed to first
-    reach the best held-out PSNR the uniform run reached (evaluation marks, so an upper
-    bound for both), and each run's final figures."""
-    target = max(p for *_, p in record["curve_uniform"])
-    return {
-        "target_psnr_db": target,
-        "cpu_to_target_s_grid": _first_reaching(record["curve"], target)[1],
-        "cpu_to_target_s_uniform": _first_reaching(record["curve_uniform"], target)[1],
-        "psnr_heldout_db_grid": record["psnr_heldout_db"],
-        "psnr_heldout_db_uniform": record["psnr_heldout_db_uniform"],
-        "depth_median_abs_err_m_grid": record["depth_median_abs_err_m"],
-        "depth_median_abs_err_m_uniform": record["depth_median_abs_err_m_uniform"],
-        "train_cpu_s_grid": record["train_cpu_s"],
-        "train_cpu_s_uniform": record["train_cpu_s_uniform"],
-    }
+    """The sampler runs of a record (uniform, grid, grid + lidar-guided) compared at one
+    held-out PSNR level, the highest every run reached at an evaluation mark: the CPU seconds
+    each first reached it (linear between marks), and each run's final figures."""
+    runs = [(suffix, label) for suffix, label in SAMPLERS if f"curve{suffix}" in record]
+    scores = {label: [p for *_, p in record[f"curve{suffix}"]] for suffix, label in runs}
+    level = common_level(scores)
+    out: dict = {"target_psnr_db": level, "runs": {}}
+    for suffix, label in runs:
+        curve = record[f"curve{suffix}"]
+        cpu = [c for _, c, _, _ in curve]
+        out["runs"][label] = {
+            "cpu_to_target_s": time_to_reach(cpu, scores[label], level),
+            "psnr_heldout_db": record[f"psnr_heldout_db{suffix}"],
+            "depth_median_abs_err_m": record[f"depth_median_abs_err_m{suffix}"],
+            "normal_median_err_deg": record[f"normal_median_err_deg{suffix}"],
+            "train_cpu_s": record[f"train_cpu_s{suffix}"],
+            "steps": record[f"steps{suffix}"],
+            "cpu_ms_per_step": record[f"cpu_ms_per_step{suffix}"],
+        }
+    return out
 
 
-def merge(parts: list[str], out: Path, sampling_md: str | None) -> None:
+def merge(parts: list[str], out: Path, sampling_md: str | None, sampling_png: str | None) -> None:
     """One JSON line from the last lines of partial runs (run in parallel processes); keys
     that differ between parts (load averages, times) are kept per part under ``parts``."""
     records = [json.loads(Path(p).read_text().splitlines()[-1]) for p in parts]
@@ -263,7 +292,7 @@ def merge(parts: list[str], out: Path, sampling_md: str | None) -> None:
         {k: r[k] for k in ("prepare_s", "threads", "load_avg_start", "load_avg_end") if k in r}
         for r in records
     ]
-    _add_sampling_comparison(merged, sampling_md)
+    _add_sampling_comparison(merged, sampling_md, sampling_png)
     out.parent.mkdir(parents=True, exist_ok=True)
     with open(out, "a") as f:
         f.write(json.dumps(merged) + "\n")
@@ -271,41 +300,73 @@ def merge(parts: list[str], out: Path, sampling_md: str | None) -> None:
 
 
 def sampling_markdown(record: dict) -> str:
-    """The grid-vs-uniform comparison of a record as a Markdown table."""
-    c = record["sampling_vs_uniform"]
+    """The sampler comparison of a record as a Markdown table."""
+    c = record["sampling"]
+    labels = list(c["runs"])
     rows = [
-        ("CPU s to first reach the target", "cpu_to_target_s"),
-        ("held-out PSNR at the end, dB", "psnr_heldout_db"),
-        ("median depth error at the end, m", "depth_median_abs_err_m"),
-        ("training CPU s", "train_cpu_s"),
+        (f"CPU s to first reach {c['target_psnr_db']:.2f} dB", "cpu_to_target_s", "{:.0f}"),
+        ("held-out PSNR at the end, dB", "psnr_heldout_db", "{:.2f}"),
+        ("median depth error at the end, cm", "depth_median_abs_err_m", "{:.1f}"),
+        ("median normal error at the end, deg", "normal_median_err_deg", "{:.1f}"),
+        ("training CPU s", "train_cpu_s", "{:.0f}"),
+        ("steps", "steps", "{}"),
+        ("CPU ms per step", "cpu_ms_per_step", "{:.0f}"),
     ]
     lines = [
-        f"Sampling vs uniform ({record['data']}, submap {record['submap']}, "
-        f"{record['threads']} thread(s), load {record['load_avg_start']:.1f} at start); "
-        f"target = best held-out PSNR of the uniform run, {c['target_psnr_db']:.2f} dB "
-        "(first evaluation mark at or above it).",
+        f"Samplers ({record['data']}, submap {record['submap']}, {record['threads']} thread(s) "
+        f"per run, runs side by side, load {record['load_avg_start']:.1f} at start); level = "
+        f"the highest held-out PSNR every run reached at an evaluation mark, "
+        f"{c['target_psnr_db']:.2f} dB (time linear between marks).",
         "",
-        "| | grid + lidar-guided | uniform (40 per ray) |",
-        "|---|---|---|",
+        "| | " + " | ".join(labels) + " |",
+        "|---|" + "---|" * len(labels),
     ]
-    for label, key in rows:
-        values = [c[f"{key}_{run}"] for run in ("grid", "uniform")]
-        cells = ["not reached" if v is None else f"{v:.3g}" for v in values]
-        lines.append(f"| {label} | {cells[0]} | {cells[1]} |")
-    curves = [
-        ", ".join(f"{cpu:.0f} s: {psnr:.2f}" for _, cpu, _, psnr in record[key])
-        for key in ("curve", "curve_uniform")
-    ]
-    lines.append(f"| held-out PSNR (right-half eval) at CPU s | {curves[0]} | {curves[1]} |")
+    for label, key, fmt in rows:
+        values = [c["runs"][run][key] for run in labels]
+        values = [v * 100 if v is not None and key.endswith("_m") else v for v in values]
+        lines.append(
+            f"| {label} | "
+            + " | ".join("not reached" if v is None else fmt.format(v) for v in values)
+            + " |"
+        )
+    for suffix, label in SAMPLERS:
+        if label in c["runs"]:
+            points = ", ".join(f"{cpu:.0f}: {p:.2f}" for _, cpu, _, p in record[f"curve{suffix}"])
+            lines.append(
+                f"| PSNR at CPU s, {label} | "
+                + " | ".join(points if run == label else "" for run in labels)
+                + " |"
+            )
     return "\n".join(lines) + "\n"
 
 
-def _add_sampling_comparison(record: dict, markdown_path: str | None) -> None:
-    """Add ``sampling_vs_uniform`` when the record holds both runs (and write the table)."""
-    if "curve_uniform" in record and "curve" in record:
-        record["sampling_vs_uniform"] = sampling_comparison(record)
+def sampling_plot(record: dict, path: str) -> None:
+    """PNG of held-out PSNR against training CPU seconds, one line per sampler run."""
+    figure = Figure(figsize=(6.0, 4.5), dpi=100)
+    FigureCanvasAgg(figure)
+    ax = figure.add_subplot()
+    for suffix, label in SAMPLERS:
+        if f"curve{suffix}" in record:
+            curve = record[f"curve{suffix}"]
+            ax.plot([c for _, c, _, _ in curve], [p for *_, p in curve], marker="o", label=label)
+    ax.axhline(record["sampling"]["target_psnr_db"], color="grey", linestyle=":", linewidth=1)
+    ax.set_xlabel("training CPU s (process time)")
+    ax.set_ylabel("held-out PSNR, dB (right half)")
+    ax.set_title(f"samplers, {Path(record['data']).name} submap {record['submap']}")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    figure.savefig(path)
+
+
+def _add_sampling_comparison(record: dict, markdown_path: str | None, png: str | None) -> None:
+    """Add ``sampling`` when the record holds two or more sampler runs (and write the table
+    and the plot)."""
+    if sum(f"curve{suffix}" in record for suffix, _ in SAMPLERS) >= 2:
+        record["sampling"] = sampling_comparison(record)
         if markdown_path:
             Path(markdown_path).write_text(sampling_markdown(record))
+        if png:
+            sampling_plot(record, png)
 
 
 def main() -> None:
@@ -313,7 +374,11 @@ def main() -> None:
     parser.add_argument("--data", default="data/indoor_seed0")
     parser.add_argument("--budget-s", type=float, default=600.0)
     parser.add_argument("--clock", choices=("wall", "cpu"), default="wall")
-    parser.add_argument("--sampling-md", help="write the grid-vs-uniform table (Markdown) here")
+    parser.add_argument("--sampling-md", help="write the sampler table (Markdown) here")
+    parser.add_argument("--sampling-png", help="write the sampler PSNR-vs-CPU plot here")
+    parser.add_argument(
+        "--eval-every-s", type=float, help="evaluation marks every this many s (default: fixed)"
+    )
     parser.add_argument("--ablation-budget-s", type=float, default=None)
     parser.add_argument("--variants", default="full,rgb_only,rgb_depth")
     parser.add_argument("--encodings", default="triplane,hashgrid")
@@ -324,7 +389,7 @@ def main() -> None:
     parser.add_argument("--merge", nargs="+", help="merge the last lines of these JSONL files")
     args = parser.parse_args()
     if args.merge:
-        merge(args.merge, Path(args.out), args.sampling_md)
+        merge(args.merge, Path(args.out), args.sampling_md, args.sampling_png)
         return
     torch.set_num_threads(args.threads)
     seq = read_sequence(args.data, "mapping")
@@ -362,14 +427,14 @@ def main() -> None:
             budget = args.budget_s if main_run else ablation_budget
             print(f"{encoding} {variant}: {budget:.0f} s", flush=True)
             out = Path(args.work) / f"{encoding}_{variant}"
-            result = run_variant(seq, rays, config, budget, out, args.clock)
+            result = run_variant(seq, rays, config, budget, out, args.clock, args.eval_every_s)
             suffix = "" if variant == "full" else f"_{variant}"
             prefix = "" if encoding == encodings[0] else f"{encoding}_"
             record |= {f"{prefix}{k}{suffix}": v for k, v in result.items()}
             print(json.dumps(result), flush=True)
     record["load_avg_end"] = os.getloadavg()[0]
     record["clock"] = args.clock
-    _add_sampling_comparison(record, args.sampling_md)
+    _add_sampling_comparison(record, args.sampling_md, args.sampling_png)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "a") as f:
         f.write(json.dumps(record) + "\n")

@@ -154,7 +154,11 @@ def test_normals_gradcheck_in_the_encoding_and_mlp_parameters() -> None:
 
 def test_render_rays_with_grad_evaluates_each_sample_once_and_matches_autograd_normals() -> None:
     field = _field("triplane", False)
-    grid = DensityGrid(SamplerConfig(grid_resolution=6, coarse_samples=16, importance_samples=8))
+    # one evaluation call per pass: no early termination (which evaluates in chunks)
+    sampler = SamplerConfig(
+        grid_resolution=6, coarse_samples=16, importance_samples=8, stop_transmittance=0.0
+    )
+    grid = DensityGrid(sampler)
     grid.refresh(field.density, field.normalise, torch.Generator().manual_seed(0))
     g = torch.Generator().manual_seed(4)
     origins = (torch.rand(12, 3, generator=g, dtype=torch.float64) - 0.5) * 0.5

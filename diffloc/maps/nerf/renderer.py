@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -44,6 +46,55 @@ def _scatter(values: torch.Tensor, index: torch.Tensor, total: int) -> torch.Ten
     return values.new_zeros(total, *values.shape[1:]).index_copy(0, index, values)
 
 
+class _Marcher:
+    """Early ray termination: evaluates samples in chunks of ``chunk`` along the rays (all rays
+    at once per chunk) and leaves out the samples of rays whose transmittance, from the
+    densities evaluated so far, has fallen to ``stop`` or below, except the lidar window's;
+    ``stop`` <= 0 evaluates every sample in one call.
+
+    Args:
+        deltas: (R * S,) interval lengths.
+        window: (R * S,) bool, samples always evaluated.
+        rays: R.
+        samples: S.
+        stop: transmittance threshold.
+        chunk: samples per ray per chunk.
+    """
+
+    def __init__(
+        self,
+        deltas: torch.Tensor,
+        window: torch.Tensor,
+        rays: int,
+        samples: int,
+        stop: float,
+        chunk: int,
+    ) -> None:
+        self.deltas, self.window, self.rays, self.samples = deltas, window, rays, samples
+        self.max_depth = -math.log(stop) if stop > 0 else None
+        self.chunk = chunk
+
+    def __call__(
+        self, evaluate: Callable[[torch.Tensor], tuple[torch.Tensor, ...]], index: torch.Tensor
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        """Evaluate samples ``index`` (K,) (flat, ray-major) -> (the evaluated ones (K',),
+        ``evaluate``'s outputs for them, each (K', ...), density (K',) first)."""
+        if self.max_depth is None:
+            return index, evaluate(index)
+        depth = self.deltas.new_zeros(self.rays)  # optical depth so far per ray
+        part = torch.div(index % self.samples, self.chunk, rounding_mode="floor")
+        kept, outputs = [], []
+        for k in range(-(-self.samples // self.chunk)):
+            ray = index // self.samples
+            take = index[(part == k) & ((depth[ray] < self.max_depth) | self.window[index])]
+            out = evaluate(take)
+            tau = out[0].detach() * self.deltas[take]
+            depth = depth.index_add(0, take // self.samples, tau)
+            kept.append(take)
+            outputs.append(out)
+        return torch.cat(kept), tuple(torch.cat(o) for o in zip(*outputs, strict=True))
+
+
 def render_rays(
     field: RadianceField,
     grid: DensityGrid,
@@ -64,7 +115,10 @@ def render_rays(
     so that the normal loss needs no second evaluation nor double backward); the others
     count as zero, which changes the result by at most those thresholds. With grad enabled,
     a no-grad pre-pass finds the weights first and only samples above ``grad_min_weight``
-    (and the lidar window) are differentiable; the others enter as constants.
+    (and the lidar window) are differentiable; the others enter as constants. Early ray
+    termination (``stop_transmittance`` without grad, ``grad_stop_transmittance`` with):
+    samples after a ray's transmittance has fallen to the threshold are not evaluated
+    (:class:`_Marcher`), which changes colour and opacity by at most the threshold.
 
     Args:
         field: the radiance field.
@@ -95,30 +149,32 @@ def render_rays(
     if depth is not None:
         window = ((t - depth[:, None]).abs() <= 3 * depth_sigma).reshape(-1)
     evaluated = ((grid.occupied(xyz) | window) & inside).nonzero().squeeze(1)
+    cfg, grad = grid.config, torch.is_grad_enabled()
+    stop = cfg.grad_stop_transmittance if grad else cfg.stop_transmittance
+    march = _Marcher(deltas.reshape(-1), window, r, s, stop, cfg.stop_chunk)
     fixed = points.new_zeros(r * s)
-    if torch.is_grad_enabled() and grid.config.grad_min_weight >= 0:
+    if grad and cfg.grad_min_weight >= 0:
         with torch.no_grad():
-            fixed = _scatter(field.density(points[evaluated]), evaluated, r * s)
+            evaluated, (density,) = march(lambda i: (field.density(points[i]),), evaluated)
+            fixed = _scatter(density, evaluated, r * s)
             live = render_weights(fixed.reshape(r, s), deltas).reshape(-1)
-        live = (live > grid.config.grad_min_weight) | window
+        live = (live > cfg.grad_min_weight) | window
         evaluated = evaluated[live[evaluated]]
     # With grad (training), normals come from the same evaluation as the density; without
     # (rendering), the density gradient is formed only at the visible samples, usually a small
     # part of the evaluated ones (RadianceField.normals).
-    joint = with_normals and torch.is_grad_enabled()
-    if joint:
-        density, geo, normals = field.geometry_and_normals(points[evaluated])
-    else:
-        density, geo = field.geometry(points[evaluated])
+    joint = with_normals and grad
+    evaluate = field.geometry_and_normals if joint else field.geometry
+    evaluated, (density, geo, *normals) = march(lambda i: evaluate(points[i]), evaluated)
     weights = render_weights(fixed.index_copy(0, evaluated, density).reshape(r, s), deltas)
-    seen = weights.detach().reshape(-1)[evaluated] > grid.config.min_weight
+    seen = weights.detach().reshape(-1)[evaluated] > cfg.min_weight
     visible, ray = evaluated[seen], evaluated[seen] // s
     rgb = normal = None
     if appearance is not None:
         colour = field.colour(geo[seen], directions[ray], appearance[ray])
         rgb = composite(weights, _scatter(colour, visible, r * s).reshape(r, s, 3))
     if with_normals:
-        normals = normals[seen] if joint else field.normals(points[visible])
+        normals = normals[0][seen] if joint else field.normals(points[visible])
         normal = composite(weights, _scatter(normals, visible, r * s).reshape(r, s, 3))
         normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-9)
     return RenderedRays(

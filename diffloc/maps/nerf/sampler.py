@@ -54,6 +54,15 @@ class SamplerConfig:
             12 % more per step over the first 75 CPU s from scratch (little is dropped while
             the field is still transparent) although it saves 9-21 % (1e-4 / 1e-3) per step
             on a trained field (``experiments/results/nerf_speed.md``).
+        stop_transmittance: early ray termination when rendering without gradients: samples
+            are evaluated ``stop_chunk`` at a time along the rays, and a ray whose
+            transmittance has fallen to this or below evaluates no further samples (density
+            zero). The dropped samples' weights sum to at most this, so colour and opacity
+            change by at most this and range by at most this times the ray's far distance;
+            0 evaluates all. Default 1e-4 (``experiments/results/nerf_termination.md``).
+        grad_stop_transmittance: the same with gradients recorded (training); lidar-window
+            samples are always evaluated. 0 (default): off.
+        stop_chunk: samples per ray evaluated at a time when terminating early.
     """
 
     grid_resolution: int = 48
@@ -68,11 +77,14 @@ class SamplerConfig:
     skip_density: float = 0.01
     min_weight: float = 1e-4
     grad_min_weight: float = -1.0
+    stop_transmittance: float = 1e-4
+    grad_stop_transmittance: float = 0.0
+    stop_chunk: int = 4
 
     def __post_init__(self) -> None:
         check_int_at_least(self.grid_resolution, "grid_resolution", 2)
         check_number(self.grid_decay, "grid_decay", 0.0, 1.0)
-        for name in ("grid_update_every", "coarse_samples"):
+        for name in ("grid_update_every", "coarse_samples", "stop_chunk"):
             check_int_at_least(getattr(self, name), name, 1)
         for name in ("importance_samples", "uniform_samples", "guided_samples"):
             check_int_at_least(getattr(self, name), name, 0)
@@ -85,6 +97,8 @@ class SamplerConfig:
         check_number(self.skip_density, "skip_density", 0.0)
         check_number(self.min_weight, "min_weight", -1.0, 1.0)
         check_number(self.grad_min_weight, "grad_min_weight", -1.0, 1.0)
+        check_number(self.stop_transmittance, "stop_transmittance", 0.0, 1.0)
+        check_number(self.grad_stop_transmittance, "grad_stop_transmittance", 0.0, 1.0)
 
 
 def _jitter(rows: int, n: int, generator: torch.Generator | None) -> torch.Tensor:
