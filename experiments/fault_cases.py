@@ -62,7 +62,6 @@ from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.pipeline.database_select import select_database
 from diffloc.pipeline.database_stage import DatabaseConfig, database_dir
 from diffloc.pipeline.hints import Command, StaleStageError
-from diffloc.pipeline.nerf_stage import TRAINING_RECORD
 from diffloc.pipeline.stage import verified_record
 from diffloc.reloc.retrieval import BowConfig, BowRetriever, load_retriever
 from diffloc.sim.dataset import simulate_dataset
@@ -75,6 +74,7 @@ from tests.kill_runs import (
     stage_folder,
     stage_outputs,
     stage_record,
+    work_started,
 )
 from tests.read_only import read_only, snapshot
 
@@ -956,11 +956,11 @@ def nerf_checkpoint_past_epochs(root: Path) -> None:
 
 
 def _kill_train_nerf(trials: int) -> Callable[[Path], None]:
-    """Kills while submap 0 trains (the clock starts when its training record is written; the
-    first kill at once), each followed by a run to the end."""
+    """Kills while submap 0 trains (the clock starts when its work folder appears; the first
+    kill at once), each followed by a run to the end."""
 
     def case(root: Path) -> None:
-        started = f"{root.name}/nerf/submap_0/{TRAINING_RECORD}"
+        started = work_started("train_nerf", root)
         _, seconds = killed_run("train_nerf", root, None, after_glob=started)
         rng = random.Random(11)
         for trial in range(trials):

@@ -102,6 +102,13 @@ def stage_record(stage: str, root: Path) -> Path:
     return stage_folder(stage, root) / f"{name}.json"
 
 
+def work_started(stage: str, root: Path) -> str:
+    """The ``after_glob`` of :func:`killed_run` that matches ``stage``'s work folder on ``root``
+    (it exists from when the stage starts its work until its commit)."""
+    folder = stage_folder(stage, root).relative_to(root.parent)
+    return f"{folder.as_posix()}/.tmp-{stage}-*"
+
+
 def folder_files(folder: Path) -> dict[str, bytes]:
     """The bytes of every file under ``folder`` (hidden lock files left out), by path."""
     return {
