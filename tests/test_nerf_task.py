@@ -114,9 +114,20 @@ def _nan_weight(path: Path) -> None:
     torch.save(state, path)
 
 
+def _without_identity(path: Path) -> None:
+    """A checkpoint as diffloc wrote it before checkpoints named their training."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    del state[nerf_stage.TRAINING_KEY]
+    torch.save(state, path)
+
+
 @pytest.mark.parametrize(
     ("spoil", "reason"),
-    [(_truncate, "cannot be read"), (_nan_weight, "non-finite weights")],
+    [
+        (_truncate, "cannot be read"),
+        (_nan_weight, "non-finite weights"),
+        (_without_identity, "does not say which training"),
+    ],
 )
 def test_a_spoilt_checkpoint_is_not_resumed_and_the_run_trains_from_scratch(
     tiny_indoor_dataset: Path, tmp_path: Path, spoil: Callable[[Path], None], reason: str
