@@ -1080,6 +1080,27 @@ def cases(quick: bool, kills: int) -> list[tuple[str, Callable[[Path], None]]]:
     return found
 
 
+def write_report(summary: dict, out: Path) -> None:
+    """Write ``summary`` (command, counts per class, cases) to ``out`` (JSON) and the same name
+    with ``.md``: the command and the counts, then a table of the cases."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(summary, indent=2) + "\n")
+    counts = " / ".join(f"{name} {summary['counts'][name]}" for name in CLASSES)
+    lines = [
+        f"`{summary['command']}`",
+        "",
+        f"{len(summary['cases'])} cases: {counts}",
+        "",
+        "| case | group | class | message |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['case']} | {r['group']} | {r['class']} | {r['message'][:140].replace('|', '/')} |"
+        for r in summary["cases"]
+    ]
+    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true")
@@ -1127,20 +1148,7 @@ def main() -> None:
         "counts": {name: counts.get(name, 0) for name in CLASSES},
         "cases": rows,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(summary, indent=2) + "\n")
-    lines = [
-        f"`{summary['command']}`",
-        "",
-        "| case | group | class | message |",
-        "|---|---|---|---|",
-    ]
-    lines += [
-        f"| {r['case']} | {r['group']} | {r['class']} | {r['message'][:140].replace('|', '/')} |"
-        for r in rows
-    ]
-    lines += ["", " / ".join(f"{name} {summary['counts'][name]}" for name in CLASSES)]
-    args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    write_report(summary, args.out)
     print(summary["counts"])
 
 
