@@ -26,7 +26,8 @@ share a folder, run together in threads; ``stage.wait=false`` and ``stage.timeou
 cases that relocalise and the kills of every stage but ``train_nerf`` (seconds per kill).
 ``--kills N`` sets the killed runs per kill case (SIGKILL after a random delay, seeded; then
 the stage is run again and compared byte for byte; timings left out). ``--only`` runs the
-cases whose name contains one of the given strings (to check a fix). The script writes
+cases whose name contains one of the given strings (to check a fix); their rows replace those
+of an existing ``--out`` report, whose header then names both commands. The script writes
 ``--out`` (JSON: per case its group, class and message) and the same name with ``.md``
 (a Markdown table and the counts per class).
 """
@@ -1088,6 +1089,7 @@ def write_report(summary: dict, out: Path) -> None:
     counts = " / ".join(f"{name} {summary['counts'][name]}" for name in CLASSES)
     lines = [
         f"`{summary['command']}`",
+        *(f"then `{command}` (its cases replaced)" for command in summary.get("reruns", [])),
         "",
         f"{len(summary['cases'])} cases: {counts}",
         "",
@@ -1139,15 +1141,21 @@ def main() -> None:
             }
         )
         print(f"{case.__name__}: {outcome} ({seconds} s) {message[:160]}", flush=True)
-    counts = Counter(row["class"] for row in rows)
-    summary = {
-        "command": "python experiments/fault_cases.py"
+    command = (
+        "python experiments/fault_cases.py"
         + (" --quick" if args.quick else "")
         + f" --kills {args.kills}"
-        + (f" --only {' '.join(args.only)}" if args.only else ""),
-        "counts": {name: counts.get(name, 0) for name in CLASSES},
-        "cases": rows,
-    }
+        + (f" --only {' '.join(args.only)}" if args.only else "")
+    )
+    summary = {"command": command, "reruns": [], "cases": rows}
+    if args.only and args.out.is_file():  # the rerun cases replace theirs in the report
+        summary = json.loads(args.out.read_text())
+        summary["reruns"] = [*summary.get("reruns", []), command]
+        rerun = {row["case"]: row for row in rows}
+        summary["cases"] = [rerun.pop(row["case"], row) for row in summary["cases"]]
+        summary["cases"] += list(rerun.values())
+    counts = Counter(row["class"] for row in summary["cases"])
+    summary["counts"] = {name: counts.get(name, 0) for name in CLASSES}
     write_report(summary, args.out)
     print(summary["counts"])
 

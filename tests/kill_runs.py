@@ -59,7 +59,9 @@ optimisation, its update with ``query_lane``, its COLMAP export (``<database_dir
 database``), the tiny radiance field of submap 0 (``<dataset>/nerf/submap_0``), the tiny indoor
 dataset (its overrides; ``root`` is then the dataset folder to write)."""
 
-EXPORT_TASK = ExportColmapTaskConfig()
+EXPORT_TASK = ExportColmapTaskConfig(overwrite=True)
+"""``task.overwrite=true``: a kill case removes the record to make the stage run again, which
+leaves a model folder that holds no export of the stage (refused without it)."""
 
 NOISY_DB_OVERRIDES = ("db.noise_sigma=0.05", "db.optim.min_pairs=5", "db.optim_check.accept=always")
 """:data:`NOISY_DB` as ``diffloc`` overrides."""
