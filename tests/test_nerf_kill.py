@@ -13,10 +13,9 @@ import pytest
 from diffloc.io.lock import remove_temporaries
 from diffloc.maps.nerf.export import load_field
 from diffloc.pipeline.hints import Command
-from diffloc.pipeline.nerf_stage import TRAINING_RECORD
 from diffloc.pipeline.stage import verified_record
 from tests.conftest import copy_dataset
-from tests.kill_runs import killed_run, stage_folder, stage_outputs
+from tests.kill_runs import killed_run, stage_folder, stage_outputs, work_started
 
 TRIALS = 2
 STAGE = "train_nerf"
@@ -26,7 +25,7 @@ def test_a_killed_training_ends_with_the_uninterrupted_field(
     tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory
 ):
     reference = copy_dataset(tiny_indoor_dataset, tmp_path_factory, "nerf_reference")
-    started = f"{reference.name}/nerf/submap_0/{TRAINING_RECORD}"
+    started = work_started(STAGE, reference)
     killed, seconds = killed_run(STAGE, reference, None, after_glob=started)
     assert not killed
     expected = stage_outputs(STAGE, reference)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import shutil
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -113,9 +114,20 @@ def _nan_weight(path: Path) -> None:
     torch.save(state, path)
 
 
+def _without_identity(path: Path) -> None:
+    """A checkpoint as diffloc wrote it before checkpoints named their training."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    del state[nerf_stage.TRAINING_KEY]
+    torch.save(state, path)
+
+
 @pytest.mark.parametrize(
     ("spoil", "reason"),
-    [(_truncate, "cannot be read"), (_nan_weight, "non-finite weights")],
+    [
+        (_truncate, "cannot be read"),
+        (_nan_weight, "non-finite weights"),
+        (_without_identity, "does not say which training"),
+    ],
 )
 def test_a_spoilt_checkpoint_is_not_resumed_and_the_run_trains_from_scratch(
     tiny_indoor_dataset: Path, tmp_path: Path, spoil: Callable[[Path], None], reason: str
@@ -154,6 +166,24 @@ def test_the_checkpoint_of_other_settings_is_not_resumed(
     with pytest.warns(UserWarning, match="belongs to a training of other settings"):
         train_nerf_submap(tiny_indoor_dataset, cfg, False)
     assert _field_bytes(tmp_path / "nerf") == expected
+
+
+def test_a_checkpoint_beside_another_trainings_files_is_not_resumed(
+    tiny_indoor_dataset: Path, tmp_path: Path
+) -> None:
+    """A checkpoint of another learning rate in this training's folder (a copied checkpoints
+    folder, or one whose removal failed) is told apart by what it holds, not by its folder
+    (trained from scratch then, as the test of other settings above checks byte for byte)."""
+    cfg = _tiny(tmp_path)
+    other = _tiny(tmp_path / "other")
+    other.train = dataclasses.replace(cfg.train, lr_network=cfg.train.lr_network / 5)
+    train_nerf_submap(tiny_indoor_dataset, other, False)
+    train_nerf_submap(tiny_indoor_dataset, cfg, False)
+    checkpoints = Path(cfg.out_dir) / "submap_0" / "checkpoints"
+    shutil.rmtree(checkpoints)
+    shutil.copytree(Path(other.out_dir) / "submap_0" / "checkpoints", checkpoints)
+    with pytest.warns(UserWarning, match="belongs to a training of other settings"):
+        train_nerf_submap(tiny_indoor_dataset, dataclasses.replace(cfg, epochs=2), False)
 
 
 def test_a_checkpoint_past_the_epochs_asked_for_is_not_resumed(

@@ -12,29 +12,29 @@ of the mapping sequence, so a rerun with the same settings reuses the field and 
 field changed or spoilt since its record) trains again.
 
 The checkpoints (``checkpoints/last.ckpt``) are the training's own state, kept beside the
-committed field; ``training.json`` beside them holds the key of the training they belong to (the
-stage key without ``epochs``, ``resume`` and ``out_dir``). With ``nerf.resume`` a run continues
-from the last checkpoint only if it belongs to the same training, reads (tensors only), holds
-finite weights and is not past ``nerf.epochs``; otherwise the run warns why (a checkpoint of
-other settings, a spoilt one, e.g. cut short by a kill) and trains from scratch. A training that
-ends with non-finite weights is refused before anything is committed.
+committed field. Each checkpoint carries the key of the training it belongs to (the stage key
+without ``epochs``, ``resume`` and ``out_dir``) inside itself, under :data:`TRAINING_KEY`: the
+identity is written with the weights in one file, so no kill, failed removal or copied folder
+can pair a checkpoint with another training's description. With ``nerf.resume`` a run continues
+from the last checkpoint only if it reads (tensors and plain values only), belongs to the same
+training, holds finite weights and is not past ``nerf.epochs``; otherwise the run warns why (a
+checkpoint of other settings, a spoilt one, e.g. cut short by a kill) and trains from scratch.
+A training that ends with non-finite weights is refused before anything is committed.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import lightning as L
 import torch
 
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.io.identity import identity
-from diffloc.io.json_record import read_json_record
 from diffloc.maps.nerf.data import build_submap_rays
 from diffloc.maps.nerf.export import export_field
 from diffloc.maps.nerf.module import NerfModule
@@ -54,7 +54,7 @@ from diffloc.pipeline.stage import (
 )
 
 __all__ = [
-    "TRAINING_RECORD",
+    "TRAINING_KEY",
     "NerfSummary",
     "TrainedField",
     "nerf_out_dir",
@@ -89,26 +89,35 @@ class NerfSummary(StageSummary):
     plot: str
 
 
-TRAINING_RECORD = "training.json"
-"""``submap_<k>/training.json``: the key of the training the checkpoints belong to."""
+TRAINING_KEY = "diffloc_training"
+"""Entry of a Lightning checkpoint holding the key of the training it belongs to."""
 _NOT_TRAINING = ("epochs", "resume", "out_dir")
 """Settings that do not change what a checkpoint holds (a run may continue it)."""
 
 
-def _unusable_checkpoint(last: Path, run_dir: Path, key: dict, max_steps: int) -> str | None:
+class _TrainingIdentity(L.Callback):
+    """Writes the training's key into every checkpoint (``checkpoint[TRAINING_KEY]``)."""
+
+    def __init__(self, key: dict) -> None:
+        self.key = key
+
+    def on_save_checkpoint(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict
+    ) -> None:
+        checkpoint[TRAINING_KEY] = self.key
+
+
+def _unusable_checkpoint(last: Path, key: dict, max_steps: int) -> str | None:
     """Why checkpoint ``last`` cannot be resumed by the training ``key``, or ``None``."""
-    record = run_dir / TRAINING_RECORD
-    try:
-        belongs = read_json_record(record) == key
-    except (OSError, ValueError):
-        return f"{record} does not say which training it belongs to (missing or unreadable)"
-    if not belongs:
-        return f"it belongs to a training of other settings or data (see {record})"
     try:
         state = torch.load(last, map_location="cpu", weights_only=True)
         steps, weights = int(state["global_step"]), state["state_dict"]
     except Exception as exc:  # noqa: BLE001 - any failure to read makes it unusable
         return f"it cannot be read ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})"
+    if TRAINING_KEY not in state:
+        return "it does not say which training it belongs to (written by an older diffloc)"
+    if state[TRAINING_KEY] != key:
+        return "it belongs to a training of other settings or data"
     floats = [v for v in weights.values() if torch.is_tensor(v) and v.is_floating_point()]
     if not all(bool(torch.isfinite(v).all()) for v in floats):
         return "it holds non-finite weights"
@@ -118,21 +127,20 @@ def _unusable_checkpoint(last: Path, run_dir: Path, key: dict, max_steps: int) -
 
 
 def _prepare_checkpoints(run_dir: Path, key: dict, config: TrainNerfConfig) -> bool:
-    """Keep the checkpoints if ``nerf.resume`` and they can be resumed (else remove them,
-    warning why when there was one), and record the training they belong to from now.
+    """Keep the checkpoints if ``nerf.resume`` and they can be resumed by the training ``key``
+    (else remove them, warning why when there was one).
 
     Returns:
         Whether to resume from ``checkpoints/last.ckpt``.
     """
     last = run_dir / "checkpoints" / "last.ckpt"
     max_steps = config.epochs * config.train.steps_per_epoch
-    reason = _unusable_checkpoint(last, run_dir, key, max_steps) if last.is_file() else None
+    reason = _unusable_checkpoint(last, key, max_steps) if last.is_file() else None
     if reason is not None and config.resume:
         warnings.warn(f"{last} is not resumed, training from scratch: {reason}", stacklevel=3)
     resume = config.resume and last.is_file() and reason is None
     if not resume:
         shutil.rmtree(run_dir / "checkpoints", ignore_errors=True)
-    atomic_write_text(run_dir / TRAINING_RECORD, json.dumps(key, indent=2) + "\n")
     return resume
 
 
@@ -254,9 +262,16 @@ def train_nerf_submap(
         work = stage.workdir()  # a folder this run cannot write is refused here, before work
         name = f"submap {config.submap} of {dataset}"
         rays = build_submap_rays(seq, submap.frames, config.data, name=name)
-        resume = _prepare_checkpoints(run_dir, stage_key(training, inputs), config)
+        training_key = stage_key(training, inputs)
+        resume = _prepare_checkpoints(run_dir, training_key, config)
         module = fit_submap(
-            rays, config.train, run_dir, config.epochs, resume, show_progress=show_progress
+            rays,
+            config.train,
+            run_dir,
+            config.epochs,
+            resume,
+            callbacks=[_TrainingIdentity(training_key)],
+            show_progress=show_progress,
         )
         _check_finite(module, name)
         export_field(work / "field", module.field, module.grid)
