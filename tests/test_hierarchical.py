@@ -49,6 +49,7 @@ def main_run(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory
     shutil.copytree(tiny_indoor_dataset, root)
     out = root.parent / "results"
     overrides = [f"dataset={root}", f"task.out_dir={out}", "task.optimize=false"]
+    overrides.append("reloc.record_repetition=true")  # off by default (the test is off)
     results = run(compose_config(TINY + FINE + ["task=main", *overrides]))
     return root, out, results
 

@@ -146,7 +146,11 @@ class RelocStageConfig:
             that passes the inlier test is measured, so a changed
             ``validation.min_photometric`` can be replayed by ``experiments/revalidate.py``).
         repetition: how the repeated structure under a found pose is measured
-            (:mod:`diffloc.reloc.repetition`; measured and recorded like ``photometric``).
+            (:mod:`diffloc.reloc.repetition`); it is measured and recorded like
+            ``photometric`` where ``validation.max_repeated`` is set or
+            ``record_repetition`` is true.
+        record_repetition: measure and record the repetition even when the validation does
+            not test it (to replay thresholds; about 0.1 s CPU per query outdoors).
     """
 
     sequences: list[str] = field(default_factory=lambda: ["query_same", "changed"])
@@ -159,6 +163,7 @@ class RelocStageConfig:
     validation: ValidationConfig = field(default_factory=ValidationConfig)
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     repetition: RepetitionConfig = field(default_factory=RepetitionConfig)
+    record_repetition: bool = False
 
     def __post_init__(self) -> None:
         check_database_name(self.database)
@@ -280,10 +285,11 @@ def _relocalize_sequence(
         if result.found and result.num_inliers >= cfg.validation.theta_in:
             start = time.perf_counter()
             score = photometric.score(image, result.T_wc, sequence.camera, result.canonical)
-            middle = time.perf_counter()
-            repeat = _repetition(result, relocalizer.db, cfg.repetition)
-            result.timings_ms["photometric"] = (middle - start) * 1e3
-            result.timings_ms["repetition"] = (time.perf_counter() - middle) * 1e3
+            result.timings_ms["photometric"] = (time.perf_counter() - start) * 1e3
+            if cfg.record_repetition or cfg.validation.max_repeated is not None:
+                start = time.perf_counter()
+                repeat = _repetition(result, relocalizer.db, cfg.repetition)
+                result.timings_ms["repetition"] = (time.perf_counter() - start) * 1e3
         scores.append(score)
         repeats.append(repeat)
         accepted.append(
