@@ -7,6 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from diffloc.pipeline.reloc_stage import RelocStageConfig
+from diffloc.reloc.hierarchical import RelocConfig
 from diffloc.reloc.repetition import RepetitionConfig, repeated_shift
 from diffloc.reloc.validation import PoseEvidence, PoseValidator, ValidationConfig
 
@@ -150,3 +152,11 @@ def test_records_carry_the_repetition():
 def test_a_bad_threshold_is_refused(value):
     with pytest.raises(ValueError, match="max_repeated"):
         ValidationConfig(max_repeated=value)
+
+
+def test_the_test_needs_map_points_and_says_so_before_any_work():
+    with pytest.raises(ValueError, match="points=naive"):
+        RelocStageConfig(
+            method=RelocConfig(points="naive"), validation=ValidationConfig(max_repeated=0.2)
+        )
+    RelocStageConfig(method=RelocConfig(points="naive"))  # without the test: fine

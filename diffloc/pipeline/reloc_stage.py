@@ -178,6 +178,12 @@ class RelocStageConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"reloc.{name} must be a finite number > 0, got {value!r}")
+        if self.validation.max_repeated is not None and self.method.points == "naive":
+            raise ValueError(
+                "reloc.validation.max_repeated needs the inliers' map points, which "
+                "reloc.method.points=naive does not have: use F or FN, or set "
+                "reloc.validation.max_repeated=null"
+            )
         if not self.sequences or any(not s or "/" in s for s in self.sequences):
             raise ValueError(f"reloc.sequences must be sequence names, got {self.sequences!r}")
 
