@@ -35,6 +35,13 @@ class SamplerConfig:
         grid_update_every: training steps between refreshes.
         coarse_samples: grid lookups per ray.
         importance_samples: samples drawn from the grid weights (0: uniform sampling only).
+        cell_optical_depth: largest optical depth the grid weights give one cell's length of
+            ray (cube units, a cell is ``2 / grid_resolution``); 0: no cap. A cell stores the
+            maximum density found in it, which spread over the whole cell made it opaque at
+            its entry: once the field's surfaces were sharp, the importance samples sat up to
+            a cell in front of them (``experiments/results/bench_nerf_sampling.md``). Capped,
+            the weights fall by ``exp(-cell_optical_depth)`` over each occupied cell, so the
+            samples cover the cell that holds the surface.
         uniform_samples: stratified samples per ray.
         guided_samples: samples around the lidar range of rays that have one.
         far_m: far distance of contracted (unbounded) fields, metres.
@@ -70,6 +77,7 @@ class SamplerConfig:
     grid_update_every: int = 16
     coarse_samples: int = 128
     importance_samples: int = 24
+    cell_optical_depth: float = 0.5
     uniform_samples: int = 8
     guided_samples: int = 8
     far_m: float = 200.0
@@ -95,6 +103,7 @@ class SamplerConfig:
         check_number(self.near_m, "near_m", 0.0, open_low=True)
         check_number(self.far_m, "far_m", self.near_m, open_low=True)
         check_number(self.skip_density, "skip_density", 0.0)
+        check_number(self.cell_optical_depth, "cell_optical_depth", 0.0)
         check_number(self.min_weight, "min_weight", -1.0, 1.0)
         check_number(self.grad_min_weight, "grad_min_weight", -1.0, 1.0)
         check_number(self.stop_transmittance, "stop_transmittance", 0.0, 1.0)
@@ -271,7 +280,12 @@ class DensityGrid(nn.Module):
         )
         mids = (edges[:, 1:] + edges[:, :-1]) / 2
         xyz, inside = normalisation(origins[:, None] + mids[..., None] * directions[:, None])
-        weights = render_weights(self.lookup(xyz) * inside, edges[:, 1:] - edges[:, :-1])
+        tau = self.lookup(xyz) * inside * (edges[:, 1:] - edges[:, :-1])
+        if cfg.cell_optical_depth > 0:
+            cube, _ = normalisation(origins[:, None] + edges[..., None] * directions[:, None])
+            cells = (cube[:, 1:] - cube[:, :-1]).norm(dim=-1) * (cfg.grid_resolution / 2)
+            tau = tau.minimum(cfg.cell_optical_depth * cells)
+        weights = render_weights(tau, torch.ones_like(tau))
         pdf = weights + 1e-3 * weights.sum(-1, keepdim=True).clamp_min(1e-6) / cfg.coarse_samples
         cdf = torch.cumsum(pdf / pdf.sum(-1, keepdim=True), dim=-1)
         cdf = torch.cat((torch.zeros_like(cdf[:, :1]), cdf), dim=-1).contiguous()
