@@ -51,6 +51,9 @@ class SamplerConfig:
             refreshed; 0 evaluates all.
         min_weight: samples whose Eq. 5 weight is at most this get no colour or normal
             evaluation (zero); -1 evaluates all.
+        normal_min_weight: when rendering without gradients, normals are evaluated only at
+            samples whose Eq. 5 weight exceeds this (and ``min_weight``); the others add no
+            normal to the composite. NORMAL_DOC
         grad_min_weight: when gradients are recorded, a no-grad pre-pass evaluates density at
             every sample first, and only samples whose Eq. 5 weight exceeds this (and lidar
             samples within 3 sigma of the range) are evaluated again with autograd; the others
@@ -84,6 +87,7 @@ class SamplerConfig:
     near_m: float = 0.05
     skip_density: float = 0.01
     min_weight: float = 1e-4
+    normal_min_weight: float = 1e-3
     grad_min_weight: float = -1.0
     stop_transmittance: float = 1e-4
     grad_stop_transmittance: float = 0.0
@@ -105,6 +109,7 @@ class SamplerConfig:
         check_number(self.skip_density, "skip_density", 0.0)
         check_number(self.cell_optical_depth, "cell_optical_depth", 0.0)
         check_number(self.min_weight, "min_weight", -1.0, 1.0)
+        check_number(self.normal_min_weight, "normal_min_weight", -1.0, 1.0)
         check_number(self.grad_min_weight, "grad_min_weight", -1.0, 1.0)
         check_number(self.stop_transmittance, "stop_transmittance", 0.0, 1.0)
         check_number(self.grad_stop_transmittance, "grad_stop_transmittance", 0.0, 1.0)
@@ -204,7 +209,7 @@ class DensityGrid(nn.Module):
         """Flat index (...) into the (g, g, g) grid of the cells holding (..., 3) cube points
         (clamped to the grid)."""
         g = self.config.grid_resolution
-        u = ((xyz + 1.0) * (g / 2.0)).clamp(0, g - 1).floor_()
+        u = ((xyz + 1.0) * (g / 2.0)).clamp_(0, g - 1).floor_()
         return ((u[..., 0] * g + u[..., 1]) * g + u[..., 2]).long()
 
     def _occupied_cells(self) -> torch.Tensor:
@@ -216,6 +221,21 @@ class DensityGrid(nn.Module):
             block = F.max_pool3d(self.density[None, None], 3, stride=1, padding=1)[0, 0]
             self._occupied_cache = (version, block >= self.config.skip_density)
         return self._occupied_cache[1]
+
+    def _line_lookup(
+        self, start: torch.Tensor, step: torch.Tensor, t: torch.Tensor
+    ) -> torch.Tensor:
+        """:meth:`lookup` of the cube points ``start + t step`` of lines: start, step (R, 3),
+        t (R, K) -> (R, K); axis by axis on contiguous (R, K) tensors (the same cells as
+        :meth:`_cell_index` up to rounding at cell faces)."""
+        g = self.config.grid_resolution
+        index = torch.zeros_like(t, dtype=torch.long)
+        for axis in range(3):
+            u = torch.addcmul(
+                (start[:, axis, None] + 1.0) * (g / 2.0), t, step[:, axis, None] * (g / 2.0)
+            )
+            index.mul_(g).add_(u.clamp_(0, g - 1).long())  # >= 0: truncation floors
+        return self.density.view(-1).take(index)
 
     def lookup(self, xyz: torch.Tensor) -> torch.Tensor:
         """Stored density of the cells holding (..., 3) cube points -> (...)."""
@@ -278,13 +298,23 @@ class DensityGrid(nn.Module):
         edges = spacing(
             torch.linspace(0, 1, cfg.coarse_samples + 1).expand(r, -1), near, far, far_outer
         )
-        mids = (edges[:, 1:] + edges[:, :-1]) / 2
-        xyz, inside = normalisation(origins[:, None] + mids[..., None] * directions[:, None])
-        tau = self.lookup(xyz) * inside * (edges[:, 1:] - edges[:, :-1])
+        lengths = edges[:, 1:] - edges[:, :-1]
+        if normalisation.contracted:  # the cell of an interval is that of its chord's midpoint
+            cube, inside = normalisation(
+                torch.addcmul(origins[:, None], edges[..., None], directions[:, None])
+            )
+            chords = cube[:, 1:] - cube[:, :-1]
+            tau = self.lookup(torch.add(cube[:, :-1], chords, alpha=0.5))
+            tau = tau.mul_(lengths).mul_(inside[:, 1:] | inside[:, :-1])
+            cube_lengths = chords.norm(dim=-1)
+        else:  # affine, and the rays are clipped to the box: lines through the cube
+            step = directions / normalisation.half_extent
+            start = (origins - normalisation.centre) / normalisation.half_extent
+            tau = self._line_lookup(start, step, (edges[:, 1:] + edges[:, :-1]) / 2).mul_(lengths)
+            cube_lengths = lengths * step.norm(dim=-1, keepdim=True)
         if cfg.cell_optical_depth > 0:
-            cube, _ = normalisation(origins[:, None] + edges[..., None] * directions[:, None])
-            cells = (cube[:, 1:] - cube[:, :-1]).norm(dim=-1) * (cfg.grid_resolution / 2)
-            tau = tau.minimum(cfg.cell_optical_depth * cells)
+            cap = cube_lengths.mul_(cfg.cell_optical_depth * cfg.grid_resolution / 2)
+            tau = tau.minimum(cap)
         weights = render_weights(tau, torch.ones_like(tau))
         pdf = weights + 1e-3 * weights.sum(-1, keepdim=True).clamp_min(1e-6) / cfg.coarse_samples
         cdf = torch.cumsum(pdf / pdf.sum(-1, keepdim=True), dim=-1)
