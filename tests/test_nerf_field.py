@@ -68,6 +68,19 @@ def test_encoding_gradcheck_float64(kind: str) -> None:
     gradcheck(fn, [x, *[p.detach() for p in enc.parameters()]])
 
 
+@pytest.mark.parametrize("kind", ["triplane", "hashgrid"])
+def test_jacobian_of_no_points_is_empty(kind: str) -> None:
+    """An empty batch (a termination chunk whose rays have all stopped) has empty outputs."""
+    enc = (
+        TriplaneEncoding((4, 6), 3, 0.3)
+        if kind == "triplane"
+        else HashGridEncoding(2, 2, 5, 3, 6, 0.5)
+    )
+    features, jacobian = enc.forward_with_jacobian(torch.zeros(0, 3))
+    assert features.shape == (0, enc.out_dim)
+    assert jacobian.shape == (0, enc.out_dim, 3)
+
+
 def test_contraction_is_identity_inside_and_inverted_by_uncontract() -> None:
     x = torch.tensor([[0.3, -0.9, 0.1], [3.0, 0.0, 0.0], [-10.0, 5.0, 1.0]])
     y = contract(x)

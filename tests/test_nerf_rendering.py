@@ -97,6 +97,30 @@ def test_importance_samples_concentrate_at_the_surface_of_the_grid() -> None:
     assert float(near_wall) > 0.8
 
 
+def test_importance_samples_cover_the_occupied_cell_not_only_its_entry() -> None:
+    """A thin opaque surface in the middle of a cell (the grid stores only the cell's maximum
+    density): the importance weights fall by exp(-cell_optical_depth) over the cell, so a
+    known share of the samples lies behind the cell's middle. Uncapped, the whole cell was
+    opaque at its entry and every sample sat in front of the surface."""
+    cfg = SamplerConfig(grid_resolution=4, uniform_samples=0, importance_samples=64)
+    grid = DensityGrid(cfg)
+    grid.density[2] = 1e4  # cells x in [0, 0.5): the surface at x = 0.25
+    grid.refreshed.fill_(True)
+    norm = SceneNormalisation(-torch.ones(3), torch.ones(3), False)
+    o, d = torch.tensor([[-0.9, 0.1, 0.2]]), torch.tensor([[1.0, 0.0, 0.0]])
+    t = grid.sample(o, d, torch.zeros(1), torch.full((1,), 1.9), norm, None)
+    x = o[:, 0] + t[0]
+    assert float(((x >= 0.0) & (x < 0.5)).float().mean()) > 0.95
+    # rate 0.5 per half-unit cell: share of [0.25, 0.5) = (e^-0.25 - e^-0.5) / (1 - e^-0.5)
+    expected = (math.exp(-0.25) - math.exp(-0.5)) / (1 - math.exp(-0.5))
+    assert abs(float((x >= 0.25).float().mean()) - expected) < 0.05
+
+
+def test_a_negative_cell_optical_depth_is_refused() -> None:
+    with pytest.raises(ValueError, match="cell_optical_depth"):
+        SamplerConfig(cell_optical_depth=-1.0)
+
+
 def test_guided_samples_surround_the_lidar_range() -> None:
     cfg = SamplerConfig(uniform_samples=2, importance_samples=0, guided_samples=32)
     grid = DensityGrid(cfg)

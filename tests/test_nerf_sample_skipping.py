@@ -42,9 +42,12 @@ def _rays(n: int) -> tuple[torch.Tensor, torch.Tensor]:
     return origins, directions
 
 
-def _reference(field, grid, out, origins, directions, codes) -> dict[str, torch.Tensor]:
+def _reference(
+    field, grid, out, origins, directions, codes, normal_min_weight: float = -1.0
+) -> dict[str, torch.Tensor]:
     """Every sample evaluated, then those outside occupied cells (tested apart) and their
-    colours and normals below ``min_weight`` zeroed."""
+    colours and normals below ``min_weight`` zeroed (normals also below
+    ``normal_min_weight``)."""
     r, s = out.t.shape
     points = (origins[:, None] + out.t[..., None] * directions[:, None]).reshape(-1, 3)
     dirs = directions[:, None].expand(r, s, 3).reshape(-1, 3)
@@ -53,7 +56,8 @@ def _reference(field, grid, out, origins, directions, codes) -> dict[str, torch.
     occupied = grid.occupied(xyz)
     weights = render_weights((full.density * occupied).reshape(r, s), out.deltas)
     seen = (weights.detach() > grid.config.min_weight)[..., None]
-    normal = composite(weights, full.normal.reshape(r, s, 3) * seen)
+    shaded = seen & (weights.detach() > normal_min_weight)[..., None]
+    normal = composite(weights, full.normal.reshape(r, s, 3) * shaded)
     return {
         "weights": weights,
         "rgb": composite(weights, full.rgb.reshape(r, s, 3) * seen),
@@ -87,6 +91,24 @@ def test_render_rays_equals_evaluating_every_sample_and_zeroing_the_skipped_ones
     ):
         if a is not None or b is not None:
             torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("normal_min_weight", [1e-3, 0.05])
+def test_rendered_normals_composite_only_samples_above_normal_min_weight(
+    normal_min_weight: float,
+) -> None:
+    """Without grad (rendering) the normals come from the samples above both thresholds."""
+    field, grid = _scene(0.3, 1e-3)
+    grid.config.normal_min_weight = normal_min_weight
+    origins, directions = _rays(64)
+    codes = torch.randn(64, 4)
+    with torch.no_grad():
+        out = render_rays(field, grid, origins, directions, None, codes, with_normals=True)
+    ref = _reference(field, grid, out, origins, directions, codes, normal_min_weight)
+    torch.testing.assert_close(out.normal, ref["normal"].detach(), rtol=1e-5, atol=1e-5)
+    if normal_min_weight > 0.01:  # the threshold changed some normals
+        unthresholded = _reference(field, grid, out, origins, directions, codes)["normal"]
+        assert float((out.normal - unthresholded.detach()).abs().max()) > 1e-3
 
 
 def test_lidar_window_is_evaluated_in_empty_cells() -> None:

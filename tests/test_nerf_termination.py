@@ -63,14 +63,15 @@ def _rays(n: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _count_evaluations(field: RadianceField, monkeypatch) -> list[torch.Tensor]:
-    """Record the points of every density evaluation the renderer makes."""
+    """Record the points of every density evaluation the renderer makes (world points, or
+    cube points when it evaluates normalised points)."""
     seen: list[torch.Tensor] = []
-    for name in ("geometry", "geometry_and_normals"):
+    for name in ("geometry", "geometry_and_normals", "geometry_in_cube"):
         original = getattr(field, name)
 
-        def wrapper(points, original=original):
+        def wrapper(points, *rest, original=original):
             seen.append(points.detach())
-            return original(points)
+            return original(points, *rest)
 
         monkeypatch.setattr(field, name, wrapper)
     return seen

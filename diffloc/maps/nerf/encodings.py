@@ -114,7 +114,7 @@ def bilinear_gather(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> t
     lower, frac = _cell(uv, resolution)
     vertex = lower[:, None] + _corners(2, uv.device)
     rows = table.index_select(0, (vertex[..., 1] * resolution + vertex[..., 0]).reshape(-1))
-    return multilinear(rows.view(len(uv), 4, -1).transpose(0, 1), frac.T[..., None])
+    return multilinear(rows.view(len(uv), 4, table.shape[1]).transpose(0, 1), frac.T[..., None])
 
 
 def _vertex_index(vertex: torch.Tensor, resolution: int, table_size: int) -> torch.Tensor:
@@ -150,7 +150,7 @@ def _trilinear_corners(
     lower, frac = _cell(xyz, resolution)
     vertex = (lower[:, None] + _corners(3, xyz.device)).reshape(-1, 3)
     rows = table.index_select(0, _vertex_index(vertex, resolution, len(table)))
-    return rows.view(len(xyz), 8, -1).transpose(0, 1), frac.T[..., None]
+    return rows.view(len(xyz), 8, table.shape[1]).transpose(0, 1), frac.T[..., None]
 
 
 def _grid_sample(
@@ -216,16 +216,17 @@ class TriplaneEncoding(nn.Module):
         corners = _corners(2, xyz.device)[:, None, None]
         features, jacobians = [], []
         for planes, r in zip(self.planes, self.resolutions, strict=True):
+            c = planes.shape[1]
             lower, frac = _cell(coords, r)
             vertex = (lower + corners).to(xyz.dtype) * (2 / (r - 1)) - 1  # (4, 3, N, 2)
             grid = vertex.transpose(0, 1).reshape(3, 4 * n, 2)
             rows = _grid_sample(planes, grid, mode="nearest").transpose(1, 2)  # (3, C, 4 N)
-            rows = rows.reshape(3, -1, 4, n).permute(2, 0, 1, 3)  # (4, 3, C, N)
+            rows = rows.reshape(3, c, 4, n).permute(2, 0, 1, 3)  # (4, 3, C, N)
             value, slope = multilinear_with_gradient(rows, frac.permute(2, 0, 1)[:, :, None], at, r)
             # product rule: d(v0 v1 v2) = sum_p (prod_{q != p} v_q) dv_p, dv_p on its pair
             others = torch.stack((value[1] * value[2], value[0] * value[2], value[0] * value[1]))
             terms = (others * slope).transpose(0, 1).reshape(6, -1)  # row 2 p + k
-            jacobians.append((self._pair_axes.to(terms.dtype) @ terms).reshape(3, -1, n))
+            jacobians.append((self._pair_axes.to(terms.dtype) @ terms).reshape(3, c, n))
             features.append(_product(value))  # (C, N)
         return torch.cat(features).T, torch.cat(jacobians, dim=1).permute(2, 1, 0)
 

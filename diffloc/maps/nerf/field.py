@@ -143,7 +143,10 @@ def sh_basis_deg2(directions: torch.Tensor) -> torch.Tensor:
 
 
 def _mlp(inputs: int, hidden: int, outputs: int) -> nn.Sequential:
-    return nn.Sequential(nn.Linear(inputs, hidden), nn.ReLU(), nn.Linear(hidden, outputs))
+    # in place: the hidden layer's pre-activation is not needed by any backward
+    return nn.Sequential(
+        nn.Linear(inputs, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, outputs)
+    )
 
 
 class RadianceField(nn.Module):
@@ -173,7 +176,13 @@ class RadianceField(nn.Module):
         """Density (N,) in 1/m (zero outside the field) and the geometry features
         (N, geo_features) the colour MLP reads, of (N, 3) world points."""
         check_shape(points_world, "N,3", "points_world")
-        xyz, inside = self.normalise(points_world)
+        return self.geometry_in_cube(*self.normalise(points_world))
+
+    def geometry_in_cube(
+        self, xyz: torch.Tensor, inside: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`geometry` of points already normalised (``self.normalise``): (N, 3) cube
+        points and their (N,) inside flags."""
         h = self.density_mlp(self.encoding(xyz))
         return self._density(h[:, 0], inside), h[:, 1:]
 

@@ -83,10 +83,10 @@ class _Marcher:
             return index, evaluate(index)
         depth = self.deltas.new_zeros(self.rays)  # optical depth so far per ray
         part = torch.div(index % self.samples, self.chunk, rounding_mode="floor")
+        ray, window = index // self.samples, self.window[index]
         kept, outputs = [], []
         for k in range(-(-self.samples // self.chunk)):
-            ray = index // self.samples
-            take = index[(part == k) & ((depth[ray] < self.max_depth) | self.window[index])]
+            take = index[(part == k) & ((depth[ray] < self.max_depth) | window)]
             out = evaluate(take)
             tau = out[0].detach() * self.deltas[take]
             depth = depth.index_add(0, take // self.samples, tau)
@@ -164,8 +164,13 @@ def render_rays(
     # (rendering), the density gradient is formed only at the visible samples, usually a small
     # part of the evaluated ones (RadianceField.normals).
     joint = with_normals and grad
-    evaluate = field.geometry_and_normals if joint else field.geometry
-    evaluated, (density, geo, *normals) = march(lambda i: evaluate(points[i]), evaluated)
+
+    def evaluate(i: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        if joint:
+            return field.geometry_and_normals(points[i])
+        return field.geometry_in_cube(xyz[i], inside[i])
+
+    evaluated, (density, geo, *normals) = march(evaluate, evaluated)
     weights = render_weights(fixed.index_copy(0, evaluated, density).reshape(r, s), deltas)
     seen = weights.detach().reshape(-1)[evaluated] > cfg.min_weight
     visible, ray = evaluated[seen], evaluated[seen] // s
@@ -174,8 +179,12 @@ def render_rays(
         colour = field.colour(geo[seen], directions[ray], appearance[ray])
         rgb = composite(weights, _scatter(colour, visible, r * s).reshape(r, s, 3))
     if with_normals:
-        normals = normals[0][seen] if joint else field.normals(points[visible])
-        normal = composite(weights, _scatter(normals, visible, r * s).reshape(r, s, 3))
+        if joint:
+            normals, shaded = normals[0][seen], visible
+        else:
+            shaded = visible[weights.reshape(-1)[visible] > cfg.normal_min_weight]
+            normals = field.normals(points[shaded])
+        normal = composite(weights, _scatter(normals, shaded, r * s).reshape(r, s, 3))
         normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-9)
     return RenderedRays(
         rgb=rgb,
