@@ -264,7 +264,8 @@ class TiledFloor:
     Attributes:
         T_wc: (4, 4) float64 the query's true pose (camera-to-world).
         rivals: (0, 4, 4) float64 no other candidate poses.
-        inliers: (N,) int64 the map points the query sees (its inliers at the true pose).
+        inliers: (N, 2) int64 ``(keypoint, map point)``: the query's inliers at the true pose
+            (keypoint ``i`` is the projection of the ``i``-th map point it sees).
         features: the query's keypoints (the seen points projected) and their descriptors.
         camera: the query camera.
         positions: (P, 3) float64 map points on the floor plane z = 0.
@@ -282,10 +283,10 @@ class TiledFloor:
 
 def tiled_floor(period_m: float = 1.0, marking_m: float = 0.0, seed: int = 0) -> TiledFloor:
     """A floor of map points every 0.1 m whose descriptors repeat every ``period_m`` along x
-    (each copy slightly perturbed), seen straight down from 2 m by a 160 x 120 camera; a
-    square of half-width ``marking_m`` under the camera has descriptors of its own (a marking
-    that does not repeat). Query keypoints are the seen points' exact projections, their
-    descriptors the points' with a little noise.
+    (each copy perturbed a little, less than the query's descriptors are), seen straight down
+    from 2 m by a 160 x 120 camera; a square of half-width ``marking_m`` under the camera has
+    descriptors of its own (a marking that does not repeat). Query keypoints are the seen
+    points' exact projections, their descriptors the points' with a little noise.
 
     Example:
         >>> floor = tiled_floor()
@@ -302,8 +303,8 @@ def tiled_floor(period_m: float = 1.0, marking_m: float = 0.0, seed: int = 0) ->
     pattern = torch.randn(columns, len(ys), 32, generator=g)
     ix = torch.arange(len(xs))[:, None].expand(-1, len(ys)) % columns
     iy = torch.arange(len(ys))[None].expand(len(xs), -1)
-    descriptors = pattern[ix, iy].reshape(-1, 32)
-    descriptors = descriptors + 0.05 * torch.randn(descriptors.shape, generator=g)
+    descriptors = pattern[ix, iy].reshape(-1, 32)  # the copies of a spot look alike
+    descriptors = descriptors + 0.01 * torch.randn(descriptors.shape, generator=g)
     centre = torch.tensor([0.3, 0.2], dtype=torch.float64)
     marked = ((positions[:, :2] - centre).abs() <= marking_m).all(1)
     descriptors[marked] = torch.randn(int(marked.sum()), 32, generator=g)
@@ -314,7 +315,7 @@ def tiled_floor(period_m: float = 1.0, marking_m: float = 0.0, seed: int = 0) ->
     camera = PinholeCamera.from_fov(160, 120, 1.2, dtype=torch.float64)
     uv, valid = camera.project(transform_points(invert(T_wc), positions))
     inliers = torch.nonzero(valid & camera.in_image(uv)).flatten()
-    noisy = descriptors[inliers] + 0.02 * torch.randn(len(inliers), 32, generator=g)
+    noisy = descriptors[inliers] + 0.1 * torch.randn(len(inliers), 32, generator=g)
     n = len(inliers)
     features = Features(
         uv[inliers].float(),
@@ -323,4 +324,5 @@ def tiled_floor(period_m: float = 1.0, marking_m: float = 0.0, seed: int = 0) ->
         torch.ones(n),
     )
     rivals = torch.zeros(0, 4, 4, dtype=torch.float64)
-    return TiledFloor(T_wc, rivals, inliers, features, camera, positions, descriptors)
+    matches = torch.stack([torch.arange(n), inliers], 1)
+    return TiledFloor(T_wc, rivals, matches, features, camera, positions, descriptors)

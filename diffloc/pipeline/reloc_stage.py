@@ -369,7 +369,7 @@ def _uniqueness(
     return pose_uniqueness(
         best.T_wc,
         torch.stack(rivals) if rivals else torch.zeros(0, 4, 4, dtype=torch.float64),
-        None if best.inlier_matches is None else best.inlier_matches[:, 1],
+        best.inlier_matches,
         features,
         camera,
         relocalizer.point_positions,
@@ -484,7 +484,9 @@ def _report_sequence(
                 else {
                     "uniqueness": {
                         "own": run.uniqueness[q].own,
+                        "own_visible": run.uniqueness[q].own_visible,
                         "rival": run.uniqueness[q].rival,
+                        "rival_visible": run.uniqueness[q].rival_visible,
                         "ratio": finite_or_none(round(run.uniqueness[q].ratio, 4)),
                         "rival_distance_m": round(run.uniqueness[q].rival_distance_m, 4),
                         "alternatives": run.uniqueness[q].alternatives,

@@ -11,11 +11,16 @@ pose that explains the query about as well? For a pose ``T`` (4, 4) of a query:
    other candidates;
 2. *score* (the same for the pose and every alternative): every map point in front of the
    camera, inside the image and not hidden is matched in a ``radius_px`` window around its
-   projection (:func:`~diffloc.features.matching.match_guided`); the matches refine the pose
-   by motion-only refinement (:func:`~diffloc.optim.motion_cost.refine_pose`), whose inlier
-   count is the score. Hidden points: the points are z-buffered on a grid of
+   projection (:func:`~diffloc.features.matching.match_guided`), no farther in descriptor
+   space than the ``distance_quantile`` quantile of the pose's own inlier matches (a lone
+   keypoint in the window is otherwise taken whatever it looks like); the matches refine the pose
+   by motion-only refinement (:func:`~diffloc.optim.motion_cost.refine_pose`); the score is
+   the share of the map points in view at the refined pose that are its inliers (the inlier
+   count alone favours wherever the map is densest: the places the database saw most often,
+   which a wrong pose tends to sit in). Hidden points: the points are z-buffered on a grid of
    ``occlusion_cell_px`` pixels, and a point farther than ``1 + occlusion_tolerance`` times
-   the nearest depth of its cell is hidden (what the map's own points occlude);
+   the nearest depth of its cell is hidden (what the map's own points occlude); a pose with
+   fewer inliers than the refinement's ``min_inliers`` scores 0;
 3. an alternative that the refinement brought back to within ``min_separation_m`` of the
    refined pose is the pose itself and is dropped;
 4. the *ratio* is the best alternative's score over the pose's own: near 1 (or above) when
@@ -44,7 +49,7 @@ import torch
 
 from diffloc.checks import check_shape
 from diffloc.features.local import Features
-from diffloc.features.matching import Metric, match_guided
+from diffloc.features.matching import Metric, descriptor_distances, match_guided
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import invert, transform_points
 from diffloc.optim.motion_cost import MotionRefineConfig, refine_pose
@@ -62,6 +67,8 @@ class UniquenessConfig:
         max_multiple: multiples of each shift tried, each with both signs (2: -2t, -t, t, 2t).
         radius_px: window of the guided matching around each projected map point.
         ratio: Lowe's ratio test of the guided matching, or ``None``.
+        distance_quantile: the guided matches' largest descriptor distance is this quantile
+            of the distances of the pose's own inlier matches.
         min_separation_m: an alternative refined to within this of the pose is the pose.
         occlusion_cell_px: cell size of the z-buffer of the projected map points.
         occlusion_tolerance: a point farther than ``1 + occlusion_tolerance`` times the
@@ -70,8 +77,9 @@ class UniquenessConfig:
 
     shifts: int = 3
     max_multiple: int = 2
-    radius_px: float = 10.0
+    radius_px: float = 4.0
     ratio: float | None = 0.9
+    distance_quantile: float = 0.9
     min_separation_m: float = 0.5
     occlusion_cell_px: int = 8
     occlusion_tolerance: float = 0.1
@@ -86,6 +94,10 @@ class UniquenessConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"uniqueness.{name} must be > 0, got {value}")
+        if not 0.0 < self.distance_quantile <= 1.0:
+            raise ValueError(
+                f"uniqueness.distance_quantile must be in (0, 1], got {self.distance_quantile}"
+            )
         tolerance = self.occlusion_tolerance
         if not (math.isfinite(tolerance) and tolerance >= 0):
             raise ValueError(f"uniqueness.occlusion_tolerance must be >= 0, got {tolerance}")
@@ -96,25 +108,32 @@ class Uniqueness:
     """How well the best alternative explains a query compared with its pose.
 
     Attributes:
-        own: the pose's score (refined guided inliers).
-        rival: the best alternative's score (0 without alternatives).
+        own: the pose's refined guided inliers.
+        own_visible: the map points in view at the pose's refined pose.
+        rival: the best-scoring alternative's inliers (0 without alternatives).
+        rival_visible: the map points in its view (0 without alternatives).
         rival_distance_m: distance of the best alternative's refined pose to the pose's
             (0 without alternatives).
         alternatives: alternatives scored (those that stayed apart from the pose).
     """
 
     own: int
+    own_visible: int
     rival: int
+    rival_visible: int
     rival_distance_m: float
     alternatives: int
 
     @property
     def ratio(self) -> float:
-        """``rival / own`` (``inf`` when the pose explains nothing and a rival does, 0 when
+        """The rival's score over the pose's, ``(rival / rival_visible) / (own /
+        own_visible)`` (``inf`` when the pose explains nothing and a rival does, 0 when
         neither does)."""
-        if self.own == 0:
-            return math.inf if self.rival > 0 else 0.0
-        return self.rival / self.own
+        rival = self.rival / self.rival_visible if self.rival_visible else 0.0
+        own = self.own / self.own_visible if self.own_visible else 0.0
+        if own == 0:
+            return math.inf if rival > 0 else 0.0
+        return rival / own
 
 
 def alternative_poses(
@@ -179,12 +198,14 @@ def _scores(
     metric: Metric,
     config: UniquenessConfig,
     refine: MotionRefineConfig,
-) -> tuple[torch.Tensor, torch.Tensor]:
+    max_distance: float | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Guided matching and motion-only refinement of every pose (module docstring, step 2).
 
     Returns:
-        (B, 4, 4) refined poses (the pose itself where it had too few matches) and (B,) int64
-        inlier counts.
+        (B, 4, 4) refined poses (the pose itself where it had too few matches), (B,) int64
+        inlier counts (0 below ``refine.min_inliers``) and (B,) int64 map points in view at
+        the refined poses.
     """
     matched = []
     for T in poses:  # one guided matching per pose (tens of poses, vectorised over points)
@@ -197,6 +218,7 @@ def _scores(
             features.descriptors,
             metric=metric,
             ratio=config.ratio,
+            max_distance=max_distance,
         ).indices
         matched.append((points[found[:, 0]], found[:, 1]))
     width = max(1, max(len(p) for p, _ in matched))
@@ -218,13 +240,15 @@ def _scores(
             cam, poses[enough], X[enough], uv[enough], sigma[enough], mask[enough], refine
         )
         refined_T[enough], counts[enough] = out.T_wc.detach(), out.num_inliers
-    return refined_T, counts
+    counts = torch.where(counts >= refine.min_inliers, counts, 0)
+    visible = torch.tensor([len(_visible(T, positions, camera, config)[0]) for T in refined_T])
+    return refined_T, counts, visible
 
 
 def pose_uniqueness(
     T_wc: torch.Tensor,
     rivals: torch.Tensor,
-    inlier_points: torch.Tensor | None,
+    inlier_matches: torch.Tensor | None,
     features: Features,
     camera: PinholeCamera,
     point_positions: torch.Tensor,
@@ -239,8 +263,9 @@ def pose_uniqueness(
     Args:
         T_wc: (4, 4) the pose (camera-to-world, float64).
         rivals: (R, 4, 4) the relocaliser's other candidate poses.
-        inlier_points: (N,) int64 map points of the pose's inliers (the repetition shifts come
-            from them), or ``None`` (no shifts, e.g. the ``naive`` method).
+        inlier_matches: (N, 2) int64 ``(query keypoint, map point)`` of the pose's inliers
+            (the repetition shifts and the descriptor gate come from them), or ``None`` (no
+            shifts and no gate, e.g. the ``naive`` method).
         features: the query's local features.
         camera: the query camera (batch shape ``()``).
         point_positions: (P, 3) map point positions (world frame, metres).
@@ -273,20 +298,42 @@ def pose_uniqueness(
         )
     positions = point_positions.double()
     shifts = torch.zeros(0, 3, dtype=torch.float64)
-    if inlier_points is not None and config.shifts > 0:
-        shifts = repeated_shifts(
-            inlier_points, positions, point_descriptors, metric, repetition, config.shifts
-        )[0]
+    max_distance = None
+    if inlier_matches is not None and len(inlier_matches) > 0:
+        check_shape(inlier_matches, "N,2", "inlier_matches")
+        own = descriptor_distances(
+            features.descriptors[inlier_matches[:, 0]],
+            point_descriptors[inlier_matches[:, 1]],
+            metric,
+        ).diagonal()
+        max_distance = float(torch.quantile(own.double(), config.distance_quantile))
+        if config.shifts > 0:
+            shifts = repeated_shifts(
+                inlier_matches[:, 1],
+                positions,
+                point_descriptors,
+                metric,
+                repetition,
+                config.shifts,
+            )[0]
     T_wc = T_wc.double()
     poses = torch.cat([T_wc[None], alternative_poses(T_wc, shifts, config.max_multiple, rivals)])
-    refined, counts = _scores(
-        poses, features, camera, positions, point_descriptors, metric, config, refine
+    camera = camera.to(torch.float64)
+    refined, counts, visible = _scores(
+        poses, features, camera, positions, point_descriptors, metric, config, refine, max_distance
     )
     distance = torch.linalg.vector_norm(refined[1:, :3, 3] - refined[0, :3, 3], dim=1)
     apart = distance > config.min_separation_m
-    own = int(counts[0])
+    own, own_visible = int(counts[0]), int(visible[0])
     if not bool(apart.any()):
-        return Uniqueness(own, 0, 0.0, 0)
-    scores = torch.where(apart, counts[1:], -1)
-    best = int(torch.argmax(scores))
-    return Uniqueness(own, int(scores[best]), float(distance[best]), int(apart.sum()))
+        return Uniqueness(own, own_visible, 0, 0, 0.0, 0)
+    scores = torch.where(apart, counts[1:] / visible[1:].clamp_min(1), -1.0)
+    best = int(torch.argmax(scores)) + 1
+    return Uniqueness(
+        own,
+        own_visible,
+        int(counts[best]),
+        int(visible[best]),
+        float(distance[best - 1]),
+        int(apart.sum()),
+    )

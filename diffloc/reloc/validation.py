@@ -40,7 +40,8 @@ make an *inlier pose* also need
   consistent, photometrically too, as the right one: the image does not fix the pose;
 - uniqueness: no alternative pose (the pose moved by the repetition shifts and their
   multiples, the other candidates), refined and scored like the pose itself, explains the
-  query with at least ``uniqueness_ratio`` times the pose's own refined guided inliers
+  query with at least ``uniqueness_ratio`` times the pose's own score (the share of the map
+  points in view that are its refined guided inliers)
   (:mod:`diffloc.reloc.uniqueness`).
 
 :meth:`ValidationConfig.seed1_rule` switches them off, giving seed 1's rule.
@@ -225,7 +226,8 @@ class PoseEvidence:
         (``found``, ``position_m``, ``candidates`` with ``inliers``, ``matches``,
         ``coverage`` and ``distance_to_chosen_m``, ``photometric`` where it was measured,
         null for no overlap, ``repetition`` with its ``support`` and ``uniqueness`` with its
-        ``own`` and ``rival`` scores where they were measured); ``None`` when it found
+        ``own``, ``own_visible``, ``rival`` and ``rival_visible`` counts where they were
+        measured); ``None`` when it found
         nothing.
 
         Raises:
@@ -246,7 +248,14 @@ class PoseEvidence:
         uniqueness = None
         if "uniqueness" in record:
             scores = record["uniqueness"]
-            uniqueness = Uniqueness(int(scores["own"]), int(scores["rival"]), 0.0, 0).ratio
+            uniqueness = Uniqueness(
+                int(scores["own"]),
+                int(scores["own_visible"]),
+                int(scores["rival"]),
+                int(scores["rival_visible"]),
+                0.0,
+                0,
+            ).ratio
         return cls(
             position,
             int(best["inliers"]),
