@@ -10,7 +10,7 @@ wall time of the measurement per query (from the job's stage timings).
 
 Usage:
     python3 experiments/uniqueness_report.py /tmp/R/out0 /tmp/R/in0 --ratio 0.8 \\
-        --out experiments/results/uniqueness_seed0
+        --out experiments/results/uniqueness_seed0 --made-by "diffloc task=relocalize ..."
         -> experiments/results/uniqueness_seed0.md / .json
 """
 
@@ -72,6 +72,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("jobs", type=Path, nargs="+", help="finished relocalisation job folders")
     parser.add_argument("--ratio", type=float, action="append", default=[], help="a threshold")
     parser.add_argument("--out", type=Path, required=True, help="report path without suffix")
+    parser.add_argument(
+        "--made-by", action="append", default=[], help="a command that produced the jobs"
+    )
     args = parser.parse_args(argv)
     rows = [row for job in args.jobs for row in job_rows(job, args.ratio)]
     columns = [Column("job"), Column("sequence"), Column("queries")]
@@ -93,7 +96,8 @@ def main(argv: list[str] | None = None) -> None:
         "poses (nan: none accepted); wrong: accepted poses farther than 0.3 m. The ratio columns "
         "are over the poses accepted with the test off."
     )
-    report = f"Made by:\n\n```bash\n{command}\n```\n\n{note}\n\n{markdown_table(rows, columns)}\n"
+    made_by = "\n".join([*args.made_by, command])
+    report = f"Made by:\n\n```bash\n{made_by}\n```\n\n{note}\n\n{markdown_table(rows, columns)}\n"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out.with_suffix(".md"), report)
     atomic_write_text(args.out.with_suffix(".json"), json.dumps(rows, indent=2) + "\n")
