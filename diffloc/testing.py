@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 from pytorch_kinematics import transforms as pk_tf
 
+from diffloc.features.local import Features
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import hat, invert, transform_points
 from diffloc.optim.lm import BlockLinearization
@@ -29,6 +30,7 @@ __all__ = [
     "random_points",
     "random_rotation",
     "random_se3",
+    "tiled_floor",
     "tolerance",
 ]
 
@@ -253,3 +255,74 @@ class TransferBlocks:
         jac_a = j_point @ rotation @ torch.cat((eye, -hat(X_a)), dim=-1)
         jac_b = -self.camera.project_jacobian_pose(points_b[..., None, :])[..., 0, :, :]
         return BlockLinearization(self.residual_fn(T_a, T_b, extra), jac_a, jac_b)
+
+
+@dataclass(frozen=True)
+class TiledFloor:
+    """A query camera above a floor whose texture repeats along x (:func:`tiled_floor`).
+
+    Attributes:
+        T_wc: (4, 4) float64 the query's true pose (camera-to-world).
+        rivals: (0, 4, 4) float64 no other candidate poses.
+        inliers: (N, 2) int64 ``(keypoint, map point)``: the query's inliers at the true pose
+            (keypoint ``i`` is the projection of the ``i``-th map point it sees).
+        features: the query's keypoints (the seen points projected) and their descriptors.
+        camera: the query camera.
+        positions: (P, 3) float64 map points on the floor plane z = 0.
+        descriptors: (P, 32) float32 their L2-normalised descriptors.
+    """
+
+    T_wc: torch.Tensor
+    rivals: torch.Tensor
+    inliers: torch.Tensor
+    features: Features
+    camera: PinholeCamera
+    positions: torch.Tensor
+    descriptors: torch.Tensor
+
+
+def tiled_floor(period_m: float = 1.0, marking_m: float = 0.0, seed: int = 0) -> TiledFloor:
+    """A floor of map points every 0.1 m whose descriptors repeat every ``period_m`` along x
+    (each copy perturbed a little, less than the query's descriptors are), seen straight down
+    from 2 m by a 160 x 120 camera; a square of half-width ``marking_m`` under the camera has
+    descriptors of its own (a marking that does not repeat). Query keypoints are the seen
+    points' exact projections, their descriptors the points' with a little noise.
+
+    Example:
+        >>> floor = tiled_floor()
+        >>> len(floor.features) == len(floor.inliers) > 400
+        True
+    """
+    g = torch.Generator().manual_seed(seed)
+    step = 0.1
+    xs = torch.arange(-60, 61, dtype=torch.float64) * step
+    ys = torch.arange(-40, 41, dtype=torch.float64) * step
+    gx, gy = torch.meshgrid(xs, ys, indexing="ij")
+    positions = torch.stack([gx, gy, torch.zeros_like(gx)], -1).reshape(-1, 3)
+    columns = round(period_m / step)
+    pattern = torch.randn(columns, len(ys), 32, generator=g)
+    ix = torch.arange(len(xs))[:, None].expand(-1, len(ys)) % columns
+    iy = torch.arange(len(ys))[None].expand(len(xs), -1)
+    descriptors = pattern[ix, iy].reshape(-1, 32)  # the copies of a spot look alike
+    descriptors = descriptors + 0.01 * torch.randn(descriptors.shape, generator=g)
+    centre = torch.tensor([0.3, 0.2], dtype=torch.float64)
+    marked = ((positions[:, :2] - centre).abs() <= marking_m).all(1)
+    descriptors[marked] = torch.randn(int(marked.sum()), 32, generator=g)
+    descriptors = torch.nn.functional.normalize(descriptors, dim=1)
+    T_wc = torch.eye(4, dtype=torch.float64)
+    T_wc[:3, :3] = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+    T_wc[:2, 3], T_wc[2, 3] = centre, 2.0
+    camera = PinholeCamera.from_fov(160, 120, 1.2, dtype=torch.float64)
+    uv, valid = camera.project(transform_points(invert(T_wc), positions))
+    inliers = torch.nonzero(valid & camera.in_image(uv)).flatten()
+    noisy = descriptors[inliers] + 0.1 * torch.randn(len(inliers), 32, generator=g)
+    n = len(inliers)
+    features = Features(
+        uv[inliers].float(),
+        torch.ones(n),
+        torch.nn.functional.normalize(noisy, dim=1),
+        torch.ones(n),
+    )
+    rivals = torch.zeros(0, 4, 4, dtype=torch.float64)
+    matches = torch.stack([torch.arange(n), inliers], 1)
+    return TiledFloor(T_wc, rivals, matches, features, camera, positions, descriptors)

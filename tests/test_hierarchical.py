@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import statistics
 from dataclasses import replace
 from pathlib import Path
 
@@ -50,6 +51,7 @@ def main_run(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempPathFactory
     out = root.parent / "results"
     overrides = [f"dataset={root}", f"task.out_dir={out}", "task.optimize=false"]
     overrides.append("reloc.record_repetition=true")  # off by default (the test is off)
+    overrides.append("reloc.record_uniqueness=true")
     results = run(compose_config(TINY + FINE + ["task=main", *overrides]))
     return root, out, results
 
@@ -194,7 +196,8 @@ def test_candidates_name_their_inliers_and_runs_record_their_repetition(
     main_run, relocalizer_parts
 ):
     """The inlier matches a candidate carries are its inliers (their map points project onto
-    their keypoints at the refined pose), and every inlier pose's repetition is recorded."""
+    their keypoints at the refined pose), and every inlier pose's repetition and uniqueness
+    are recorded."""
     database, retriever, centers, query = relocalizer_parts
     extractor = make_extractor(XFeatConfig(max_keypoints=512))
     image = query.load_rgb(0)
@@ -219,6 +222,14 @@ def test_candidates_name_their_inliers_and_runs_record_their_repetition(
     assert measured, "no inlier pose on the tiny scene"
     for q in measured:
         assert 0 <= q["repetition"]["support"] <= q["inliers"]
+        unique = q["uniqueness"]
+        assert unique["own"] >= 0 and unique["rival"] >= 0 and unique["alternatives"] >= 0
+        assert q["timings_ms"]["uniqueness"] > 0
+    right = [q["uniqueness"]["own"] for q in measured if q["correct"]]
+    # a right pose is explained by its own guided matches at least as well as by its inliers
+    assert right and statistics.median(right) >= 0.8 * statistics.median(
+        q["inliers"] for q in measured if q["correct"]
+    )
 
 
 def test_textureless_query_is_not_localized(relocalizer_parts):

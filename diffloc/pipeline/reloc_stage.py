@@ -54,7 +54,8 @@ from diffloc.eval.metrics import (
 )
 from diffloc.eval.plots import plot_error_cdf, plot_precision_recall, plot_trajectory_topdown
 from diffloc.eval.tables import Column, markdown_table
-from diffloc.features.local import make_extractor
+from diffloc.features.local import Features, make_extractor
+from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.pose_offsets import nearest_pose_offsets, offset_summary
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
@@ -90,6 +91,7 @@ from diffloc.reloc.retrieval import (
     NetVLADRetriever,
     load_retriever,
 )
+from diffloc.reloc.uniqueness import Uniqueness, UniquenessConfig, pose_uniqueness
 from diffloc.reloc.validation import PoseValidator, ValidationConfig
 
 __all__ = ["RelocStageConfig", "RelocalizeSummary", "RetrieverSummary", "relocalize_dataset"]
@@ -151,6 +153,11 @@ class RelocStageConfig:
             ``record_repetition`` is true.
         record_repetition: measure and record the repetition even when the validation does
             not test it (to replay thresholds; about 0.1 s CPU per query outdoors).
+        uniqueness: how the uniqueness of a found pose is measured
+            (:mod:`diffloc.reloc.uniqueness`); measured and recorded like ``photometric``
+            where ``validation.uniqueness_ratio`` is set or ``record_uniqueness`` is true.
+        record_uniqueness: measure and record the uniqueness even when the validation does
+            not test it (to replay thresholds).
     """
 
     sequences: list[str] = field(default_factory=lambda: ["query_same", "changed"])
@@ -164,6 +171,8 @@ class RelocStageConfig:
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     repetition: RepetitionConfig = field(default_factory=RepetitionConfig)
     record_repetition: bool = False
+    uniqueness: UniquenessConfig = field(default_factory=UniquenessConfig)
+    record_uniqueness: bool = False
 
     def __post_init__(self) -> None:
         check_database_name(self.database)
@@ -260,6 +269,7 @@ class _SequenceRun:
     inliers: np.ndarray
     photometric: list[float | None]
     repetition: list[RepeatedShift | None]
+    uniqueness: list[Uniqueness | None]
     timings: list[dict[str, float]]
     candidates: list[list[dict]]
 
@@ -277,9 +287,8 @@ def _relocalize_sequence(
     frames = list(range(0, len(sequence), cfg.query_stride))
     validator = PoseValidator(cfg.validation)
     seed1 = PoseValidator(cfg.validation.seed1_rule())
-    estimates, found, accepted, accepted_seed1, inliers, scores, repeats, timings, candidates = (
-        [] for _ in range(9)
-    )
+    estimates, found, accepted, accepted_seed1, inliers = [], [], [], [], []
+    scores, repeats, uniques, timings, candidates = [], [], [], [], []
     for i in progress(frames, f"relocalise {name}", show_progress):
         image = sequence.load_rgb(i)
         start = time.perf_counter()
@@ -287,7 +296,7 @@ def _relocalize_sequence(
         extract_ms = (time.perf_counter() - start) * 1e3
         result: RelocResult = relocalizer.relocalize(image, features, sequence.camera)
         timestamp = float(sequence.timestamps[i])
-        score, repeat = None, None
+        score, repeat, unique = None, None, None
         if result.found and result.num_inliers >= cfg.validation.theta_in:
             start = time.perf_counter()
             score = photometric.score(image, result.T_wc, sequence.camera, result.canonical)
@@ -296,10 +305,15 @@ def _relocalize_sequence(
                 start = time.perf_counter()
                 repeat = _repetition(result, relocalizer.db, cfg.repetition)
                 result.timings_ms["repetition"] = (time.perf_counter() - start) * 1e3
+            if cfg.record_uniqueness or cfg.validation.uniqueness_ratio is not None:
+                start = time.perf_counter()
+                unique = _uniqueness(result, features, sequence.camera, relocalizer, cfg)
+                result.timings_ms["uniqueness"] = (time.perf_counter() - start) * 1e3
         scores.append(score)
         repeats.append(repeat)
+        uniques.append(unique)
         accepted.append(
-            result.found and validator.validate_result(result, timestamp, score, repeat)
+            result.found and validator.validate_result(result, timestamp, score, repeat, unique)
         )
         accepted_seed1.append(result.found and seed1.validate_result(result, timestamp))
         estimates.append(result.T_wc if result.found else torch.full((4, 4), math.nan))
@@ -317,6 +331,7 @@ def _relocalize_sequence(
         inliers=np.array(inliers, dtype=np.float64),
         photometric=scores,
         repetition=repeats,
+        uniqueness=uniques,
         timings=timings,
         candidates=candidates,
     )
@@ -336,6 +351,33 @@ def _repetition(
         db.point_descriptors,
         db.metric,
         config,
+    )
+
+
+def _uniqueness(
+    result: RelocResult,
+    features: Features,
+    camera: PinholeCamera,
+    relocalizer: HierarchicalRelocalizer,
+    cfg: RelocStageConfig,
+) -> Uniqueness:
+    """The uniqueness of the best candidate's pose against its repetition shifts and the
+    other candidates (:func:`~diffloc.reloc.uniqueness.pose_uniqueness`)."""
+    best = result.best
+    rivals = [c.T_wc for c in result.candidates if c is not best]
+    db = relocalizer.db
+    return pose_uniqueness(
+        best.T_wc,
+        torch.stack(rivals) if rivals else torch.zeros(0, 4, 4, dtype=torch.float64),
+        best.inlier_matches,
+        features,
+        camera,
+        relocalizer.point_positions,
+        db.point_descriptors,
+        db.metric,
+        cfg.uniqueness,
+        cfg.repetition,
+        cfg.method.refine,
     )
 
 
@@ -433,6 +475,21 @@ def _report_sequence(
                     "repetition": {
                         "support": run.repetition[q].support,
                         "shift_m": round(run.repetition[q].shift_m, 4),
+                    }
+                }
+            ),
+            **(
+                {}
+                if run.uniqueness[q] is None
+                else {
+                    "uniqueness": {
+                        "own": run.uniqueness[q].own,
+                        "own_visible": run.uniqueness[q].own_visible,
+                        "rival": run.uniqueness[q].rival,
+                        "rival_visible": run.uniqueness[q].rival_visible,
+                        "ratio": finite_or_none(round(run.uniqueness[q].ratio, 4)),
+                        "rival_distance_m": round(run.uniqueness[q].rival_distance_m, 4),
+                        "alternatives": run.uniqueness[q].alternatives,
                     }
                 }
             ),

@@ -36,12 +36,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from diffloc.checks import check_shape
 from diffloc.features.matching import Metric, descriptor_distances
 
-__all__ = ["RepeatedShift", "RepetitionConfig", "repeated_shift"]
+__all__ = ["RepeatedShift", "RepetitionConfig", "repeated_shift", "repeated_shifts"]
 
 _CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
 """(8, 3) the grid shifts around an offset, from the cell below it."""
@@ -108,6 +109,43 @@ def repeated_shift(
         ShapeError: inconsistent shapes.
         IndexError: a point id outside the map.
     """
+    shifts, support = repeated_shifts(
+        points, point_positions, point_descriptors, metric, config, count=1
+    )
+    if len(support) == 0:
+        return RepeatedShift(0, 0.0)
+    return RepeatedShift(int(support[0]), float(torch.linalg.vector_norm(shifts[0])))
+
+
+def repeated_shifts(
+    points: torch.Tensor,
+    point_positions: torch.Tensor,
+    point_descriptors: torch.Tensor,
+    metric: Metric,
+    config: RepetitionConfig,
+    count: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``count`` best-supported shifts of a pose's inliers onto their twins (module
+    docstring), as vectors: the candidate moves of a pose to a repeated place.
+
+    Args:
+        points: (N,) int64 map point of each inlier.
+        point_positions: (P, 3) positions of all map points (world frame, metres).
+        point_descriptors: (P, D) descriptors of all map points.
+        metric: the descriptor metric of the database.
+        config: settings.
+        count: most shifts returned (>= 1).
+
+    Returns:
+        ``(shifts, support)``: (S, 3) float64 shifts in metres (grid cell corners, the best
+        supported first) and (S,) int64 their support, ``S <= count`` (0 without inliers or
+        twins).
+
+    Raises:
+        ShapeError: inconsistent shapes.
+        IndexError: a point id outside the map.
+        ValueError: ``count < 1``.
+    """
     check_shape(points, "N", "points")
     check_shape(point_positions, "P,3", "point_positions")
     check_shape(point_descriptors, "P,D", "point_descriptors")
@@ -115,15 +153,18 @@ def repeated_shift(
         raise ValueError(
             f"{len(point_descriptors)} point descriptors for {len(point_positions)} positions"
         )
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    none = torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, dtype=torch.int64)
     if len(points) == 0:
-        return RepeatedShift(0, 0.0)
+        return none
     if int(points.min()) < 0 or int(points.max()) >= len(point_positions):
         raise IndexError(f"inlier points must be map points in [0, {len(point_positions)})")
     distances = descriptor_distances(point_descriptors[points], point_descriptors, metric)
     distances.scatter_(1, points[:, None], math.inf)  # (N, P), a point is not its own twin
     k = min(config.max_twins, distances.shape[1] - 1)
     if k < 1:
-        return RepeatedShift(0, 0.0)
+        return none
     twins = torch.topk(distances, k, dim=1, largest=False).indices  # (N, k)
     positions = point_positions.to(torch.float64)
     offsets = positions[twins] - positions[points][:, None]  # (N, k, 3)
@@ -131,7 +172,7 @@ def repeated_shift(
     owner = torch.arange(len(points))[:, None].expand_as(is_twin)[is_twin]  # (M,)
     offsets = offsets[is_twin]  # (M, 3)
     if len(offsets) == 0:
-        return RepeatedShift(0, 0.0)
+        return none
     # Vote on a grid of step tolerance / 2: an offset supports the 8 grid shifts within
     # tolerance / 2 of it per axis; each inlier counts once per shift.
     step = config.tolerance_m / 2
@@ -142,13 +183,26 @@ def repeated_shift(
     key = (index[:, 0] * extent[1] + index[:, 1]) * extent[2] + index[:, 2]  # (8M,)
     pairs = torch.unique(key * len(points) + owner.repeat_interleave(8))
     keys, support = torch.unique(pairs // len(points), return_counts=True)
-    best = int(torch.argmax(support))
-    cell = torch.stack(
-        [
-            keys[best] // (extent[1] * extent[2]),
-            keys[best] // extent[2] % extent[1],
-            keys[best] % extent[2],
-        ]
+    cell = (
+        torch.stack(
+            [keys // (extent[1] * extent[2]), keys // extent[2] % extent[1], keys % extent[2]], 1
+        )
+        + low
     )
-    shift_m = float(torch.linalg.vector_norm((cell + low).double() * step))
-    return RepeatedShift(int(support[best]), shift_m)
+    corner = cell.double() * step
+    # Best support first, the shortest shift of equal support first (the period before its
+    # multiples); a shift within tolerance of a better one is the same repetition.
+    order = torch.from_numpy(
+        np.lexsort((torch.linalg.vector_norm(corner, dim=1).numpy(), -support.numpy()))
+    )
+    corner, cell, support = corner[order], cell[order], support[order]
+    kept = []
+    free = torch.ones(len(order), dtype=torch.bool)
+    while len(kept) < count and bool(free.any()):  # at most `count` rounds
+        i = int(torch.nonzero(free)[0])
+        kept.append(i)
+        free &= (corner - corner[i]).abs().amax(1) > config.tolerance_m
+    # Each shift is the mean of the offsets that voted for its grid cell.
+    below = torch.floor(offsets / step).long()  # (M, 3)
+    votes = ((cell[kept][:, None] - below) // 2 == 0).all(-1).double()  # (S, M), 0 or 1 below
+    return (votes @ offsets) / votes.sum(1, keepdim=True), support[kept]

@@ -37,7 +37,12 @@ make an *inlier pose* also need
 - no repeated structure under it: fewer than ``max_repeated`` of its inliers have a twin in the
   map at one common shift (:mod:`diffloc.reloc.repetition`). Where everything the query sees
   repeats (a tiled floor filling the view, a uniform facade), a pose one period away is as
-  consistent, photometrically too, as the right one: the image does not fix the pose.
+  consistent, photometrically too, as the right one: the image does not fix the pose;
+- uniqueness: no alternative pose (the pose moved by the repetition shifts and their
+  multiples, the other candidates), refined and scored like the pose itself, explains the
+  query with at least ``uniqueness_ratio`` times the pose's own score (the share of the map
+  points in view that are its refined guided inliers)
+  (:mod:`diffloc.reloc.uniqueness`).
 
 :meth:`ValidationConfig.seed1_rule` switches them off, giving seed 1's rule.
 
@@ -58,6 +63,7 @@ import torch
 from diffloc.checks import check_finite, check_shape
 from diffloc.reloc.hierarchical import RelocResult
 from diffloc.reloc.repetition import RepeatedShift
+from diffloc.reloc.uniqueness import Uniqueness
 
 __all__ = ["PoseEvidence", "PoseValidator", "ValidationConfig"]
 
@@ -84,6 +90,8 @@ class ValidationConfig:
             inlier pose (``None`` disables it).
         max_repeated: largest fraction of an inlier pose's inliers with a twin at one common
             shift (:mod:`diffloc.reloc.repetition`; ``None`` disables the test).
+        uniqueness_ratio: an alternative pose scoring at least this fraction of the pose's own
+            score rejects it (:mod:`diffloc.reloc.uniqueness`; ``None`` disables the test).
         conflict_keeps_reference: an inlier pose that fails the distance test against a live
             reference (not older than ``max_reference_age_s``) is not verified and does not
             replace the reference (seed 1: every inlier pose replaces it, ``False``). A jump
@@ -101,6 +109,7 @@ class ValidationConfig:
     ambiguity_ratio: float | None = None
     min_photometric: float | None = None
     max_repeated: float | None = None
+    uniqueness_ratio: float | None = None
     conflict_keeps_reference: bool = False
 
     def __post_init__(self) -> None:
@@ -126,10 +135,16 @@ class ValidationConfig:
         repeated = self.max_repeated
         if repeated is not None and not (math.isfinite(repeated) and 0.0 <= repeated <= 1.0):
             raise ValueError(f"validation.max_repeated must be in [0, 1] or null, got {repeated}")
+        unique = self.uniqueness_ratio
+        if unique is not None and not (math.isfinite(unique) and unique > 0):
+            raise ValueError(
+                f"validation.uniqueness_ratio must be a finite number > 0 or null, got {unique}"
+            )
 
     def seed1_rule(self) -> ValidationConfig:
         """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity,
-        photometric consistency, repetition, the reference age, the kept reference) off; the
+        photometric consistency, repetition, uniqueness, the reference age, the kept
+        reference) off; the
         speed allowance of sparse query streams stays."""
         return replace(
             self,
@@ -138,6 +153,7 @@ class ValidationConfig:
             ambiguity_ratio=None,
             min_photometric=None,
             max_repeated=None,
+            uniqueness_ratio=None,
             max_reference_age_s=None,
             conflict_keeps_reference=False,
         )
@@ -160,6 +176,9 @@ class PoseEvidence:
         repeated: how many of the best candidate's inliers have a twin at one common shift
             (:attr:`~diffloc.reloc.repetition.RepeatedShift.support`), or ``None`` when it was
             not measured.
+        uniqueness: the best alternative's score over the pose's own
+            (:attr:`~diffloc.reloc.uniqueness.Uniqueness.ratio`), or ``None`` when it was not
+            measured.
     """
 
     position: torch.Tensor
@@ -169,14 +188,19 @@ class PoseEvidence:
     rivals: tuple[tuple[int, float], ...]
     photometric: float | None = None
     repeated: int | None = None
+    uniqueness: float | None = None
 
     @classmethod
     def from_result(
-        cls, result: RelocResult, photometric: float | None = None, repeated: int | None = None
+        cls,
+        result: RelocResult,
+        photometric: float | None = None,
+        repeated: int | None = None,
+        uniqueness: float | None = None,
     ) -> PoseEvidence | None:
         """The evidence of a relocaliser's answer (``None`` when it found nothing), with the
-        best candidate's ``photometric`` consistency and ``repeated`` inliers where they were
-        measured."""
+        best candidate's ``photometric`` consistency, ``repeated`` inliers and ``uniqueness``
+        ratio where they were measured."""
         best = result.best
         if best is None:
             return None
@@ -193,6 +217,7 @@ class PoseEvidence:
             rivals,
             photometric,
             repeated,
+            uniqueness,
         )
 
     @classmethod
@@ -200,8 +225,10 @@ class PoseEvidence:
         """The evidence a relocalisation run recorded for one query in ``queries.json``
         (``found``, ``position_m``, ``candidates`` with ``inliers``, ``matches``,
         ``coverage`` and ``distance_to_chosen_m``, ``photometric`` where it was measured,
-        null for no overlap, and ``repetition`` with its ``support`` where it was measured);
-        ``None`` when it found nothing.
+        null for no overlap, ``repetition`` with its ``support`` and ``uniqueness`` with its
+        ``own``, ``own_visible``, ``rival`` and ``rival_visible`` counts where they were
+        measured); ``None`` when it found
+        nothing.
 
         Raises:
             ValueError: a found query without a position or candidates.
@@ -218,6 +245,17 @@ class PoseEvidence:
         if "photometric" in record:
             photometric = math.nan if record["photometric"] is None else record["photometric"]
         repeated = int(record["repetition"]["support"]) if "repetition" in record else None
+        uniqueness = None
+        if "uniqueness" in record:
+            scores = record["uniqueness"]
+            uniqueness = Uniqueness(
+                int(scores["own"]),
+                int(scores["own_visible"]),
+                int(scores["rival"]),
+                int(scores["rival_visible"]),
+                0.0,
+                0,
+            ).ratio
         return cls(
             position,
             int(best["inliers"]),
@@ -226,6 +264,7 @@ class PoseEvidence:
             rivals,
             photometric,
             repeated,
+            uniqueness,
         )
 
 
@@ -247,11 +286,11 @@ class PoseValidator:
 
     def plausible(self, evidence: PoseEvidence) -> bool:
         """The tests beyond seed 1's: inlier ratio, coverage, photometric consistency, no
-        repeated structure and no well-supported rival.
+        repeated structure, uniqueness and no well-supported rival.
 
         Raises:
-            ValueError: ``min_photometric`` or ``max_repeated`` is set but the evidence lacks
-                that measurement (a run that did not measure it).
+            ValueError: ``min_photometric``, ``max_repeated`` or ``uniqueness_ratio`` is set
+                but the evidence lacks that measurement (a run that did not measure it).
         """
         cfg = self.config
         if cfg.min_photometric is not None:
@@ -272,6 +311,15 @@ class PoseValidator:
                 )
             if evidence.repeated > cfg.max_repeated * evidence.num_inliers:
                 return False
+        if cfg.uniqueness_ratio is not None:
+            if evidence.uniqueness is None:
+                raise ValueError(
+                    "validation.uniqueness_ratio is set but this answer's uniqueness was not "
+                    "measured (a relocalisation run of an older diffloc: run it again, or set "
+                    "reloc.validation.uniqueness_ratio=null)"
+                )
+            if evidence.uniqueness >= cfg.uniqueness_ratio:
+                return False
         if evidence.num_inliers < cfg.min_inlier_ratio * max(evidence.num_matches, 1):
             return False
         if evidence.coverage < cfg.min_coverage:
@@ -289,12 +337,14 @@ class PoseValidator:
         timestamp: float,
         photometric: float | None = None,
         repetition: RepeatedShift | None = None,
+        uniqueness: Uniqueness | None = None,
     ) -> bool:
         """Whether a relocaliser's answer is verified (:meth:`validate_evidence`), with its
-        best candidate's ``photometric`` consistency and ``repetition`` where they were
-        measured."""
+        best candidate's ``photometric`` consistency, ``repetition`` and ``uniqueness`` where
+        they were measured."""
         repeated = None if repetition is None else repetition.support
-        evidence = PoseEvidence.from_result(result, photometric, repeated)
+        ratio = None if uniqueness is None else uniqueness.ratio
+        evidence = PoseEvidence.from_result(result, photometric, repeated, ratio)
         return self.validate_evidence(evidence, timestamp)
 
     def validate_evidence(self, evidence: PoseEvidence | None, timestamp: float) -> bool:
