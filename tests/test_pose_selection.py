@@ -136,24 +136,24 @@ def test_scanner_blind_spot_is_filled_and_corridors_connect(selection):
 
 def test_floor_closing_bridges_lidar_ring_gaps(building):
     """A rotating lidar samples the floor in rings: bands 0.4 m wide without floor points
-    every metre across the ground floor. Closed by 0.1 m (the obstacle closing) the free
-    space is 0.6 m stripes with no 0.4 m clearance; the default floor closing (0.3 m)
-    restores the corridor of the unbroken floor, and its samples stay in free space."""
+    every metre across the ground floor. Closed by 0.1 m (the default, as the obstacles) the
+    free space is 0.6 m stripes with no 0.4 m clearance; a floor closing of 0.3 m restores
+    the corridor of the unbroken floor, and its samples stay in free space."""
     points, normals = building["points"], building["normals"]
     on_ground = (normals[:, 2] > 0.5) & (np.abs(points[:, 2] - STOREY_Z[0]) < 0.05)
     in_gap = (np.mod(points[:, 0], 1.0) >= 0.6) & (points[:, 0] < 11.0)  # not at the ends
     keep = ~(on_ground & in_gap)
     points, normals = points[keep], normals[keep]
-    narrow = replace(CONFIG, floor_closing_radius_m=0.1)
+    wide = replace(CONFIG, floor_closing_radius_m=0.3)
     with pytest.raises(ValueError, match="floor 0 .*empty corridor"):
-        select_render_poses(points, normals, narrow)
-    plan = select_render_poses(points, normals, CONFIG).floors[0]
-    whole = select_render_poses(building["points"], building["normals"], CONFIG).floors[0]
+        select_render_poses(points, normals, replace(CONFIG, floor_closing_radius_m=0.1))
+    plan = select_render_poses(points, normals, wide).floors[0]
+    whole = select_render_poses(building["points"], building["normals"], wide).floors[0]
     assert ndimage.label(plan.corridor, structure=np.ones((3, 3)))[1] == 1
     assert plan.corridor.sum() >= 0.95 * whole.corridor.sum()
     assert _inside(plan.samples_xy, CORRIDOR + ROOM).all()
     clearance, _ = cKDTree(building["obstacles_0"]).query(plan.samples_xy)
-    assert clearance.min() >= CONFIG.min_clearance_m - CONFIG.cell_size_m
+    assert clearance.min() >= wide.min_clearance_m - wide.cell_size_m
     assert abs(len(plan.samples_xy) - len(whole.samples_xy)) <= 1
 
 

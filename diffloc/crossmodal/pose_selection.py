@@ -12,9 +12,9 @@ choose camera poses from which database images are rendered:
    point between ``obstacle_min_height_m`` and ``obstacle_max_height_m`` above the floor. Both
    masks are closed (dilation then erosion) to fill sampling gaps: the obstacle mask by a disk
    of ``closing_radius_m`` (small, so doors stay open), the floor mask by a disk of
-   ``floor_closing_radius_m`` (larger: a rotating lidar samples the floor in rings whose gaps
-   widen with the range, 0.2-0.6 m at 3-6 m; closing the floor across a wall is harmless,
-   since the wall is an obstacle). Enclosed holes of the floor mask up to
+   ``floor_closing_radius_m`` (it can be larger: a rotating lidar samples the floor in rings
+   whose gaps widen with the range, 0.2-0.6 m at 3-6 m; closing the floor across a wall is
+   harmless, since the wall is an obstacle). Enclosed holes of the floor mask up to
    ``max_floor_hole_m2`` are filled (the unseen disk under a terrestrial scanner's station);
    free space is floor and not obstacle.
 3. **Corridor.** The Euclidean distance transform of free space gives each free cell its
@@ -97,13 +97,6 @@ __all__ = [
 VIEW_NAMES = ("forward", "back", "left", "right")
 """Order of the four views of every sample (``RenderPoses.view_index``)."""
 
-FLOOR_CLOSING_RADIUS_M = 0.3
-"""Default :attr:`PoseSelectionConfig.floor_closing_radius_m`, chosen on indoor seed 0 only
-(``experiments/results/render_coverage_indoor_seed0.md``): on the lidar map, radii 0.1 /
-0.2 / 0.3 / 0.5 m give 200 / 340 / 376 / 436 render poses and put a render within 2 m and
-45 deg of 61 / 81 / 94 / 94 % of the ``query_same`` frames (61 / 79 / 88 / 91 % of
-``query_reverse``); the TLS map's coverage (94 / 97 %) is the same for all four."""
-
 
 @dataclass(frozen=True)
 class PoseSelectionConfig:
@@ -124,7 +117,11 @@ class PoseSelectionConfig:
         closing_radius_m: radius of the disk used to close the obstacle mask, metres (0
             disables closing).
         floor_closing_radius_m: radius of the disk used to close the floor mask, metres (0
-            disables closing).
+            disables closing). 0.1 by default; 0.3 bridges a rotating lidar's ring gaps
+            (on indoor seed 0 the lidar map's render poses go from 200 to 376 and the share
+            of ``query_same`` frames with a render within 2 m / 45 deg from 61 to 94 %,
+            ``experiments/results/render_coverage_indoor_seed0.md``), but it also moves the
+            TLS map's poses, which lowers that map's rate, so it is not the default.
         max_floor_hole_m2: enclosed holes of the floor mask up to this area are filled, square
             metres (0 disables filling).
         min_clearance_m: smallest distance from a corridor cell to non-free space, metres.
@@ -144,7 +141,7 @@ class PoseSelectionConfig:
     obstacle_max_height_m: float = 2.0
     cell_size_m: float = 0.05
     closing_radius_m: float = 0.1
-    floor_closing_radius_m: float = FLOOR_CLOSING_RADIUS_M
+    floor_closing_radius_m: float = 0.1
     max_floor_hole_m2: float = 2.0
     min_clearance_m: float = 0.4
     blur_sigma_m: float = 0.2
