@@ -20,7 +20,11 @@ from diffloc.reloc.validation import PoseEvidence, PoseValidator, ValidationConf
 from diffloc.testing import TiledFloor, tiled_floor
 
 
-def uniqueness_of(floor: TiledFloor, rivals: torch.Tensor | None = None) -> Uniqueness:
+def uniqueness_of(
+    floor: TiledFloor,
+    rivals: torch.Tensor | None = None,
+    config: UniquenessConfig | None = None,
+) -> Uniqueness:
     return pose_uniqueness(
         floor.T_wc,
         floor.rivals if rivals is None else rivals,
@@ -30,6 +34,7 @@ def uniqueness_of(floor: TiledFloor, rivals: torch.Tensor | None = None) -> Uniq
         floor.positions,
         floor.descriptors,
         "l2",
+        config,
     )
 
 
@@ -87,17 +92,7 @@ def test_a_rival_pose_is_refined_before_it_is_scored(periodic):
         dtype=torch.float64,
     )
     rival[:3, :3] = turn @ rival[:3, :3]
-    u = pose_uniqueness(
-        periodic.T_wc,
-        rival[None],
-        periodic.inliers,
-        periodic.features,
-        periodic.camera,
-        periodic.positions,
-        periodic.descriptors,
-        "l2",
-        UniquenessConfig(shifts=0),  # the rival is the only alternative
-    )
+    u = uniqueness_of(periodic, rival[None], UniquenessConfig(shifts=0))  # the only alternative
     assert u.alternatives == 1 and u.ratio >= 0.95
     assert u.rival_distance_m == pytest.approx(1.0, abs=0.01)
 
@@ -105,17 +100,7 @@ def test_a_rival_pose_is_refined_before_it_is_scored(periodic):
 def test_an_alternative_that_refines_onto_the_pose_is_the_pose(periodic):
     near = periodic.T_wc.clone()
     near[0, 3] += 0.04
-    u = pose_uniqueness(
-        periodic.T_wc,
-        near[None],
-        periodic.inliers,
-        periodic.features,
-        periodic.camera,
-        periodic.positions,
-        periodic.descriptors,
-        "l2",
-        UniquenessConfig(shifts=0),
-    )
+    u = uniqueness_of(periodic, near[None], UniquenessConfig(shifts=0))
     assert (u.alternatives, u.rival, u.rival_visible, u.ratio) == (0, 0, 0, 0.0)
 
 
