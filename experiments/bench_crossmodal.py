@@ -42,7 +42,7 @@ import torch
 
 from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.crossmodal.synthesize import PointCloudMap, render_views
-from diffloc.io.atomic import atomic_write_text
+from diffloc.eval.report_files import write_benchmark
 from diffloc.io.dataset import read_sequence
 from diffloc.io.npz import read_npz_archive
 from diffloc.maps.pointcloud import PointMap
@@ -141,10 +141,7 @@ def main() -> None:
     report["load_average"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
     report["machine"] = f"{platform.node()} {os.cpu_count()} cores, shared"
     report["wall_times_under_load"] = True
-    line = json.dumps(report)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(report, indent=2) + "\n")
-    print(line)
+    print(write_benchmark(args.out, report))
 
 
 if __name__ == "__main__":

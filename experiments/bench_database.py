@@ -35,7 +35,6 @@ at sigma 0.2 and >= 50 % at 0.4.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 from pathlib import Path
@@ -45,7 +44,7 @@ from omegaconf import OmegaConf
 
 from diffloc.config import compose_config, to_object
 from diffloc.database.builder import ASSOCIATIONS, BuilderConfig
-from diffloc.io.atomic import atomic_write_text
+from diffloc.eval.report_files import write_benchmark
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.database_stage import DatabaseConfig, build_database, optimize_database
 from diffloc.sim.dataset import simulate_dataset
@@ -124,9 +123,7 @@ def main() -> None:
     result["load_average_1min_after"] = os.getloadavg()[0]
     result["build_ms_per_image"] = round(statistics.mean(build_ms), 1)
     result["optimize_ms_per_image"] = round(statistics.mean(optimize_ms), 1)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result))
+    print(write_benchmark(args.out, result))
 
 
 if __name__ == "__main__":

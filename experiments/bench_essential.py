@@ -40,7 +40,6 @@ ratio and ``ours_vs_kornia_paired_ms_{r}`` the median over trials of the per-tri
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import statistics
@@ -54,10 +53,10 @@ import torch
 from kornia.geometry.epipolar import motion_from_essential_choose_solution
 from kornia.geometry.ransac import RANSAC
 
+from diffloc.eval.report_files import write_benchmark
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.essential_ransac import EssentialCheckConfig, essential_check
 from diffloc.geometry.se3 import hat, se3_exp
-from diffloc.io.atomic import atomic_write_text
 
 WIDTH, HEIGHT, FOCAL = 640, 480, 500.0
 CX, CY = (WIDTH - 1) / 2.0, (HEIGHT - 1) / 2.0
@@ -279,8 +278,7 @@ def main() -> None:
     scored = run(methods, args.trials, args.points)
     result |= scored
     print(markdown_table(scored, list(methods)))
-    atomic_write_text(args.out, json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result))
+    print(write_benchmark(args.out, result))
 
 
 if __name__ == "__main__":

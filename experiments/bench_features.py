@@ -20,6 +20,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from diffloc.eval.report_files import write_benchmark
+
 HERE = Path(__file__).resolve().parent
 PARTS = ("bench_features_local.py", "bench_retrieval.py")
 
@@ -41,9 +43,7 @@ def main() -> None:
     result: dict = {}
     for script in PARTS:
         result.update(run_part(script, args.threads))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result))
+    print(write_benchmark(args.out, result))
 
 
 if __name__ == "__main__":

@@ -26,7 +26,6 @@ Keys:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from pathlib import Path
 
@@ -37,6 +36,7 @@ import torch
 from scipy.ndimage import map_coordinates
 
 from diffloc.benchmark import median_ms
+from diffloc.eval.report_files import write_benchmark
 from diffloc.features.local import Features, OrbConfig, SiftConfig, XFeatConfig, make_extractor
 from diffloc.features.matching import (
     LighterGlueConfig,
@@ -152,9 +152,7 @@ def main() -> None:
     result |= extraction(image, args.repeats)
     result |= matching(image, args.repeats)
     result |= motorcycle(args.repeats)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result))
+    print(write_benchmark(args.out, result))
 
 
 if __name__ == "__main__":

@@ -56,6 +56,7 @@ import torch
 from diffloc.benchmark import median_ms
 from diffloc.database.builder import ASSOCIATIONS, BuilderConfig
 from diffloc.database.database import VisualDatabase
+from diffloc.eval.report_files import write_benchmark
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, se3_log, transform_points
 from diffloc.io.dataset import read_sequence
@@ -258,9 +259,7 @@ def main() -> None:
         result["lm_1000_poses_dense_matrix_mb"] = round(4 * (6 * 999) ** 2 / 2**20, 1)
     if (args.surfel_data / "map" / "surfel_map.ply").is_file():
         result |= bench_surfel(args.surfel_data, (0.2, 0.4), args.repeats)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result))
+    print(write_benchmark(args.out, result))
 
 
 if __name__ == "__main__":

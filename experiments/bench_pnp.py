@@ -48,7 +48,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import json
 import math
 import os
 import statistics
@@ -62,8 +61,8 @@ import poselib
 import pycolmap
 import torch
 
+from diffloc.eval.report_files import write_benchmark
 from diffloc.geometry.camera import PinholeCamera
-from diffloc.io.atomic import atomic_write_text
 from diffloc.optim.motion_cost import refine_pose
 from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
 
@@ -393,8 +392,7 @@ def main() -> None:
     }
     result |= run(methods, args.trials, args.points)
     print(markdown_table(result, list(methods)))
-    atomic_write_text(args.out, json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result))
+    print(write_benchmark(args.out, result))
 
 
 if __name__ == "__main__":

@@ -25,7 +25,6 @@ Simulates the default indoor dataset if it is not there yet. Keys:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import time
@@ -38,6 +37,7 @@ from omegaconf import OmegaConf
 
 from diffloc.benchmark import median_ms, peak_added_mb
 from diffloc.config import compose_config
+from diffloc.eval.report_files import write_benchmark
 from diffloc.io.dataset import map_paths, read_sequence
 from diffloc.io.mesh_obj import read_textured_mesh_obj
 from diffloc.io.ply import read_point_cloud
@@ -170,9 +170,7 @@ def main() -> None:
         "see_through_fraction_inverse_depth": round(float(np.mean(inverse)), 4),
         "inverse_depth_sizes_px": [inverse_depth.rho_min, inverse_depth.rho_max],
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result))
+    print(write_benchmark(args.out, result))
 
 
 if __name__ == "__main__":

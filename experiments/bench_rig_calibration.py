@@ -61,8 +61,8 @@ from omegaconf import OmegaConf
 
 from diffloc.database.builder import BuilderConfig
 from diffloc.database.database import VisualDatabase
+from diffloc.eval.report_files import write_benchmark
 from diffloc.geometry.se3 import invert, se3_exp, se3_log
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_dataset_info, read_sequence
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.surfel import SurfelMap
@@ -311,9 +311,7 @@ def main() -> None:
 
     result["load_average_1min_after"] = os.getloadavg()[0]
     result["wall_s"] = round(time.perf_counter() - wall_start, 1)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result))
+    print(write_benchmark(args.out, result))
 
 
 if __name__ == "__main__":

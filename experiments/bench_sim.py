@@ -13,7 +13,6 @@ machine's thread count.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from omegaconf import OmegaConf
 
 from diffloc.benchmark import median_ms
 from diffloc.config import compose_config
+from diffloc.eval.report_files import write_benchmark
 from diffloc.render.raycast import camera_rays
 from diffloc.sim.dataset import DatasetSimulator
 from diffloc.sim.lidar import simulate_station_scan, simulate_sweep
@@ -81,9 +81,7 @@ def main() -> None:
             2,
         ),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result))
+    print(write_benchmark(args.out, result))
 
 
 if __name__ == "__main__":

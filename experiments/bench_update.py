@@ -49,9 +49,9 @@ from omegaconf import OmegaConf
 
 from diffloc.config import compose_config, to_object
 from diffloc.database.database import VisualDatabase
+from diffloc.eval.report_files import write_report
 from diffloc.eval.tables import Column, markdown_table
 from diffloc.geometry.se3 import invert
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.pipeline.build_map import build_maps
 from diffloc.pipeline.database_select import BUILT, UPDATED_PREFIX, select_database
@@ -259,9 +259,7 @@ def main() -> None:
         f"{result['paired']['only_updated']} only against the updated database."
     )
     result["table"] = table
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out, json.dumps(result, indent=2) + "\n")
-    atomic_write_text(args.out.with_suffix(".md"), f"{summary}\n\n{table}\n")
+    write_report(args.out, f"{summary}\n\n{table}\n", result)
     print(summary)
     print(table)
     print(json.dumps({k: v for k, v in result.items() if k != "table"}))

@@ -37,7 +37,6 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
 from collections import Counter
 from pathlib import Path
 
@@ -46,8 +45,8 @@ import torch
 
 from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.eval.metrics import is_correct, pose_errors
+from diffloc.eval.report_files import write_report
 from diffloc.features.retrieval_eval import pairwise_pose_distances
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.pipeline.crossmodal_report import RETRIEVAL_ANGLE_DEG, retrieval_hits
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization, crossmodal_folder
@@ -332,8 +331,7 @@ def main() -> None:
         "note": args.note,
         "maps": maps,
     }
-    atomic_write_text(args.out.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
-    atomic_write_text(args.out.with_suffix(".md"), markdown(report))
+    write_report(args.out, markdown(report), report)
     print(markdown(report).split("\n## Outcomes")[0])
 
 

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from diffloc.crossmodal.submap_fields import SubmapFieldMap
+from diffloc.eval.report_files import write_report
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.nerf.data import load_image, split_frames
 
@@ -128,9 +129,7 @@ def main() -> None:
         "made_by": args.made_by,
         "fields": field_psnr(args.dataset, args.holdout_every, args.width),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
-    args.out.with_suffix(".md").write_text(markdown(record))
+    write_report(args.out, markdown(record), record)
     print(markdown(record))
 
 

@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from diffloc.eval.metrics import PoseErrors, is_correct, mean_ate, pose_errors
+from diffloc.eval.report_files import write_report
 from diffloc.eval.tables import Column, markdown_table
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.io.trajectory import read_tum
 from diffloc.pipeline.crossmodal_report import localization_rates
@@ -182,8 +182,6 @@ def main() -> None:
             "",
         ]
     )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out.with_suffix(".md"), text)
     report = {
         "sequence": args.sequence,
         "every": every,
@@ -192,7 +190,7 @@ def main() -> None:
         "runs": runs,
         "rows": rows,
     }
-    atomic_write_text(args.out.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
+    write_report(args.out, text, report)
     print(text)
 
 

@@ -55,6 +55,7 @@ from safetensors.torch import load_file, save_file
 from diffloc.cli import run
 from diffloc.config import compose_config
 from diffloc.database.database import VisualDatabase
+from diffloc.eval.report_files import write_report
 from diffloc.io.identity import identity
 from diffloc.io.lock import LockLevel, folder_lock, remove_temporaries
 from diffloc.io.ply import read_point_cloud, write_point_cloud
@@ -1081,11 +1082,8 @@ def cases(quick: bool, kills: int) -> list[tuple[str, Callable[[Path], None]]]:
     return found
 
 
-def write_report(summary: dict, out: Path) -> None:
-    """Write ``summary`` (command, counts per class, cases) to ``out`` (JSON) and the same name
-    with ``.md``: the command and the counts, then a table of the cases."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(summary, indent=2) + "\n")
+def summary_markdown(summary: dict) -> str:
+    """The command and the counts per class of ``summary``, then a table of the cases."""
     counts = " / ".join(f"{name} {summary['counts'][name]}" for name in CLASSES)
     lines = [
         f"`{summary['command']}`",
@@ -1100,7 +1098,7 @@ def write_report(summary: dict, out: Path) -> None:
         f"| {r['case']} | {r['group']} | {r['class']} | {r['message'][:140].replace('|', '/')} |"
         for r in summary["cases"]
     ]
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
 
 
 def main() -> None:
@@ -1156,7 +1154,7 @@ def main() -> None:
         summary["cases"] += list(rerun.values())
     counts = Counter(row["class"] for row in summary["cases"])
     summary["counts"] = {name: counts.get(name, 0) for name in CLASSES}
-    write_report(summary, args.out)
+    write_report(args.out, summary_markdown(summary), summary)
     print(summary["counts"])
 
 

@@ -23,7 +23,6 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 from collections.abc import Sequence
 from pathlib import Path
@@ -31,8 +30,8 @@ from pathlib import Path
 from diffloc.eval.bootstrap import DEFAULT_RESAMPLES
 from diffloc.eval.differences import Comparison, difference_markdown, difference_rows
 from diffloc.eval.heldout import heldout_markdown, heldout_rows
+from diffloc.eval.report_files import write_report
 from diffloc.eval.sweeps import check_held_out, group_variants, load_jobs
-from diffloc.io.atomic import atomic_write_text
 
 SCRIPT = "experiments/heldout.py"
 
@@ -43,13 +42,6 @@ def report_text(commands: Sequence[str], aggregation: str, table: str, notes: Se
     parts = [f"Made by:\n\n```bash\n{runs}\n{aggregation}\n```\n"]
     parts += [f"{note}\n" for note in notes]
     return "\n".join([*parts, f"{table}\n"])
-
-
-def write_report(out: Path, text: str, rows: list[dict]) -> None:
-    """``<out>.md`` (the report) and ``<out>.json`` (the rows), each written atomically."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out.with_suffix(".md"), text)
-    atomic_write_text(out.with_suffix(".json"), json.dumps(rows, indent=2) + "\n")
 
 
 def aggregation_command(args: argparse.Namespace) -> str:

@@ -28,7 +28,6 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -40,6 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from diffloc.crossmodal.synthesize import PointCloudMap
+from diffloc.eval.report_files import write_report
 from diffloc.features.local import (
     AkazeConfig,
     Features,
@@ -54,7 +54,6 @@ from diffloc.features.matching import (
     Matches,
     match_descriptors,
 )
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.pointcloud import PointMap
 from diffloc.progress import progress
@@ -186,10 +185,7 @@ def main() -> None:
         "CPU ms: process time of both extractions and the matching, under the machine's load.",
         "",
     ]
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / (args.name or f"match_quality_{args.tag}")
-    atomic_write_text(stem.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
-    atomic_write_text(stem.with_suffix(".md"), "\n".join(lines))
+    write_report(args.out / (args.name or f"match_quality_{args.tag}"), "\n".join(lines), report)
 
 
 if __name__ == "__main__":

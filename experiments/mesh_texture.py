@@ -40,7 +40,7 @@ from omegaconf import OmegaConf
 
 from diffloc.config import compose_config
 from diffloc.crossmodal.mesh_map import TexturedMeshConfig, texture_mesh
-from diffloc.io.atomic import atomic_write_text
+from diffloc.eval.report_files import write_report
 from diffloc.io.dataset import MAP_FILES, read_sequence
 from diffloc.io.exposure import EXPOSURE_FILE, read_exposures
 from diffloc.io.images import write_rgb
@@ -219,8 +219,7 @@ def main() -> None:
     grid = torch.cat([torch.cat(row_top, dim=2), torch.cat(row_bottom, dim=2)], dim=1)
     args.out.mkdir(parents=True, exist_ok=True)
     write_rgb(args.out / "mesh_texture.png", grid)
-    atomic_write_text(args.out / "mesh_texture.json", json.dumps(results, indent=2) + "\n")
-    atomic_write_text(args.out / "mesh_texture.md", markdown(results, int(test[frame])))
+    write_report(args.out / "mesh_texture", markdown(results, int(test[frame])), results)
 
 
 def markdown(results: dict, frame: int) -> str:

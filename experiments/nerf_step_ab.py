@@ -33,6 +33,7 @@ from pathlib import Path
 
 import torch
 
+from diffloc.eval.report_files import write_benchmark
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.nerf.data import SubmapDataConfig, SubmapRays, build_submap_rays
 from diffloc.maps.nerf.module import NerfModule, NerfTrainConfig, StepBatches
@@ -108,8 +109,7 @@ def main() -> None:
         return
     result = run(args.dataset, args.rays, args.steps)
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result))
+        write_benchmark(args.out, result)
     if args.out is not None and args.steps > 3:
         print(compare([args.out]))
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import statistics
 import time
@@ -21,6 +20,7 @@ from pathlib import Path
 
 import torch
 
+from diffloc.eval.report_files import write_benchmark
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.nerf.export import load_field
 from diffloc.maps.nerf.renderer import render_image
@@ -102,8 +102,7 @@ def main() -> None:
         },
         "max_abs_change": {str(s): diff[s] for s in stops},
     }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(record, indent=1) + "\n")
+    write_benchmark(Path(args.out), record)
     print(
         "| stop_transmittance | median CPU s | evaluations per ray | max change rgb | opacity |"
         " depth, m |"

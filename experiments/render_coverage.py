@@ -18,15 +18,14 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from diffloc.crossmodal.pose_selection import PoseSelectionConfig, select_render_poses
+from diffloc.eval.report_files import write_report
 from diffloc.features.retrieval_eval import pairwise_pose_distances
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import MAP_FILES, read_sequence
 from diffloc.io.ply import read_point_cloud
 from diffloc.pipeline.crossmodal_report import RETRIEVAL_ANGLE_DEG
@@ -125,8 +124,7 @@ def main() -> None:
         ),
         "rows": rows,
     }
-    atomic_write_text(args.out.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
-    atomic_write_text(args.out.with_suffix(".md"), markdown(report))
+    write_report(args.out, markdown(report), report)
     print(markdown(report))
 
 

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from diffloc.eval.report_files import write_report
 from diffloc.geometry.se3 import se3_exp
 from diffloc.io.dataset import read_sequence
 from diffloc.io.ply import read_point_cloud
@@ -174,9 +175,7 @@ def strict_rule(rows: list[dict], improvement: float) -> dict:
 def write(args: argparse.Namespace, rows: list[dict], size: list[int]) -> None:
     """(Re)write the JSON and Markdown results with the rows so far."""
     result = summarise(args, rows, size)
-    out = Path(args.out)
-    (out / f"render_refine_{args.label}.json").write_text(json.dumps(result, indent=1))
-    (out / f"render_refine_{args.label}.md").write_text(markdown(result))
+    write_report(Path(args.out) / f"render_refine_{args.label}", markdown(result), result)
 
 
 def markdown(result: dict) -> str:

@@ -53,12 +53,12 @@ from diffloc.crossmodal.database import DatabaseConfig, RenderedDatabase, render
 from diffloc.crossmodal.pose_selection import PoseSelectionConfig, select_render_poses
 from diffloc.crossmodal.synthesize import PointCloudMap
 from diffloc.eval.metrics import PoseErrors, pose_errors, precision, recall
+from diffloc.eval.report_files import write_report
 from diffloc.features.local import XFeatConfig, XFeatExtractor
 from diffloc.features.matching import LighterGlueConfig, LighterGlueMatcher
 from diffloc.features.retrieval_eval import pairwise_pose_distances
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import so3_exp
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.io.ply import read_point_cloud
 from diffloc.io.sequence import SequenceData
@@ -440,10 +440,7 @@ def main() -> None:
         "queries": {name: len(range(0, len(seq), step)) for name, seq in sequences.items()},
         "rows": rows,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / f"rendered_localization_{args.tag}"
-    atomic_write_text(stem.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
-    atomic_write_text(stem.with_suffix(".md"), _markdown(report))
+    write_report(args.out / f"rendered_localization_{args.tag}", _markdown(report), report)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from diffloc.io.atomic import atomic_write_text
+from diffloc.eval.report_files import write_report
 from diffloc.reloc.rendered import (
     RenderedCandidate,
     RenderedLocalizerConfig,
@@ -162,8 +162,7 @@ def main() -> None:
         "queries (%); tried: mean candidates matched per query.",
         "",
     ]
-    atomic_write_text(args.out.with_suffix(".md"), "\n".join(lines))
-    atomic_write_text(args.out.with_suffix(".json"), json.dumps(rows, indent=2) + "\n")
+    write_report(args.out, "\n".join(lines), rows)
 
 
 if __name__ == "__main__":

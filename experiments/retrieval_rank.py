@@ -31,8 +31,8 @@ import numpy as np
 import torch
 
 from diffloc.crossmodal.database import RenderedDatabase
+from diffloc.eval.report_files import write_report
 from diffloc.features.retrieval_eval import pairwise_pose_distances
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.pipeline.crossmodal_report import RETRIEVAL_ANGLE_DEG
 from diffloc.pipeline.crossmodal_stage import crossmodal_folder, scaled_images
@@ -136,8 +136,7 @@ def main() -> None:
         ),
         "rows": rows,
     }
-    atomic_write_text(args.out.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
-    atomic_write_text(args.out.with_suffix(".md"), markdown(report))
+    write_report(args.out, markdown(report), report)
     print(markdown(report))
 
 

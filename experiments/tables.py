@@ -24,8 +24,8 @@ from pathlib import Path
 
 import yaml
 
+from diffloc.eval.report_files import write_report
 from diffloc.eval.tables import Column, markdown_table
-from diffloc.io.atomic import atomic_write_text
 
 STAGES = (
     "features",
@@ -107,10 +107,7 @@ def main() -> None:
     table = markdown_table(rows, columns)
     note = f"{args.note}\n\n" if args.note else ""
     text = f"Made by:\n\n```bash\n{args.command}\n```\n\n{note}{table}\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out.with_suffix(".md"), text)
-    keep = [{k: v for k, v in r.items() if k != "plots"} for r in rows]
-    atomic_write_text(args.out.with_suffix(".json"), json.dumps(keep, indent=2) + "\n")
+    write_report(args.out, text, [{k: v for k, v in r.items() if k != "plots"} for r in rows])
     print(text)
 
 

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from diffloc.eval.metrics import precision, recall
+from diffloc.eval.report_files import write_report
 from diffloc.eval.tables import Column, markdown_table
-from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.revalidate import record_errors, replay_validation
 from diffloc.reloc.validation import PoseEvidence, ValidationConfig
 
@@ -98,9 +98,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     made_by = "\n".join([*args.made_by, command])
     report = f"Made by:\n\n```bash\n{made_by}\n```\n\n{note}\n\n{markdown_table(rows, columns)}\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out.with_suffix(".md"), report)
-    atomic_write_text(args.out.with_suffix(".json"), json.dumps(rows, indent=2) + "\n")
+    write_report(args.out, report, rows)
     print(report)
 
 

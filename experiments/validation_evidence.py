@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from diffloc.eval.report_files import write_report
 from diffloc.eval.sweeps import load_jobs
 from diffloc.eval.tables import Column, markdown_table
-from diffloc.io.atomic import atomic_write_text
 
 THETA_IN = 15
 MAX_TRANS_M = 0.3
@@ -144,9 +144,7 @@ def main(argv: list[str] | None = None) -> None:
         f"Each test keeps {KEEP:.0%} of the right `{args.reference}` poses.\n\n"
         f"{markdown_table(rows, COLUMNS)}\n"
     )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out.with_suffix(".md"), text)
-    atomic_write_text(args.out.with_suffix(".json"), json.dumps(rows, indent=2) + "\n")
+    write_report(args.out, text, rows)
     print(text)
 
 

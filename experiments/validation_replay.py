@@ -25,8 +25,8 @@ from pathlib import Path
 import yaml
 
 from diffloc.eval.metrics import precision, recall
+from diffloc.eval.report_files import write_report
 from diffloc.eval.tables import Column, markdown_table
-from diffloc.io.atomic import atomic_write_text
 from diffloc.pipeline.revalidate import record_errors, replay_validation
 from diffloc.reloc.validation import ValidationConfig
 
@@ -72,9 +72,7 @@ def main(argv: list[str] | None = None) -> None:
     command = shlex.join(["python3", "experiments/validation_replay.py", *sys.argv[1:]])
     note = "Recall at the job's max_trans_m; precision of the accepted poses; nan: none accepted."
     report = f"Made by:\n\n```bash\n{command}\n```\n\n{note}\n\n{markdown_table(rows, columns)}\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out.with_suffix(".md"), report)
-    atomic_write_text(args.out.with_suffix(".json"), json.dumps(rows, indent=2) + "\n")
+    write_report(args.out, report, rows)
     print(report)
 
 
