@@ -17,6 +17,7 @@ Examples:
     diffloc task=crossmodal map=tls                 # seed 2: localise in renders of a map
     diffloc task=crossmodal map=images              # ... in the mapping images (comparison)
     diffloc task=crossmodal map=nerf                # ... of the trained radiance-field submaps
+    diffloc task=crossmodal map=hybrid              # ... in both: images + uncovered mesh renders
     diffloc task=main                               # all of the above, each stage cached
 
 Errors: a checked error (an ``OSError`` such as a missing dataset or database, a
@@ -261,7 +262,9 @@ TASKS: dict[str, Callable[[DictConfig], object]] = {
 }
 
 
-TASK_MAPS: dict[str, tuple[str, ...]] = {"crossmodal": ("tls", "cloud", "mesh", "images", "nerf")}
+TASK_MAPS: dict[str, tuple[str, ...]] = {
+    "crossmodal": ("tls", "cloud", "mesh", "images", "nerf", "hybrid")
+}
 """The ``map`` options of the tasks that render a map; every other task takes ``map=surfel``."""
 
 

@@ -33,6 +33,7 @@ from diffloc.pipeline.build_map import BuildMapConfig
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig
 from diffloc.pipeline.crossmodal_config import (
     CrossmodalTaskConfig,
+    HybridMapConfig,
     ImageMapConfig,
     MeshMapConfig,
     NerfMapConfig,
@@ -166,6 +167,7 @@ GROUP_SCHEMAS: dict[str, type] = {
     "schema_map_mesh": MeshMapConfig,
     "schema_map_images": ImageMapConfig,
     "schema_map_nerf": NerfMapConfig,
+    "schema_map_hybrid": HybridMapConfig,
     "schema_reloc": RelocStageConfig,
     "schema_scene_indoor": IndoorSceneConfig,
     "schema_scene_outdoor": OutdoorSceneConfig,

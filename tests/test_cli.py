@@ -182,7 +182,7 @@ def test_a_task_without_a_dataset_says_how_to_simulate_it(tmp_path):
         (
             "wrong_map",
             "error: task=main cannot use map=tls: task=crossmodal takes map=tls, map=cloud, "
-            "map=mesh, map=images or map=nerf; every other task takes map=surfel",
+            "map=mesh, map=images, map=nerf or map=hybrid; every other task takes map=surfel",
         ),
         (
             "images_no_surfels",

@@ -149,7 +149,7 @@ def test_a_map_option_the_task_cannot_use_is_refused_before_any_work(task, optio
     with pytest.raises(
         ValueError,
         match=f"task={task} cannot use map={option}: task=crossmodal "
-        "takes map=tls, map=cloud, map=mesh, map=images or map=nerf; "
+        "takes map=tls, map=cloud, map=mesh, map=images, map=nerf or map=hybrid; "
         "every other task takes map=surfel",
     ):
         run(cfg)

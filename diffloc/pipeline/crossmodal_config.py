@@ -7,7 +7,9 @@ dataset's TLS and lidar point maps coloured from the mapping images and rendered
 (:class:`PointMapConfig`), ``map=mesh`` is the textured mesh reconstructed from a point map
 (:class:`MeshMapConfig`), ``map=nerf`` the radiance-field submaps of ``task=train_nerf``
 (:class:`NerfMapConfig`); ``map=images`` is no rendered map but the mapping run's own images
-with depth from the surfel map, seed 2's real-image comparison (:class:`ImageMapConfig`).
+with depth from the surfel map, seed 2's real-image comparison (:class:`ImageMapConfig`);
+``map=hybrid`` holds both: the mapping images plus the mesh renders no mapping image covers
+(:class:`HybridMapConfig`, beyond seed 2).
 ``map=surfel`` (:class:`~diffloc.maps.surfel.SurfelMapConfig`) is
 the surfel map of the other tasks; :func:`map_option` names the option a typed map node came
 from, so the CLI can refuse a map a task cannot use.
@@ -21,6 +23,8 @@ Example:
     'images'
     >>> map_option(NerfMapConfig(min_opacity=0.3))
     'nerf'
+    >>> map_option(HybridMapConfig()), HybridMapConfig().mesh.point_map
+    ('hybrid', 'lidar_map')
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from diffloc.render.point_sizes import PointSizes
 __all__ = [
     "MAP_OPTIONS",
     "CrossmodalTaskConfig",
+    "HybridMapConfig",
     "ImageMapConfig",
     "MeshMapConfig",
     "NerfMapConfig",
@@ -49,7 +54,7 @@ __all__ = [
 POINT_MAP_OPTIONS = {"tls_map": "tls", "lidar_map": "cloud"}
 """The ``map`` option of each dataset point map rendered as a cloud."""
 
-MAP_OPTIONS = ("surfel", "tls", "cloud", "mesh", "images", "nerf")
+MAP_OPTIONS = ("surfel", "tls", "cloud", "mesh", "images", "nerf", "hybrid")
 """Every option of the ``map`` group (``diffloc/conf/map/*.yaml``)."""
 
 PASSES = ("single", "multi")
@@ -154,6 +159,41 @@ class NerfMapConfig:
             raise ValueError(f"min_opacity must be in (0, 1], got {self.min_opacity!r}")
 
 
+@dataclass
+class HybridMapConfig:
+    """``map=hybrid`` (beyond seed 2): the real-image database of ``map=images`` plus the
+    renders of the textured mesh of ``map=mesh`` at the render poses no mapping image covers
+    (:func:`~diffloc.crossmodal.hybrid.uncovered_views`): the mapping run's own images where it
+    looked, renders where it never did (the other driving direction, the sides). Both parts
+    are the stages of ``map=images`` and ``map=mesh`` with these settings (reused when those
+    ran); the hybrid stage describes their union with one NetVLAD.
+
+    Attributes:
+        every: keep every n-th mapping frame (as ``map=images``).
+        mesh: the textured mesh rendered (as ``map=mesh``).
+        max_distance_m: a mapping image within this distance of a render ...
+        max_angle_deg: ... whose optical axis is within this angle of the render's covers it
+            (seed 2's bounds of a right retrieval: the render spacing, 2 m indoors and 4 m
+            outdoors, and 45 deg).
+    """
+
+    every: int = 2
+    mesh: MeshMapConfig = field(default_factory=MeshMapConfig)
+    max_distance_m: float = 2.0
+    max_angle_deg: float = 45.0
+
+    def __post_init__(self) -> None:
+        check_positive_int(self.every, "every")
+        if not (math.isfinite(self.max_distance_m) and self.max_distance_m > 0.0):
+            raise ValueError(f"max_distance_m must be > 0, got {self.max_distance_m!r}")
+        if not 0.0 < self.max_angle_deg <= 180.0:
+            raise ValueError(f"max_angle_deg must be in (0, 180], got {self.max_angle_deg!r}")
+
+    def images(self) -> ImageMapConfig:
+        """The real-image part's settings (``map=images`` with the same ``every``)."""
+        return ImageMapConfig(every=self.every)
+
+
 def map_option(config: object) -> str:
     """The ``map`` option (:data:`MAP_OPTIONS`) a built map node came from.
 
@@ -170,6 +210,8 @@ def map_option(config: object) -> str:
         return "images"
     if isinstance(config, NerfMapConfig):
         return "nerf"
+    if isinstance(config, HybridMapConfig):
+        return "hybrid"
     raise TypeError(f"not a map config: {type(config).__name__}")
 
 

@@ -1,12 +1,13 @@
-"""``diffloc task=crossmodal map=tls|cloud|mesh|nerf|images``: the stages in order, then the
-report.
+"""``diffloc task=crossmodal map=tls|cloud|mesh|nerf|images|hybrid``: the stages in order,
+then the report.
 
 Render poses -> map (``map=nerf``: the trained radiance-field submaps,
 :mod:`diffloc.pipeline.crossmodal_nerf`) -> RGB-D database -> localisation of each
 ``task.sequences`` (each a cached stage, :mod:`diffloc.pipeline.crossmodal_stage`;
 ``map=images``: the database of the mapping images, :mod:`diffloc.pipeline.crossmodal_images`,
-then the same localisation) -> scores, ``results.md``, ``results.json``, TUM files and plots in
-the run folder
+then the same localisation; ``map=hybrid``: both databases of ``map=images`` and
+``map=mesh``, then their union, :mod:`diffloc.pipeline.crossmodal_hybrid`) -> scores,
+``results.md``, ``results.json``, TUM files and plots in the run folder
 (:mod:`diffloc.pipeline.crossmodal_report`). A rerun with the same settings reuses every
 stage; a changed ``task.localizer`` setting runs only the localisation again.
 """
@@ -20,17 +21,21 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+from diffloc.crossmodal.database import RenderedDatabase
+from diffloc.geometry.camera import PinholeCamera
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.io.trajectory import write_tum
 from diffloc.pipeline.crossmodal_config import (
     CrossmodalTaskConfig,
+    HybridMapConfig,
     ImageMapConfig,
     MeshMapConfig,
     NerfMapConfig,
     PointMapConfig,
     map_option,
 )
+from diffloc.pipeline.crossmodal_hybrid import build_hybrid_database
 from diffloc.pipeline.crossmodal_images import build_image_database
 from diffloc.pipeline.crossmodal_nerf import build_nerf_map
 from diffloc.pipeline.crossmodal_report import (
@@ -47,15 +52,17 @@ from diffloc.pipeline.crossmodal_stage import (
     render_pose_stage,
 )
 from diffloc.pipeline.nerf_config import TrainNerfConfig
+from diffloc.pipeline.stage import StageOutcome
 
 __all__ = ["run_crossmodal"]
 
 STAGES = ("poses", "map", "database")
+MapConfig = PointMapConfig | MeshMapConfig | NerfMapConfig | ImageMapConfig | HybridMapConfig
 
 
 def run_crossmodal(
     dataset: str | os.PathLike,
-    map_config: PointMapConfig | MeshMapConfig | NerfMapConfig | ImageMapConfig,
+    map_config: MapConfig,
     task: CrossmodalTaskConfig,
     out: str | os.PathLike,
     show_progress: bool = True,
@@ -66,7 +73,8 @@ def run_crossmodal(
     Args:
         dataset: the dataset folder (point maps under ``map/``, the mapping sequence, the
             query sequences).
-        map_config: the ``map`` node (``map=tls``, ``cloud``, ``mesh``, ``nerf`` or ``images``).
+        map_config: the ``map`` node (``map=tls``, ``cloud``, ``mesh``, ``nerf``, ``images`` or
+            ``hybrid``).
         task: the ``task`` node.
         out: the run folder.
         show_progress: progress bars (off when ``CI=true``).
@@ -82,8 +90,8 @@ def run_crossmodal(
         FileNotFoundError: a missing point map or sequence.
         ValueError: a point map without normals, without an upward normal, or with an empty
             corridor (the message names the file and ``task.poses``).
-        MissingStageError: ``map=images`` without a surfel map (the message names the
-            ``task=build_map`` command).
+        MissingStageError: ``map=images`` or ``map=hybrid`` without a surfel map (the message
+            names the ``task=build_map`` command).
         MissingStageError: ``map=nerf`` and a submap serving a render pose is not trained
             with the ``nerf`` settings (the message names the ``task=train_nerf`` command).
     """
@@ -94,19 +102,25 @@ def run_crossmodal(
     if isinstance(map_config, ImageMapConfig):
         database = build_image_database(dataset, map_config, task.database, camera, show_progress)
         stages = {"database": database[1].summary.to_json()}
-    else:
-        poses = render_pose_stage(dataset, map_config.point_map, task.poses, option)
-        if isinstance(map_config, NerfMapConfig):
-            rgbd_map = build_nerf_map(dataset, map_config, nerf or TrainNerfConfig(), poses)
-        else:
-            rgbd_map = build_rgbd_map(dataset, map_config, task.image_scale, show_progress)
-        database = build_rgbd_database(
-            dataset, map_config, task.database, rgbd_map, poses, camera, show_progress
+    elif isinstance(map_config, HybridMapConfig):
+        real = build_image_database(
+            dataset, map_config.images(), task.database, camera, show_progress
         )
-        outcomes = (poses[1], rgbd_map[1], database[1])
+        rendered, stages = _rendered_database(
+            dataset, map_config.mesh, task, camera, nerf, show_progress
+        )
+        database = build_hybrid_database(
+            dataset, map_config, task.database, real, rendered, show_progress
+        )
         stages = {
-            name: outcome.summary.to_json() for name, outcome in zip(STAGES, outcomes, strict=True)
+            **{f"mesh_{name}": summary for name, summary in stages.items()},
+            "images_database": real[1].summary.to_json(),
+            "database": database[1].summary.to_json(),
         }
+    else:
+        database, stages = _rendered_database(
+            dataset, map_config, task, camera, nerf, show_progress
+        )
     db = database[0]
     out.mkdir(parents=True, exist_ok=True)
     sequences = {}
@@ -148,6 +162,32 @@ def run_crossmodal(
     atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
     atomic_write_text(out / "results.md", _markdown(results))
     return results
+
+
+def _rendered_database(
+    dataset: Path,
+    map_config: PointMapConfig | MeshMapConfig | NerfMapConfig,
+    task: CrossmodalTaskConfig,
+    camera: PinholeCamera,
+    nerf: TrainNerfConfig | None,
+    show_progress: bool,
+) -> tuple[tuple[RenderedDatabase, StageOutcome], dict[str, dict]]:
+    """Render poses -> map -> database of a rendered map (each made or reused): the database
+    with its outcome, and the three stages' summaries by :data:`STAGES` name."""
+    option = map_option(map_config)
+    poses = render_pose_stage(dataset, map_config.point_map, task.poses, option)
+    if isinstance(map_config, NerfMapConfig):
+        rgbd_map = build_nerf_map(dataset, map_config, nerf or TrainNerfConfig(), poses)
+    else:
+        rgbd_map = build_rgbd_map(dataset, map_config, task.image_scale, show_progress)
+    database = build_rgbd_database(
+        dataset, map_config, task.database, rgbd_map, poses, camera, show_progress
+    )
+    outcomes = (poses[1], rgbd_map[1], database[1])
+    stages = {
+        name: outcome.summary.to_json() for name, outcome in zip(STAGES, outcomes, strict=True)
+    }
+    return database, stages
 
 
 def _markdown(results: dict) -> str:
