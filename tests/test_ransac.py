@@ -118,7 +118,9 @@ class _LineProblem:
     y: torch.Tensor
     threshold: float = 0.1
     sample_size: int = 2
+    lo_every_batch: bool = True
     batches_with_a_model: int = 0
+    batch_bests: list[_Line] = field(default_factory=list)
     optimised: list[_Line] = field(default_factory=list)
 
     @property
@@ -140,7 +142,8 @@ class _LineProblem:
         b = y[ok, 0] - a * x[ok, 0]
         self.batches_with_a_model += 1
         lines = [self._scored(float(p), float(q)) for p, q in zip(a, b, strict=True)]
-        return min(lines, key=lambda line: line.cost)
+        self.batch_bests.append(min(lines, key=lambda line: line.cost))
+        return self.batch_bests[-1]
 
     def local_optimisation(self, candidates: _Line) -> _Line:
         self.optimised.append(candidates)
@@ -151,13 +154,15 @@ class _LineProblem:
         return refit if refit.cost < candidates.cost else candidates
 
 
-def _line_problem(n: int, outlier_ratio: float, seed: int) -> tuple[_LineProblem, torch.Tensor]:
+def _line_problem(
+    n: int, outlier_ratio: float, seed: int, lo_every_batch: bool = True
+) -> tuple[_LineProblem, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
     x = torch.rand(n, generator=g, dtype=torch.float64) * 10
     y = 2 * x + 1 + 0.01 * torch.randn(n, generator=g, dtype=torch.float64)
     outlier = torch.rand(n, generator=g) < outlier_ratio
     y = torch.where(outlier, torch.rand(n, generator=g, dtype=torch.float64) * 20, y)
-    return _LineProblem(x, y), ~outlier
+    return _LineProblem(x, y, lo_every_batch=lo_every_batch), ~outlier
 
 
 def test_ransac_finds_the_line_and_locally_optimises_every_batch() -> None:
@@ -174,6 +179,23 @@ def test_ransac_finds_the_line_and_locally_optimises_every_batch() -> None:
     assert len(problem.optimised) == problem.batches_with_a_model > 1
     refits = [problem.local_optimisation(line).cost for line in list(problem.optimised)]
     assert best.cost == min(refits)
+
+
+def test_ransac_optimises_only_a_new_best_that_does_not_end_the_search() -> None:
+    problem, truth = _line_problem(300, 0.6, 0, lo_every_batch=False)
+    settings = _Settings(batch_size=16)
+    best, drawn = ransac(problem, settings, torch.Generator().manual_seed(0))
+    assert best is not None and abs(best.a - 2) < 0.01 and abs(best.b - 1) < 0.05
+    assert best.num_inliers >= 0.9 * int(truth.sum())
+    # LO (Chum et al.) saw only batch bests that beat every batch best before them (the best
+    # model, LO'd, is no worse than those), on fewer batches than there were.
+    assert 0 < len(problem.optimised) < problem.batches_with_a_model
+    costs = [line.cost for line in problem.batch_bests]
+    for line in problem.optimised:
+        k = next(i for i, b in enumerate(problem.batch_bests) if b is line)
+        assert all(line.cost < c for c in costs[:k])
+    needed = required_samples(best.num_inliers / 300, 2, 0.999, 10, 1000)
+    assert needed <= drawn < needed + settings.batch_size
 
 
 def test_ransac_stops_at_min_iterations_without_outliers() -> None:

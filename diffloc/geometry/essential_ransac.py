@@ -341,6 +341,7 @@ class _Search:
     threshold2: float
     config: EssentialCheckConfig
     sample_size: int = _SAMPLE_SIZE
+    lo_every_batch: bool = True  # the lo_candidates best of every batch
 
     @property
     def num_points(self) -> int:

@@ -538,6 +538,7 @@ class _Search:
     threshold2: float
     lo_rounds: int
     sample_size: int = _SAMPLE_SIZE
+    lo_every_batch: bool = False  # a single best candidate per batch; _solve refines the last
 
     @property
     def num_points(self) -> int:
