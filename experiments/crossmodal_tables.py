@@ -1,13 +1,14 @@
 """Seed 2's Tables I, III and IV from ``diffloc task=crossmodal`` runs, one row per database.
 
 Each ``--run MAP=RESULTS`` is the ``results.json`` of ``diffloc task=crossmodal map=MAP`` (the
-rendered ``tls`` / ``cloud`` / ``mesh`` databases, or ``images``: the mapping frames with
-surfel-map depth). The table of a query sequence gives per database its size and hole share,
-the queries (every ``task.every``-th frame), the accepted poses and their precision
-(within the loose bound and 30 deg), the localisation rates at 0.25 m / 2 deg, 0.5 m / 5 deg
-and the loose bound / 30 deg (shares of all queries), the top-1 retrieval rate, the mATE of
-the accepted poses and the median wall ms per query (features, retrieval, matching, PnP; the
-load average it ran under is in the JSON).
+rendered ``tls`` / ``cloud`` / ``mesh`` databases, ``images``: the mapping frames with
+surfel-map depth, or ``hybrid``: both, the renders no mapping frame covers). The table of
+a query sequence gives per database its size and hole share, the queries (every
+``task.every``-th frame), the accepted poses and their precision (within the loose bound and
+30 deg), the localisation rates at 0.25 m / 2 deg, 0.5 m / 5 deg and the loose bound / 30 deg
+(shares of all queries), the top-1 retrieval rate, the mATE of the accepted poses and the
+median wall ms per query (features, retrieval, matching, PnP; the load average it ran under
+is in the JSON).
 
 ``--seed1 RESULTS`` adds seed 1's hierarchical relocaliser (``diffloc task=main``, its
 ``<sequence>/estimates.tum`` of accepted poses) scored on the SAME query frames with the same
@@ -42,6 +43,7 @@ SOURCES = {
     "cloud": "cloud (lidar), rendered",
     "mesh": "mesh (lidar), rendered",
     "images": "real images (mapping, front camera)",
+    "hybrid": "hybrid: real images + uncovered mesh renders",
 }
 """What each ``map`` option's database is."""
 

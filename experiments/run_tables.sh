@@ -110,7 +110,7 @@ crossmodal_runs() {
   local data=$1 scene=$2 tag m
   tag=$(basename "$data")
   cmds="" runs_args=()
-  for m in tls cloud mesh images; do
+  for m in tls cloud mesh images hybrid; do
     crossmodal_run "$data" "$m" "scene=$scene"
     cmds+="${cmds:+$nl}$cmd"
     runs_args+=(--run "$m=$runs/crossmodal_${tag}_$m/results.json")
