@@ -232,6 +232,9 @@ def test_bad_configs_are_rejected():
         RenderedLocalizerConfig(min_confidence=math.inf)
     with pytest.raises(ValueError, match="stop_inliers"):
         RenderedLocalizerConfig(stop_inliers=0)
+    for bad in (0.0, 1.5, -0.5, math.nan):
+        with pytest.raises(ValueError, match="depth_confidence must be -1"):
+            RenderedLocalizerConfig(depth_confidence=bad)
     with pytest.raises(ValueError, match="single-image"):
         RenderedLocalizerConfig(validation=ValidationConfig(temporal=True))
 

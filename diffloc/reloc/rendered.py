@@ -168,6 +168,11 @@ class RenderedLocalizerConfig:
             many inliers (``None`` tries all ``top_k``).
         max_keypoints: XFeat keypoints of the query (1024).
         min_confidence: LighterGlue matches need a confidence above this (0 = Algorithm 1).
+        depth_confidence: LighterGlue's early stop: it ends after the layer where this share
+            of the points is confidently matched or unmatched (-1: every layer, as seed 2;
+            LightGlue's authors use 0.95). On indoor seed 0 (mesh, every 4th frame, top 20)
+            0.95 keeps the same poses (71.0 % / 36.4 %) at 5 % less time per query and 0.20
+            instead of 0.32 CPU s per match; not yet the default.
         min_points: fewest lifted 3D points to attempt PnP (6).
         pnp: PnP RANSAC settings; ``min_inliers`` decides success.
         coverage_grid: cells per side of the grid over the query image whose share holding
@@ -190,6 +195,7 @@ class RenderedLocalizerConfig:
     stop_inliers: int | None = STOP_INLIERS
     max_keypoints: int = 1024
     min_confidence: float = 0.0
+    depth_confidence: float = -1.0
     min_points: int = 6
     pnp: PnPRansacConfig = field(default_factory=lambda: PnPRansacConfig(min_inliers=6))
     coverage_grid: int = 4
@@ -212,6 +218,10 @@ class RenderedLocalizerConfig:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
         if not 0.0 <= self.min_confidence < 1.0:
             raise ValueError(f"min_confidence must be in [0, 1), got {self.min_confidence!r}")
+        if not (self.depth_confidence == -1.0 or 0.0 < self.depth_confidence <= 1.0):
+            raise ValueError(
+                f"depth_confidence must be -1 (off) or in (0, 1], got {self.depth_confidence!r}"
+            )
         if self.validation is not None and self.validation.temporal:
             raise ValueError(
                 "validation must be single-image (temporal=False): queries are independent"
@@ -407,7 +417,9 @@ class RenderedDatabaseLocalizer:
             XFeatConfig(max_keypoints=config.max_keypoints)
         )
         self.matcher = matcher or LighterGlueMatcher(
-            LighterGlueConfig(min_confidence=config.min_confidence)
+            LighterGlueConfig(
+                min_confidence=config.min_confidence, depth_confidence=config.depth_confidence
+            )
         )
         self.retriever = self._retriever()
         self.reranker = None
