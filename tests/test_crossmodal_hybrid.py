@@ -164,3 +164,12 @@ def test_parts_with_different_cameras_are_refused_and_nothing_is_written(tmp_pat
             dataset, HybridMapConfig(), SETTINGS, real, rendered
         )
     assert not (dataset / "crossmodal").exists()
+
+
+def test_the_database_marks_its_real_images(tmp_path, parts):
+    real, rendered = parts
+    assert bool(real[0].real.all()) is False  # the parts here are built as renders
+    db, _ = crossmodal_hybrid.build_hybrid_database(
+        tmp_path / "dataset", HybridMapConfig(), SETTINGS, real, rendered
+    )
+    assert db.real.tolist() == [True, True, True, False, False, False]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -157,6 +158,22 @@ def test_database_round_trip(tiny_database, tmp_path):
     assert loaded.source == "tiny mesh"
     meta = json.loads((tmp_path / "db" / "database.json").read_text())
     assert meta["format_version"] == 1 and meta["num_images"] == 3
+    assert loaded.real.tolist() == [False, False, False]  # renders
+
+
+def test_real_image_flags_round_trip_and_older_files_read_as_renders(tiny_database, tmp_path):
+    flags = torch.tensor([True, False, True])
+    marked = dataclasses.replace(tiny_database, real=flags)
+    assert torch.equal(RenderedDatabase.load(marked.save(tmp_path / "db")).real, flags)
+    npz = tmp_path / "db" / "database.npz"
+    arrays = dict(np.load(npz))
+    del arrays["real"]  # a database written before the flags existed
+    np.savez(npz, **arrays)
+    assert RenderedDatabase.load(tmp_path / "db").real.tolist() == [False, False, False]
+    with pytest.raises(ShapeError, match="real"):
+        dataclasses.replace(tiny_database, real=flags[:2])
+    with pytest.raises(ValueError, match="real must be a bool tensor"):
+        dataclasses.replace(tiny_database, real=flags.long())
 
 
 def test_save_does_not_overwrite(tiny_database, tmp_path):

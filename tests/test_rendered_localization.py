@@ -235,6 +235,9 @@ def test_bad_configs_are_rejected():
     for bad in (0.0, 1.5, -0.5, math.nan):
         with pytest.raises(ValueError, match="depth_confidence must be -1"):
             RenderedLocalizerConfig(depth_confidence=bad)
+    for bad in (1.5, -2.0, math.nan):
+        with pytest.raises(ValueError, match="min_photometric_real must be in"):
+            RenderedLocalizerConfig(min_photometric_real=bad)
     with pytest.raises(ValueError, match="single-image"):
         RenderedLocalizerConfig(validation=ValidationConfig(temporal=True))
 
@@ -358,6 +361,28 @@ def test_photometric_consistency_scores_the_pose_and_feeds_the_acceptance(scene,
     result = strict.localize(image, mapping.camera, torch.tensor([2]))
     assert result.photometric == pytest.approx(found.photometric)
     assert result.accepted_without_photometric and not result.accepted
+
+
+def test_a_pose_from_a_real_image_is_held_to_the_real_threshold(scene, mesh_database):
+    """``min_photometric_real`` applies where the reference is marked real, and only there."""
+    _, mapping = scene
+    image, _ = _near_frame_2(scene)
+    config = RenderedLocalizerConfig(stop_inliers=None)
+    config = replace(config, validation=replace(config.validation, min_photometric=0.0))
+    found = RenderedDatabaseLocalizer(mesh_database, config).localize(
+        image, mapping.camera, torch.tensor([2])
+    )
+    assert found.accepted
+    strict_real = replace(config, min_photometric_real=found.photometric + 0.01)
+    marked = torch.zeros(mesh_database.num_images, dtype=torch.bool)
+    for real, accepted in ((False, True), (True, False)):
+        marked[2] = real
+        db = replace(mesh_database, real=marked.clone())
+        result = RenderedDatabaseLocalizer(db, strict_real).localize(
+            image, mapping.camera, torch.tensor([2])
+        )
+        assert result.photometric == pytest.approx(found.photometric)
+        assert result.accepted is accepted and result.accepted_without_photometric
 
 
 T_EYE = torch.eye(4, dtype=torch.float64)

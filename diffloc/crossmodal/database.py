@@ -100,6 +100,8 @@ class RenderedDatabase:
         global_descriptors: (M, G) float32 NetVLAD descriptors, G = ``netvlad.output_dim``.
         netvlad: the NetVLAD layer that made them (queries are described with it).
         source: what the images are (e.g. ``"tls_map single-pass Eq. 2"``).
+        real: (M,) bool, which images are real photographs rather than renders (``None``:
+            none; a file without the array reads as renders).
 
     Raises:
         ValueError: an empty database, NaN/inf or non-rigid poses, negative or NaN depth,
@@ -114,6 +116,7 @@ class RenderedDatabase:
     global_descriptors: torch.Tensor
     netvlad: NetVLAD
     source: str = ""
+    real: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         check_shape(self.T_wc, "M,4,4", "T_wc")
@@ -135,6 +138,11 @@ class RenderedDatabase:
         check_shape(self.global_descriptors, f"{m},{self.netvlad.output_dim}", "global_descriptors")
         if not bool(torch.isfinite(self.global_descriptors).all()):
             raise ValueError("global_descriptors contains NaN or inf")
+        real = torch.zeros(m, dtype=torch.bool) if self.real is None else self.real
+        check_shape(real, f"{m}", "real")
+        if real.dtype != torch.bool:
+            raise ValueError(f"real must be a bool tensor, got {real.dtype}")
+        object.__setattr__(self, "real", real)
         object.__setattr__(self, "T_wc", self.T_wc.to(torch.float64))
         object.__setattr__(self, "features", tuple(self.features))
 
@@ -168,6 +176,7 @@ class RenderedDatabase:
             "depth": self.depth,
             "feature_counts": counts,
             "global_descriptors": self.global_descriptors,
+            "real": self.real,
             **{
                 name: torch.cat([getattr(f, name) for f in self.features])
                 for name in _FEATURE_ARRAYS
@@ -265,6 +274,7 @@ def _from_arrays(meta: dict, arrays: dict[str, torch.Tensor]) -> RenderedDatabas
         global_descriptors=arrays["global_descriptors"],
         netvlad=netvlad.eval(),
         source=str(meta.get("source", "")),
+        real=arrays["real"].to(torch.bool) if "real" in arrays else None,
     )
 
 
@@ -277,6 +287,7 @@ def build_database(
     source: str = "",
     extractor: XFeatExtractor | None = None,
     show_progress: bool = False,
+    real: torch.Tensor | bool = False,
 ) -> RenderedDatabase:
     """Local features and NetVLAD descriptors of posed RGB-D images (rendered or real).
 
@@ -289,6 +300,7 @@ def build_database(
         extractor: XFeat extractor to reuse (one is made from ``config`` when ``None``);
             its ``max_keypoints`` is used as it is.
         show_progress: progress bar over the feature batches.
+        real: which images are real photographs: one flag for all, or (M,) bool.
 
     Returns:
         The :class:`RenderedDatabase`.
@@ -322,6 +334,7 @@ def build_database(
         global_descriptors=descriptors,
         netvlad=netvlad,
         source=source,
+        real=torch.full((len(views),), real) if isinstance(real, bool) else real,
     )
 
 

@@ -276,7 +276,8 @@ class CrossmodalTaskConfig:
     def localizer_for(self, option: str) -> RenderedLocalizerConfig:
         """The localiser settings of the ``map`` option ``option``: ``localizer`` with the
         validation's ``min_photometric`` from :attr:`min_photometric` where it lists the
-        option (a localiser without validation stays without).
+        option (a localiser without validation stays without); ``map=hybrid`` holds its
+        real images to the ``images`` threshold (``min_photometric_real``) where it is listed.
 
         Example:
             >>> task = CrossmodalTaskConfig(min_photometric={"images": 0.7})
@@ -284,9 +285,15 @@ class CrossmodalTaskConfig:
             0.7
             >>> task.localizer_for("tls").validation.min_photometric is None
             True
+            >>> task = CrossmodalTaskConfig(min_photometric={"images": 0.7, "hybrid": 0.4})
+            >>> hybrid = task.localizer_for("hybrid")
+            >>> hybrid.validation.min_photometric, hybrid.min_photometric_real
+            (0.4, 0.7)
         """
-        validation = self.localizer.validation
+        localizer, validation = self.localizer, self.localizer.validation
         if option not in self.min_photometric or validation is None:
-            return self.localizer
+            return localizer
         threshold = self.min_photometric[option]
-        return replace(self.localizer, validation=replace(validation, min_photometric=threshold))
+        if option == "hybrid" and "images" in self.min_photometric:
+            localizer = replace(localizer, min_photometric_real=self.min_photometric["images"])
+        return replace(localizer, validation=replace(validation, min_photometric=threshold))

@@ -7,7 +7,9 @@ reused by their own stages. This stage ``<dataset>/crossmodal/hybrid/database/``
 (``rgbd_database.json``) keeps every real image and the renders
 :func:`~diffloc.crossmodal.hybrid.uncovered_views` finds uncovered, and builds XFeat features
 and one NetVLAD over the union (``rgbd/``): the global descriptors of real and rendered images
-must come from the same layer to be ranked together. Keyed on the coverage bounds,
+must come from the same layer to be ranked together. The database marks its real images
+(:attr:`~diffloc.crossmodal.database.RenderedDatabase.real`), so a pose from one is held to
+the real images' photometric threshold. Keyed on the coverage bounds,
 ``task.database`` and the two parts' outputs.
 """
 
@@ -90,8 +92,15 @@ def build_hybrid_database(
             )
             T_wc = torch.cat([real_db.T_wc, render_db.T_wc[keep]])
             source = f"{real_db.source} + {int(keep.sum())} uncovered {render_db.source} renders"
+            real = torch.arange(len(T_wc)) < real_db.num_images
             db = build_database(
-                views, T_wc, real_db.camera, database, source, show_progress=show_progress
+                views,
+                T_wc,
+                real_db.camera,
+                database,
+                source,
+                show_progress=show_progress,
+                real=real,
             )
             db.save(stage.workdir() / "rgbd")
             summary = HybridDatabaseSummary(

@@ -102,7 +102,13 @@ def build_image_database(
             )
             source = f"mapping images (every {config.every}-th), surfel-map depth"
             db = build_database(
-                views, seq.T_wc[frames], camera, database, source, show_progress=show_progress
+                views,
+                seq.T_wc[frames],
+                camera,
+                database,
+                source,
+                show_progress=show_progress,
+                real=True,
             )
             db.save(stage.workdir() / "rgbd")
             summary = ImageDatabaseSummary(

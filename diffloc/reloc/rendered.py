@@ -183,6 +183,11 @@ class RenderedLocalizerConfig:
             consistency); ``None`` accepts every pose found.
         photometric: settings of the photometric consistency of a pose found (measured
             whether or not ``validation.min_photometric`` is set).
+        min_photometric_real: the lowest photometric consistency of a pose whose reference
+            is a real image of the database (:attr:`RenderedDatabase.real`, e.g. the real
+            part of ``map=hybrid``); ``None``: ``validation.min_photometric`` for every
+            reference. Real images agree with the query better than renders, so their
+            threshold is higher (indoor seed 0: 0.7 against 0.4).
         bow: bag-of-words settings (vocabulary trained on the database's descriptors).
         rerank: re-ranking of the global retrieval's best by mutual-nearest-neighbour
             matches before ``top_k`` are matched (``None``: the global order).
@@ -201,6 +206,7 @@ class RenderedLocalizerConfig:
     coverage_grid: int = 4
     validation: ValidationConfig | None = field(default_factory=single_image_validation)
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
+    min_photometric_real: float | None = None
     bow: BowConfig = field(default_factory=BowConfig)
     rerank: RerankConfig | None = field(default_factory=RerankConfig)
     seed: int = 0
@@ -218,6 +224,9 @@ class RenderedLocalizerConfig:
             raise ValueError(f"min_points must be >= 4 (PnP), got {self.min_points}")
         if not 0.0 <= self.min_confidence < 1.0:
             raise ValueError(f"min_confidence must be in [0, 1), got {self.min_confidence!r}")
+        real = self.min_photometric_real
+        if real is not None and not (math.isfinite(real) and -1.0 <= real <= 1.0):
+            raise ValueError(f"min_photometric_real must be in [-1, 1], got {real!r}")
         if not (self.depth_confidence == -1.0 or 0.0 < self.depth_confidence <= 1.0):
             raise ValueError(
                 f"depth_confidence must be -1 (off) or in (0, 1], got {self.depth_confidence!r}"
@@ -477,6 +486,10 @@ class RenderedDatabaseLocalizer:
         best, candidates = choose_candidate(attempts, self.config.select, self.config.stop_inliers)
         photometric = self._photometric(image, camera, best) if best.success else math.nan
         validation = self.config.validation
+        real = self.config.min_photometric_real
+        if validation is not None and real is not None and best.success:
+            if bool(self.database.real[best.reference]):
+                validation = replace(validation, min_photometric=real)
         geometric = None if validation is None else replace(validation, min_photometric=None)
         return RenderedLocalization(
             T_wc=best.T_wc,
