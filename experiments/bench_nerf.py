@@ -396,22 +396,32 @@ def _ablation_row(label: str, record: dict, suffix: str) -> str:
     return f"| {label} | " + " | ".join(cells) + " |"
 
 
+def _budget(record: dict, key: str = "budget_s") -> float:
+    """A record's training budget (older records: the training time on its clock)."""
+    for name in (key, "budget_s"):
+        if name in record:
+            return record[name]
+    return record["train_cpu_s"] if record.get("clock") == "cpu" else record["train_s"]
+
+
 def ablation_markdown(record: dict, reference: dict | None = None) -> str:
     """The loss ablation of a record (runs ``rgb_only``, ``rgb_depth`` and ``full``) as a
     Markdown table; ``reference``, a full-variant record measured at another moment, is added
-    as a last row marked as such.
+    as a last row marked as such (the record's own full run may then be missing).
 
     Raises:
-        ValueError: a run is missing from the record (naming the ``--variants`` to run).
+        ValueError: a run is missing (naming the ``--variants`` to run).
     """
-    missing = [s.lstrip("_") or "full" for s, _ in ABLATIONS if f"psnr_heldout_db{s}" not in record]
+    missing = [s.lstrip("_") for s, _ in ABLATIONS[:2] if f"psnr_heldout_db{s}" not in record]
+    if "psnr_heldout_db" not in record and reference is None:
+        missing.append("full")
     if missing:
         raise ValueError(
             f"the ablation table needs the runs {missing}, not in the record of "
-            f"{record.get('data')}: run bench_nerf.py with --variants full,rgb_only,rgb_depth"
+            f"{record.get('data')}: run bench_nerf.py with --variants full,rgb_only,rgb_depth "
+            "(or give the full run of another moment with --ablation-reference)"
         )
-    budget = record.get("budget_s", record["train_s"])
-    ablation_budget = record.get("ablation_budget_s", budget)
+    budget, ablation_budget = _budget(record), _budget(record, "ablation_budget_s")
     budgets = (
         f"{budget:.0f} s"
         if ablation_budget == budget
@@ -422,20 +432,26 @@ def ablation_markdown(record: dict, reference: dict | None = None) -> str:
         if "parts" in record
         else "runs one after another in one process"
     )
+    clock = record.get("clock", "wall")
     lines = [
         f"Loss ablation ({record['data']}, submap {record['submap']}, {record['train_frames']} "
         f"training frames, 160x120; {record['threads']} thread(s) per process, {processes}, "
-        f"{budgets} {record.get('clock', 'wall')}-clock budget each; load "
+        f"{budgets} {clock}-clock budget each; load "
         f"{record['load_avg_start']:.1f} at the start, {record['load_avg_end']:.1f} at the end).",
         "",
         "| losses | " + " | ".join(name for name, *_ in _ABLATION_COLUMNS) + " |",
         "|---|" + "---|" * len(_ABLATION_COLUMNS),
-        *(_ablation_row(label, record, suffix) for suffix, label in ABLATIONS),
+        *(
+            _ablation_row(label, record, suffix)
+            for suffix, label in ABLATIONS
+            if f"psnr_heldout_db{suffix}" in record
+        ),
     ]
     if reference is not None:
         label = (
-            f"full, measured at another moment (load {reference['load_avg_start']:.1f} at the "
-            f"start, {reference['threads']} threads)"
+            f"{ABLATIONS[2][1]}, measured at another moment ({reference['threads']} thread(s), "
+            f"{_budget(reference):.0f} s {reference.get('clock', 'wall')}-clock budget, load "
+            f"{reference['load_avg_start']:.1f} at the start)"
         )
         lines.append(_ablation_row(label, reference, ""))
     return "\n".join(lines) + "\n"

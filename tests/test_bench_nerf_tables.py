@@ -84,15 +84,33 @@ def test_ablation_table_marks_the_reference_row():
     bench = load_script()
     reference = record(("full",)) | {"psnr_heldout_db": 26.68, "load_avg_start": 0.7}
     rows = table_rows(bench.ablation_markdown(record(), reference))
-    label = "full, measured at another moment (load 0.7 at the start, 2 threads)"
+    label = (
+        "photometric + depth + normals (Eq. 6, 7), measured at another moment (2 thread(s), "
+        "180 s wall-clock budget, load 0.7 at the start)"
+    )
     assert rows[label][0] == "26.68"
-    assert list(rows)[-1] == label
+    assert list(rows)[-1] == label and len(rows) == 5  # header, 3 runs, reference
+
+
+def test_ablation_table_takes_the_full_run_from_the_reference():
+    bench = load_script()
+    reference = record(("full",)) | {"clock": "cpu", "threads": 1, "load_avg_start": 19.6}
+    del reference["budget_s"], reference["ablation_budget_s"]
+    rows = table_rows(bench.ablation_markdown(record(("rgb_only", "rgb_depth")), reference))
+    assert "photometric + depth + normals (Eq. 6, 7)" not in rows
+    label = (
+        "photometric + depth + normals (Eq. 6, 7), measured at another moment (1 thread(s), "
+        "302 s cpu-clock budget, load 19.6 at the start)"
+    )
+    assert rows[label][:3] == ["26.50", "1.9", "9.4"]
 
 
 def test_ablation_table_names_the_missing_runs():
     bench = load_script()
     with pytest.raises(ValueError, match=r"\['rgb_depth'\].*--variants full,rgb_only,rgb_depth"):
         bench.ablation_markdown(record(("full", "rgb_only")))
+    with pytest.raises(ValueError, match=r"\['full'\].*--ablation-reference"):
+        bench.ablation_markdown(record(("rgb_only", "rgb_depth")))
 
 
 def results(tmp_path: Path, map_name: str, loose_m: float, sequences: dict) -> Path:
