@@ -28,6 +28,7 @@ def run(psnr: float, depth_m: float, normal_deg: float, steps: int, t25: float |
         "train_s": 180.2,
         "train_cpu_s": 301.7,
         "time_to_25db_s": t25,
+        "cpu_to_25db_s": None if t25 is None else t25 + 100,
     }
 
 
@@ -63,7 +64,16 @@ def test_ablation_table_puts_each_run_in_its_row():
     bench = load_script()
     text = bench.ablation_markdown(record())
     rows = table_rows(text)
-    assert rows["photometric only"] == ["24.00", "40.0", "60.0", "800", "180", "302", "not reached"]
+    assert rows["photometric only"] == [
+        "24.00",
+        "40.0",
+        "60.0",
+        "800",
+        "180",
+        "302",
+        "not reached",
+        "not reached",
+    ]
     assert rows["photometric + depth (Eq. 6)"] == [
         "26.00",
         "2.1",
@@ -72,9 +82,10 @@ def test_ablation_table_puts_each_run_in_its_row():
         "180",
         "302",
         "150",
+        "250",
     ]
     full = rows["photometric + depth + normals (Eq. 6, 7)"]
-    assert full == ["26.50", "1.9", "9.4", "500", "180", "302", "120"]
+    assert full == ["26.50", "1.9", "9.4", "500", "180", "302", "120", "220"]
     assert "2 thread(s) per process" in text and "180 s wall-clock budget" in text
     assert "load 2.0 at the start, 2.5 at the end" in text
     assert not any("another moment" in name for name in rows)
