@@ -15,6 +15,12 @@ loaded machine); the goals are wall-clock figures on a quiet one (``--clock wall
 ``--variants full,grid,uniform,noskip`` compares samplers (density grid + lidar-guided, grid
 only, uniform, grid without empty-cell skipping; ``sampling``; ``--sampling-md`` /
 ``--sampling-png`` write the table / PSNR-vs-CPU plot; ``--eval-every-s`` sets the marks).
+``--ablation-md`` writes the loss ablation (photometric only, + depth, + depth and normals) as
+a Markdown table, with ``--ablation-reference`` (a JSONL whose last line is a full-variant run
+measured at another moment, e.g. on a quiet machine) as an extra, marked row.
+``--loc-results`` fills ``loc_rate_nerf`` from the ``results.json`` of a ``diffloc
+task=crossmodal map=nerf`` run (rate within the loose bound, 1 m / 30 deg indoors, on
+``query_same``; ``loc_rate_nerf_query_reverse`` too when it ran).
 
     PYTHONPATH=. OMP_NUM_THREADS=2 python3 experiments/bench_nerf.py --budget-s 600 \
         --out experiments/results/bench_nerf.jsonl
@@ -280,7 +286,7 @@ def sampling_comparison(record: dict) -> dict:
     return out
 
 
-def merge(parts: list[str], out: Path, sampling_md: str | None, sampling_png: str | None) -> None:
+def merge(parts: list[str], out: Path, args: argparse.Namespace) -> None:
     """One JSON line from the last lines of partial runs (run in parallel processes); keys
     that differ between parts (load averages, times) are kept per part under ``parts``."""
     records = [json.loads(Path(p).read_text().splitlines()[-1]) for p in parts]
@@ -292,11 +298,7 @@ def merge(parts: list[str], out: Path, sampling_md: str | None, sampling_png: st
         {k: r[k] for k in ("prepare_s", "threads", "load_avg_start", "load_avg_end") if k in r}
         for r in records
     ]
-    _add_sampling_comparison(merged, sampling_md, sampling_png)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "a") as f:
-        f.write(json.dumps(merged) + "\n")
-    print(json.dumps(merged))
+    _finish(merged, out, args)
 
 
 def sampling_markdown(record: dict) -> str:
@@ -369,6 +371,136 @@ def _add_sampling_comparison(record: dict, markdown_path: str | None, png: str |
             sampling_plot(record, png)
 
 
+# loss ablation rows: (key suffix of the run, label); the full run has no suffix.
+ABLATIONS = (
+    ("_rgb_only", "photometric only"),
+    ("_rgb_depth", "photometric + depth (Eq. 6)"),
+    ("", "photometric + depth + normals (Eq. 6, 7)"),
+)
+_ABLATION_COLUMNS = (
+    ("held-out PSNR dB", "psnr_heldout_db", "{:.2f}", 1),
+    ("median depth error cm", "depth_median_abs_err_m", "{:.1f}", 100),
+    ("median normal error deg", "normal_median_err_deg", "{:.1f}", 1),
+    ("steps", "steps", "{}", 1),
+    ("training wall s", "train_s", "{:.0f}", 1),
+    ("training CPU s", "train_cpu_s", "{:.0f}", 1),
+    ("wall s to 25 dB", "time_to_25db_s", "{:.0f}", 1),
+    ("CPU s to 25 dB", "cpu_to_25db_s", "{:.0f}", 1),
+)
+
+
+def _ablation_row(label: str, record: dict, suffix: str) -> str:
+    cells = []
+    for _, key, fmt, scale in _ABLATION_COLUMNS:
+        value = record.get(f"{key}{suffix}")
+        cells.append("not reached" if value is None else fmt.format(value * scale))
+    return f"| {label} | " + " | ".join(cells) + " |"
+
+
+def _budget(record: dict, key: str = "budget_s") -> float:
+    """A record's training budget (older records: the training time on its clock)."""
+    for name in (key, "budget_s"):
+        if name in record:
+            return record[name]
+    return record["train_cpu_s"] if record.get("clock") == "cpu" else record["train_s"]
+
+
+def ablation_markdown(record: dict, reference: dict | None = None) -> str:
+    """The loss ablation of a record (runs ``rgb_only``, ``rgb_depth`` and ``full``) as a
+    Markdown table; ``reference``, a full-variant record measured at another moment, is added
+    as a last row marked as such (the record's own full run may then be missing).
+
+    Raises:
+        ValueError: a run is missing (naming the ``--variants`` to run).
+    """
+    missing = [s.lstrip("_") for s, _ in ABLATIONS[:2] if f"psnr_heldout_db{s}" not in record]
+    if "psnr_heldout_db" not in record and reference is None:
+        missing.append("full")
+    if missing:
+        raise ValueError(
+            f"the ablation table needs the runs {missing}, not in the record of "
+            f"{record.get('data')}: run bench_nerf.py with --variants full,rgb_only,rgb_depth "
+            "(or give the full run of another moment with --ablation-reference)"
+        )
+    budget, ablation_budget = _budget(record), _budget(record, "ablation_budget_s")
+    budgets = (
+        f"{budget:.0f} s"
+        if ablation_budget == budget
+        else f"{budget:.0f} s full, {ablation_budget:.0f} s ablations"
+    )
+    processes = (
+        f"{len(record['parts'])} processes side by side"
+        if "parts" in record
+        else "runs one after another in one process"
+    )
+    clock = record.get("clock", "wall")
+    lines = [
+        f"Loss ablation ({record['data']}, submap {record['submap']}, {record['train_frames']} "
+        f"training frames, 160x120; {record['threads']} thread(s) per process, {processes}, "
+        f"{budgets} {clock}-clock budget each; load "
+        f"{record['load_avg_start']:.1f} at the start, {record['load_avg_end']:.1f} at the end).",
+        "",
+        "| losses | " + " | ".join(name for name, *_ in _ABLATION_COLUMNS) + " |",
+        "|---|" + "---|" * len(_ABLATION_COLUMNS),
+        *(
+            _ablation_row(label, record, suffix)
+            for suffix, label in ABLATIONS
+            if f"psnr_heldout_db{suffix}" in record
+        ),
+    ]
+    if reference is not None:
+        label = (
+            f"{ABLATIONS[2][1]}, measured at another moment ({reference['threads']} thread(s), "
+            f"{_budget(reference):.0f} s {reference.get('clock', 'wall')}-clock budget, load "
+            f"{reference['load_avg_start']:.1f} at the start)"
+        )
+        lines.append(_ablation_row(label, reference, ""))
+    return "\n".join(lines) + "\n"
+
+
+def add_loc_rate(record: dict, results_path: str | os.PathLike) -> None:
+    """Set ``loc_rate_nerf`` (``query_same``, within the run's loose bound / 30 deg) and,
+    when it ran, ``loc_rate_nerf_query_reverse`` from a ``task=crossmodal map=nerf``
+    ``results.json``.
+
+    Raises:
+        ValueError: the results are not of ``map=nerf`` or lack ``query_same``.
+    """
+    results = json.loads(Path(results_path).read_text())
+    if results.get("map") != "nerf":
+        raise ValueError(
+            f"{results_path} is a map={results.get('map')} run; loc_rate_nerf needs the "
+            "results.json of diffloc task=crossmodal map=nerf"
+        )
+    sequences, loose = results["sequences"], f"{results['loose_m']:g}m_30deg"
+    if "query_same" not in sequences:
+        raise ValueError(
+            f"{results_path} has no query_same sequence ({sorted(sequences)}); rerun "
+            "task=crossmodal map=nerf with query_same in task.sequences"
+        )
+    record["loc_rate_nerf"] = sequences["query_same"]["rates"][loose]
+    if "query_reverse" in sequences:
+        record["loc_rate_nerf_query_reverse"] = sequences["query_reverse"]["rates"][loose]
+    record["loc_results"] = str(results_path)
+
+
+def _finish(record: dict, out: Path, args: argparse.Namespace) -> None:
+    """Add the comparisons the arguments ask for, append the record, then write the tables."""
+    _add_sampling_comparison(record, args.sampling_md, args.sampling_png)
+    if args.loc_results:
+        add_loc_rate(record, args.loc_results)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "a") as f:
+        f.write(json.dumps(record) + "\n")
+    print(json.dumps(record))
+    if args.ablation_md:
+        reference = None
+        if args.ablation_reference:
+            lines = Path(args.ablation_reference).read_text().splitlines()
+            reference = json.loads(lines[-1])
+        Path(args.ablation_md).write_text(ablation_markdown(record, reference))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default="data/indoor_seed0")
@@ -387,9 +519,14 @@ def main() -> None:
     parser.add_argument("--work", default="/tmp/nerf_bench")
     parser.add_argument("--out", default="experiments/results/bench_nerf.jsonl")
     parser.add_argument("--merge", nargs="+", help="merge the last lines of these JSONL files")
+    parser.add_argument("--ablation-md", help="write the loss ablation table (Markdown) here")
+    parser.add_argument(
+        "--ablation-reference", help="JSONL whose last line is a full run of another moment"
+    )
+    parser.add_argument("--loc-results", help="results.json of task=crossmodal map=nerf")
     args = parser.parse_args()
     if args.merge:
-        merge(args.merge, Path(args.out), args.sampling_md, args.sampling_png)
+        merge(args.merge, Path(args.out), args)
         return
     torch.set_num_threads(args.threads)
     seq = read_sequence(args.data, "mapping")
@@ -407,6 +544,8 @@ def main() -> None:
         "box_m": [round(float(v), 2) for v in rays.box_max - rays.box_min],
         "prepare_s": round(time.perf_counter() - tic, 1),
         "threads": args.threads,
+        "budget_s": args.budget_s,
+        "ablation_budget_s": args.ablation_budget_s or args.budget_s,
         "load_avg_start": os.getloadavg()[0],
     }
     print(json.dumps(record), flush=True)
@@ -434,11 +573,7 @@ def main() -> None:
             print(json.dumps(result), flush=True)
     record["load_avg_end"] = os.getloadavg()[0]
     record["clock"] = args.clock
-    _add_sampling_comparison(record, args.sampling_md, args.sampling_png)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    with open(args.out, "a") as f:
-        f.write(json.dumps(record) + "\n")
-    print(json.dumps(record))
+    _finish(record, Path(args.out), args)
 
 
 if __name__ == "__main__":
