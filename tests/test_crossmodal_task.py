@@ -188,3 +188,19 @@ def test_a_photometric_threshold_of_an_unknown_map_is_refused():
     cfg = compose_config(["task=crossmodal", "map=tls", "+task.min_photometric.lidar=0.5"])
     with pytest.raises(ValueError, match="task.min_photometric.lidar: not a map option"):
         run(cfg)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("+task.floor_closing_m.mesh=0.3", r"task.floor_closing_m.mesh: not a point map"),
+        (
+            "task.floor_closing_m.lidar_map=-0.3",
+            r"task.floor_closing_m.lidar_map: floor_closing_radius_m must be a finite number",
+        ),
+    ],
+)
+def test_a_bad_floor_closing_of_a_point_map_is_refused(override, message):
+    cfg = compose_config(["scene=indoor", "task=crossmodal", "map=cloud", override])
+    with pytest.raises(ValueError, match=message):
+        run(cfg)

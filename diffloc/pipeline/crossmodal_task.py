@@ -95,7 +95,9 @@ def run_crossmodal(
         database = build_image_database(dataset, map_config, task.database, camera, show_progress)
         stages = {"database": database[1].summary.to_json()}
     else:
-        poses = render_pose_stage(dataset, map_config.point_map, task.poses, option)
+        poses = render_pose_stage(
+            dataset, map_config.point_map, task.poses_for(map_config.point_map), option
+        )
         if isinstance(map_config, NerfMapConfig):
             rgbd_map = build_nerf_map(dataset, map_config, nerf or TrainNerfConfig(), poses)
         else:
