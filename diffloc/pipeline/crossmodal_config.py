@@ -32,6 +32,7 @@ from diffloc.checks import check_positive_int
 from diffloc.crossmodal.database import DatabaseConfig as RGBDDatabaseConfig
 from diffloc.crossmodal.mesh_map import POINT_MAPS, TexturedMeshConfig
 from diffloc.crossmodal.pose_selection import PoseSelectionConfig
+from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.reloc.rendered import RenderedLocalizerConfig
 from diffloc.render.point_sizes import PointSizes
@@ -196,6 +197,11 @@ class CrossmodalTaskConfig:
             (see :meth:`poses_for`). Keyed on the point map, not the ``map`` option, because
             the render poses are: ``map=cloud``, ``mesh`` and ``nerf`` share the lidar map's.
         database: features and NetVLAD of the rendered database.
+        tune_retrieval: fine-tune the rendered database's NetVLAD on the mapping images
+            against the renders before localising (a cached stage,
+            :mod:`diffloc.pipeline.crossmodal_retrieval`); ``map=images``, whose database is
+            the mapping images, ignores it.
+        retrieval: the settings of that fine-tuning.
         localizer: Algorithm 1 with re-ranking and validation.
         min_photometric: per ``map`` option, the lowest photometric consistency of an
             accepted pose (``localizer.validation.min_photometric`` for that map; an option
@@ -215,6 +221,8 @@ class CrossmodalTaskConfig:
     image_scale: float = 0.5
     poses: PoseSelectionConfig = field(default_factory=PoseSelectionConfig)
     database: RGBDDatabaseConfig = field(default_factory=RGBDDatabaseConfig)
+    tune_retrieval: bool = False
+    retrieval: RetrievalTuningConfig = field(default_factory=RetrievalTuningConfig)
     localizer: RenderedLocalizerConfig = field(default_factory=RenderedLocalizerConfig)
     floor_closing_m: dict[str, float] = field(default_factory=dict)
     min_photometric: dict[str, float] = field(default_factory=dict)

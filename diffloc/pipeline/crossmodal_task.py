@@ -2,7 +2,9 @@
 report.
 
 Render poses -> map (``map=nerf``: the trained radiance-field submaps,
-:mod:`diffloc.pipeline.crossmodal_nerf`) -> RGB-D database -> localisation of each
+:mod:`diffloc.pipeline.crossmodal_nerf`) -> RGB-D database -> (``task.tune_retrieval``: its
+NetVLAD tuned on the mapping images, :mod:`diffloc.pipeline.crossmodal_retrieval`) ->
+localisation of each
 ``task.sequences`` (each a cached stage, :mod:`diffloc.pipeline.crossmodal_stage`;
 ``map=images``: the database of the mapping images, :mod:`diffloc.pipeline.crossmodal_images`,
 then the same localisation) -> scores, ``results.md``, ``results.json``, TUM files and plots in
@@ -39,6 +41,7 @@ from diffloc.pipeline.crossmodal_report import (
     plot_trajectory,
     score_sequence,
 )
+from diffloc.pipeline.crossmodal_retrieval import tune_retrieval_stage
 from diffloc.pipeline.crossmodal_stage import (
     MAPPING,
     build_rgbd_database,
@@ -90,6 +93,7 @@ def run_crossmodal(
     start = time.perf_counter()
     dataset, out = Path(dataset), Path(out)
     option = map_option(map_config)
+    retrieval = None
     camera = read_sequence(dataset, MAPPING).camera.scaled(task.image_scale)
     if isinstance(map_config, ImageMapConfig):
         database = build_image_database(dataset, map_config, task.database, camera, show_progress)
@@ -109,12 +113,25 @@ def run_crossmodal(
         stages = {
             name: outcome.summary.to_json() for name, outcome in zip(STAGES, outcomes, strict=True)
         }
+        if task.tune_retrieval:
+            tuned, retrieval = tune_retrieval_stage(
+                dataset, option, task.retrieval, database, show_progress
+            )
+            database = (tuned, database[1])  # the database stage's outcome keys the rest
+            stages["retrieval"] = retrieval.summary.to_json()
     db = database[0]
     out.mkdir(parents=True, exist_ok=True)
     sequences = {}
     for name in task.sequences:
         loc, outcome = localize_sequence(
-            dataset, option, name, task.every, task.localizer_for(option), database, show_progress
+            dataset,
+            option,
+            name,
+            task.every,
+            task.localizer_for(option),
+            database,
+            show_progress,
+            retrieval,
         )
         stages[f"localize_{name}"] = outcome.summary.to_json()
         seq = read_sequence(dataset, name)  # ground truth: scoring only
