@@ -16,7 +16,11 @@ import torch
 
 from diffloc.checks import ShapeError
 from diffloc.crossmodal.database import DatabaseConfig, build_database
-from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig, tune_render_retrieval
+from diffloc.crossmodal.retrieval_tuning import (
+    RetrievalTuningConfig,
+    tune_on_dense_maps,
+    tune_render_retrieval,
+)
 from diffloc.crossmodal.synthesize import MeshMap, render_views
 from diffloc.features.dense import DenseXFeat
 from diffloc.features.netvlad_training import FinetuneConfig, TripletConfig
@@ -123,6 +127,9 @@ def test_images_of_another_size_are_refused(scene):
         tune_render_retrieval(db, images[..., :-8], T_wc, CONFIG)
     with pytest.raises(ShapeError, match="5 mapping images but 4 poses"):
         tune_render_retrieval(db, images, T_wc[:4], CONFIG)
+    maps = torch.zeros(5, 64, 15, 20, dtype=torch.float16)
+    with pytest.raises(ShapeError, match="renders"):
+        tune_on_dense_maps(db, maps, T_wc, maps[:4], CONFIG)
 
 
 def test_no_mapping_image_near_a_render_names_the_bounds(scene):

@@ -32,7 +32,15 @@ from diffloc.features.dense import DenseXFeat
 from diffloc.features.netvlad_training import FinetuneConfig, FinetuneResult, finetune_netvlad
 from diffloc.progress import progress
 
-__all__ = ["REAL", "RENDER", "RetrievalTuningConfig", "TunedRetrieval", "tune_render_retrieval"]
+__all__ = [
+    "REAL",
+    "RENDER",
+    "RetrievalTuningConfig",
+    "TunedRetrieval",
+    "dense_maps",
+    "tune_on_dense_maps",
+    "tune_render_retrieval",
+]
 
 REAL, RENDER = 0, 1
 """Domain labels of the mapping images and the renders."""
@@ -77,10 +85,15 @@ class TunedRetrieval:
 
 
 @torch.no_grad()
-def _dense_maps(
-    images: torch.Tensor, dense: DenseXFeat, batch_size: int, label: str, show_progress: bool
+def dense_maps(
+    images: torch.Tensor,
+    dense: DenseXFeat,
+    batch_size: int = 8,
+    label: str = "images",
+    show_progress: bool = False,
 ) -> torch.Tensor:
-    """(N, 64, h, w) float16 XFeat dense maps of (N, 3, H, W) images."""
+    """(N, 64, H // 8, W // 8) float16 XFeat dense maps of (N, 3, H, W) images, ``batch_size``
+    images per pass (progress bar ``label``)."""
     batches = progress(images.split(batch_size), label, show_progress)
     return torch.cat([dense(batch).to(torch.float16) for batch in batches])
 
@@ -118,13 +131,45 @@ def tune_render_retrieval(
         raise ShapeError(f"{len(images)} mapping images but {len(T_wc)} poses")
     dense = dense if dense is not None else DenseXFeat()
     keep = slice(None, None, config.mapping_every)
-    images, T_wc = images[keep], T_wc[keep].to(torch.float64)
-    real = _dense_maps(images, dense, config.batch_size, "mapping", show_progress)
-    renders = _dense_maps(database.rgb, dense, config.batch_size, "renders", show_progress)
+    real = dense_maps(images[keep], dense, config.batch_size, "mapping", show_progress)
+    renders = dense_maps(database.rgb, dense, config.batch_size, "renders", show_progress)
+    return tune_on_dense_maps(database, real, T_wc[keep], renders, config, show_progress)
+
+
+def tune_on_dense_maps(
+    database: RenderedDatabase,
+    real: torch.Tensor,
+    T_wc: torch.Tensor,
+    renders: torch.Tensor,
+    config: RetrievalTuningConfig,
+    show_progress: bool = False,
+) -> TunedRetrieval:
+    """:func:`tune_render_retrieval` on dense maps already made (:func:`dense_maps`; a sweep
+    over settings makes them once).
+
+    Args:
+        database: the rendered database.
+        real: (N, 64, h, w) dense maps of the training mapping images (``mapping_every`` is
+            not applied again).
+        T_wc: (N, 4, 4) their poses.
+        renders: (M, 64, h, w) dense maps of ``database.rgb``.
+        config: settings.
+        show_progress: Lightning's progress bar.
+
+    Raises:
+        ShapeError: counts that disagree.
+        ValueError: no training tuple (see :func:`tune_render_retrieval`).
+    """
+    check_shape(real, "N,D,h,w", "real")
+    check_shape(T_wc, f"{len(real)},4,4", "T_wc")
+    check_shape(
+        renders, f"{database.num_images},{real.shape[1]},{real.shape[2]},{real.shape[3]}", "renders"
+    )
+    T_wc = T_wc.to(torch.float64)
     domains = torch.cat(
         [torch.full((len(real),), REAL), torch.full((len(renders),), RENDER)]
     ).long()
-    netvlad = copy.deepcopy(database.netvlad)
+    netvlad = copy.deepcopy(database.netvlad).train()
     try:
         result = finetune_netvlad(
             netvlad,
@@ -143,4 +188,4 @@ def tune_render_retrieval(
     with torch.no_grad():
         descriptors = torch.cat([netvlad(m.float()) for m in renders.split(config.batch_size)])
     tuned = replace(database, netvlad=netvlad, global_descriptors=descriptors)
-    return TunedRetrieval(database=tuned, result=result, mapping_images=len(images))
+    return TunedRetrieval(database=tuned, result=result, mapping_images=len(real))
