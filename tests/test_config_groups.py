@@ -110,6 +110,27 @@ def test_crossmodal_render_poses_follow_the_scene_kind(scene, cell_size_m, spaci
     assert to_object(explicit).task.poses.spacing_m == 4.0
 
 
+@pytest.mark.parametrize(
+    ("scene", "option", "radius_m"),
+    [
+        ("indoor", "tls", 0.1),
+        ("indoor", "cloud", 0.3),
+        ("indoor", "mesh", 0.3),
+        ("indoor", "nerf", 0.3),
+        ("outdoor", "tls", 0.4),
+        ("outdoor", "mesh", 0.4),
+    ],
+)
+def test_the_floor_closing_of_the_render_poses_follows_the_point_map(scene, option, radius_m):
+    cfg = to_object(compose_config([f"scene={scene}", "task=crossmodal", f"map={option}"]))
+    assert cfg.task.poses_for(cfg.map.point_map).floor_closing_radius_m == radius_m
+    mesh_of_tls = compose_config(
+        [f"scene={scene}", "task=crossmodal", "map=mesh", "map.point_map=tls_map"]
+    )
+    tls = to_object(mesh_of_tls).task.poses_for("tls_map").floor_closing_radius_m
+    assert tls == (0.1 if scene == "indoor" else 0.4)
+
+
 def test_group_options_swap_the_classes_by_target():
     cfg = to_object(compose_config(["features=orb", "retriever=bow", "matcher=mnn"]))
     assert type(cfg.db.features) is OrbConfig and type(cfg.reloc.retriever) is BowConfig

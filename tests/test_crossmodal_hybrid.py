@@ -21,7 +21,8 @@ from diffloc.crossmodal.synthesize import RGBD
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.io.identity import identity
 from diffloc.pipeline import crossmodal_hybrid
-from diffloc.pipeline.crossmodal_config import HybridMapConfig
+from diffloc.pipeline.crossmodal_config import CrossmodalTaskConfig, HybridMapConfig
+from diffloc.pipeline.crossmodal_task import run_crossmodal
 from diffloc.pipeline.stage import StageOutcome
 
 
@@ -173,3 +174,10 @@ def test_the_database_marks_its_real_images(tmp_path, parts):
         tmp_path / "dataset", HybridMapConfig(), SETTINGS, real, rendered
     )
     assert db.real.tolist() == [True, True, True, False, False, False]
+
+
+def test_retrieval_tuning_with_the_hybrid_map_is_refused_before_any_work(tmp_path):
+    task = CrossmodalTaskConfig(tune_retrieval=True)
+    with pytest.raises(ValueError, match="map=hybrid holds the mapping images themselves"):
+        run_crossmodal(tmp_path / "dataset", HybridMapConfig(), task, tmp_path / "out")
+    assert list(tmp_path.iterdir()) == []

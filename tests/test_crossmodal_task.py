@@ -21,7 +21,7 @@ from diffloc.config import compose_config, to_object
 from diffloc.io.dataset import read_sequence
 from diffloc.io.exposure import EXPOSURE_FILE
 from diffloc.io.trajectory import read_tum
-from diffloc.pipeline import crossmodal_stage
+from diffloc.pipeline import crossmodal_retrieval, crossmodal_stage
 from diffloc.sim.dataset import simulate_dataset
 from tests.conftest import TINY, scene_config
 
@@ -188,3 +188,48 @@ def test_a_photometric_threshold_of_an_unknown_map_is_refused():
     cfg = compose_config(["task=crossmodal", "map=tls", "+task.min_photometric.lidar=0.5"])
     with pytest.raises(ValueError, match="task.min_photometric.lidar: not a map option"):
         run(cfg)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("+task.floor_closing_m.mesh=0.3", r"task.floor_closing_m.mesh: not a point map"),
+        (
+            "task.floor_closing_m.lidar_map=-0.3",
+            r"task.floor_closing_m.lidar_map: floor_closing_radius_m must be a finite number",
+        ),
+    ],
+)
+def test_a_bad_floor_closing_of_a_point_map_is_refused(override, message):
+    cfg = compose_config(["scene=indoor", "task=crossmodal", "map=cloud", override])
+    with pytest.raises(ValueError, match=message):
+        run(cfg)
+
+
+TUNE = [
+    "task.tune_retrieval=true",
+    "task.retrieval.finetune.epochs=1",
+    "task.retrieval.finetune.triplets.negative_distance_m=1.0",
+]
+"""NetVLAD tuned on the tiny scene's 8 mapping images (renders beyond 1 m are negatives)."""
+
+
+def test_tuned_retrieval_is_a_stage_the_localization_keys_on(dataset, first, tmp_path, monkeypatch):
+    before = _records(dataset)
+    _refuse(monkeypatch, UPSTREAM)
+    results = _run(dataset, tmp_path / "tuned", *TUNE)
+    assert all(_records(dataset)[rel] == before[rel] for rel in STAGE_RECORDS)
+    tuning = results["stages"]["retrieval"]
+    assert tuning["mapping_images"] == 8 and tuning["tuples"] > 0
+    assert (dataset / "crossmodal" / "tls" / "retrieval" / "netvlad.safetensors").is_file()
+    record = json.loads((dataset / "crossmodal" / LOCALIZE_RECORD).read_text())
+    assert "retrieval" in record["stage"]["key"]["inputs"]
+    tuned = _records(dataset)
+    monkeypatch.setattr(crossmodal_retrieval, "tune_render_retrieval", None)  # must not run
+    monkeypatch.setattr(crossmodal_stage, "RenderedDatabaseLocalizer", None)
+    again = _run(dataset, tmp_path / "again", *TUNE)
+    assert _records(dataset) == tuned
+    assert again["sequences"] == {
+        name: {**entry, "files": again["sequences"][name]["files"]}
+        for name, entry in results["sequences"].items()
+    }

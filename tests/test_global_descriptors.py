@@ -254,6 +254,23 @@ def test_triplet_dataset_respects_pose_thresholds() -> None:
     assert dataset[0].shape == (5, 8, 4, 4)
 
 
+def test_triplets_across_domains_pair_only_frames_of_another_domain() -> None:
+    features, T_wc = place_data()
+    domains = torch.arange(40) % 2  # alternate frames: "real" 0, "render" 1
+    dataset = TripletDataset(features, T_wc, TripletConfig(num_negatives=3), 0, domains)
+    assert len(dataset) == 40
+    assert torch.all(
+        (dataset.positive | dataset.negative) <= (domains[dataset.anchors, None] != domains)
+    )
+    netvlad = NetVLAD(num_clusters=4, dim=8)
+    netvlad.init_from_kmeans(features.permute(0, 2, 3, 1).reshape(-1, 8), generator(10))
+    for tuples in (dataset.tuples, (dataset.mine(netvlad), dataset.tuples)[1]):
+        anchor, others = domains[tuples[:, :1]], domains[tuples[:, 1:]]
+        assert torch.all(others != anchor)
+    with pytest.raises(ShapeError):
+        TripletDataset(features, T_wc, TripletConfig(), 0, domains[:5])
+
+
 def test_mining_picks_best_positive_and_hardest_negatives() -> None:
     features, T_wc = place_data()
     netvlad = NetVLAD(num_clusters=4, dim=8)

@@ -121,7 +121,9 @@ class PoseSelectionConfig:
             (on indoor seed 0 the lidar map's render poses go from 200 to 376 and the share
             of ``query_same`` frames with a render within 2 m / 45 deg from 61 to 94 %,
             ``experiments/results/render_coverage_indoor_seed0.md``), but it also moves the
-            TLS map's poses, which lowers that map's rate, so it is not the default.
+            TLS map's poses, which lowers that map's rate, so it is not the default here;
+            ``task=crossmodal`` sets it per point map (``task.floor_closing_m``: 0.3 for the
+            lidar map indoors).
         max_floor_hole_m2: enclosed holes of the floor mask up to this area are filled, square
             metres (0 disables filling).
         min_clearance_m: smallest distance from a corridor cell to non-free space, metres.

@@ -12,6 +12,11 @@ leaves nothing to learn). The dense descriptor
 backbone stays frozen: the training set holds precomputed (D, h, w) maps and only the NetVLAD
 parameters (assignment conv and centroids) are learned.
 
+Across domains (real images and renders of a map, say) each frame carries a domain label and
+the positives and negatives of an anchor are taken from the other domains only, so the layer
+learns to rank renders for a real image (and real images for a render) rather than within one
+kind of image.
+
 Example::
 
     netvlad = NetVLAD(num_clusters=64, dim=64)
@@ -96,6 +101,8 @@ class TripletDataset(Dataset):
         T_wc: (N, 4, 4) camera-to-world poses of the same frames.
         config: mining thresholds.
         seed: seed of the sampling.
+        domains: (N,) int64 domain of each frame (e.g. 0 real image, 1 render): positives and
+            negatives come from another domain than their anchor's; ``None``: one domain.
 
     Raises:
         ShapeError: mismatched shapes.
@@ -103,12 +110,19 @@ class TripletDataset(Dataset):
     """
 
     def __init__(
-        self, features: torch.Tensor, T_wc: torch.Tensor, config: TripletConfig, seed: int = 0
+        self,
+        features: torch.Tensor,
+        T_wc: torch.Tensor,
+        config: TripletConfig,
+        seed: int = 0,
+        domains: torch.Tensor | None = None,
     ) -> None:
         check_shape(features, "N,D,h,w", "features")
         check_shape(T_wc, "N,4,4", "T_wc")
         if len(features) != len(T_wc):
             raise ShapeError(f"{len(features)} feature maps but {len(T_wc)} poses")
+        if domains is not None:
+            check_shape(domains, f"{len(features)}", "domains")
         self.features = features
         self.num_negatives = check_positive_int(config.num_negatives, "num_negatives")
         distance, angle = pairwise_pose_distances(T_wc, T_wc)
@@ -117,6 +131,10 @@ class TripletDataset(Dataset):
         )
         positive.fill_diagonal_(False)
         negative = distance > config.negative_distance_m
+        if domains is not None:
+            across = domains[:, None] != domains[None, :]
+            positive &= across
+            negative &= across
         self.anchors = torch.nonzero(positive.any(1) & negative.any(1)).flatten()
         if not len(self.anchors):
             raise ValueError("no frame has both a positive and a negative; check the thresholds")
@@ -249,6 +267,7 @@ def finetune_netvlad(
     config: FinetuneConfig | None = None,
     seed: int = 0,
     show_progress: bool = True,
+    domains: torch.Tensor | None = None,
 ) -> FinetuneResult:
     """Fine-tune ``netvlad`` in place with a CPU ``lightning.Trainer``.
 
@@ -262,12 +281,13 @@ def finetune_netvlad(
         config: optimisation settings (defaults: :class:`FinetuneConfig`).
         seed: seed of tuple sampling and batch order.
         show_progress: show Lightning's progress bar (unless in CI).
+        domains: (N,) domain of each frame; tuples cross domains (:class:`TripletDataset`).
 
     Returns:
         Loss history and the loss over all tuples before and after training.
     """
     config = config or FinetuneConfig()
-    dataset = TripletDataset(features, T_wc, config.triplets, seed)
+    dataset = TripletDataset(features, T_wc, config.triplets, seed, domains)
     miner = dataset if config.triplets.hard_mining else None
     module = NetVLADFineTuner(netvlad, config.margin, config.learning_rate, miner)
     if miner is not None:

@@ -36,6 +36,7 @@ from diffloc.checks import check_positive_int
 from diffloc.crossmodal.database import DatabaseConfig as RGBDDatabaseConfig
 from diffloc.crossmodal.mesh_map import POINT_MAPS, TexturedMeshConfig
 from diffloc.crossmodal.pose_selection import PoseSelectionConfig
+from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.reloc.rendered import RenderedLocalizerConfig
 from diffloc.render.point_sizes import PointSizes
@@ -231,7 +232,18 @@ class CrossmodalTaskConfig:
         every: localise every n-th frame.
         image_scale: images (mapping, database renders, queries) are resized by this factor.
         poses: render-pose selection (5 cm cells, 2 m spacing indoors; 20 cm, 4 m outdoors).
+        floor_closing_m: per point map (``"lidar_map"`` / ``"tls_map"``), the
+            ``poses.floor_closing_radius_m`` its render poses are selected with (a point map
+            not listed keeps ``poses``'s own). Set per scene kind: indoors the lidar map's
+            rings leave floor gaps that 0.3 m closes, while the dense TLS map keeps 0.1 m
+            (see :meth:`poses_for`). Keyed on the point map, not the ``map`` option, because
+            the render poses are: ``map=cloud``, ``mesh`` and ``nerf`` share the lidar map's.
         database: features and NetVLAD of the rendered database.
+        tune_retrieval: fine-tune the rendered database's NetVLAD on the mapping images
+            against the renders before localising (a cached stage,
+            :mod:`diffloc.pipeline.crossmodal_retrieval`); ``map=images``, whose database is
+            the mapping images, ignores it.
+        retrieval: the settings of that fine-tuning.
         localizer: Algorithm 1 with re-ranking and validation.
         min_photometric: per ``map`` option, the lowest photometric consistency of an
             accepted pose (``localizer.validation.min_photometric`` for that map; an option
@@ -251,7 +263,10 @@ class CrossmodalTaskConfig:
     image_scale: float = 0.5
     poses: PoseSelectionConfig = field(default_factory=PoseSelectionConfig)
     database: RGBDDatabaseConfig = field(default_factory=RGBDDatabaseConfig)
+    tune_retrieval: bool = False
+    retrieval: RetrievalTuningConfig = field(default_factory=RetrievalTuningConfig)
     localizer: RenderedLocalizerConfig = field(default_factory=RenderedLocalizerConfig)
+    floor_closing_m: dict[str, float] = field(default_factory=dict)
     min_photometric: dict[str, float] = field(default_factory=dict)
     loose_m: float = 1.0
     plot_queries: int = 4
@@ -265,6 +280,13 @@ class CrossmodalTaskConfig:
             raise ValueError(f"image_scale must be in (0, 1], got {self.image_scale!r}")
         if not 0.0 < self.loose_m < math.inf:
             raise ValueError(f"loose_m must be a positive finite number, got {self.loose_m!r}")
+        for point_map in self.floor_closing_m:
+            if point_map not in POINT_MAP_OPTIONS:
+                raise ValueError(
+                    f"task.floor_closing_m.{point_map}: not a point map (one of "
+                    f"{tuple(POINT_MAP_OPTIONS)})"
+                )
+            self.poses_for(point_map)  # the pose selection checks the radius
         for option, value in self.min_photometric.items():
             if option not in MAP_OPTIONS:
                 raise ValueError(
@@ -272,6 +294,28 @@ class CrossmodalTaskConfig:
                 )
             if not (math.isfinite(value) and -1.0 <= value <= 1.0):
                 raise ValueError(f"task.min_photometric.{option} must be in [-1, 1], got {value}")
+
+    def poses_for(self, point_map: str) -> PoseSelectionConfig:
+        """The render-pose settings of ``point_map``: :attr:`poses` with
+        ``floor_closing_radius_m`` from :attr:`floor_closing_m` where it lists the point map.
+
+        Raises:
+            ValueError: a listed radius the pose selection refuses (named by its key).
+
+        Example:
+            >>> task = CrossmodalTaskConfig(floor_closing_m={"lidar_map": 0.3})
+            >>> task.poses_for("lidar_map").floor_closing_radius_m
+            0.3
+            >>> task.poses_for("tls_map").floor_closing_radius_m
+            0.1
+        """
+        if point_map not in self.floor_closing_m:
+            return self.poses
+        radius = self.floor_closing_m[point_map]
+        try:
+            return replace(self.poses, floor_closing_radius_m=radius)
+        except ValueError as exc:
+            raise ValueError(f"task.floor_closing_m.{point_map}: {exc}") from exc
 
     def localizer_for(self, option: str) -> RenderedLocalizerConfig:
         """The localiser settings of the ``map`` option ``option``: ``localizer`` with the

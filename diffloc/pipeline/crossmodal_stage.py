@@ -71,6 +71,7 @@ from diffloc.render.point_sizes import PointSizes
 
 __all__ = [
     "MAP_OUTPUTS",
+    "RETRIEVAL_FILE",
     "SequenceLocalization",
     "build_rgbd_database",
     "build_rgbd_map",
@@ -90,6 +91,8 @@ MAP_OUTPUTS: dict[type, str] = {
     NerfMapConfig: "fields",
 }
 """The output of the map stage each map option renders the database from."""
+RETRIEVAL_FILE = "netvlad.safetensors"
+"""The output of the retrieval stage (:mod:`diffloc.pipeline.crossmodal_retrieval`)."""
 
 
 def crossmodal_folder(dataset: str | os.PathLike) -> Path:
@@ -467,18 +470,24 @@ def localize_sequence(
     config: RenderedLocalizerConfig,
     database: tuple[RenderedDatabase, StageOutcome],
     show_progress: bool = False,
+    retrieval: StageOutcome | None = None,
 ) -> tuple[SequenceLocalization, StageOutcome[LocalizationSummary]]:
     """Localise every ``every``-th frame of ``sequence`` (made or reused) and the stage's
     outcome.
 
-    Query images are resized (area) to the database camera's size.
+    Query images are resized (area) to the database camera's size. ``retrieval``: the outcome
+    of the stage that tuned the database's NetVLAD
+    (:func:`~diffloc.pipeline.crossmodal_retrieval.tune_retrieval_stage`, whose database
+    ``database`` then is), part of the key; ``None`` for the database as built.
     """
     db, db_outcome = database
     folder = crossmodal_folder(dataset) / option / f"localize_{sequence}"
+    tuned = {} if retrieval is None else {"retrieval": retrieval.outputs[RETRIEVAL_FILE]}
     key = stage_key(
         {"localizer": asdict(config), "every": every, "camera": _camera(db.camera)},
         {
             "database": db_outcome.outputs["rgbd"],
+            **tuned,
             **_sequence_inputs(dataset, sequence, with_poses=False),
         },
     )

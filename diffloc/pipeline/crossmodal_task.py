@@ -2,14 +2,16 @@
 then the report.
 
 Render poses -> map (``map=nerf``: the trained radiance-field submaps,
-:mod:`diffloc.pipeline.crossmodal_nerf`) -> RGB-D database -> localisation of each
-``task.sequences`` (each a cached stage, :mod:`diffloc.pipeline.crossmodal_stage`;
-``map=images``: the database of the mapping images, :mod:`diffloc.pipeline.crossmodal_images`,
-then the same localisation; ``map=hybrid``: both databases of ``map=images`` and
-``map=mesh``, then their union, :mod:`diffloc.pipeline.crossmodal_hybrid`) -> scores,
-``results.md``, ``results.json``, TUM files and plots in the run folder
-(:mod:`diffloc.pipeline.crossmodal_report`). A rerun with the same settings reuses every
-stage; a changed ``task.localizer`` setting runs only the localisation again.
+:mod:`diffloc.pipeline.crossmodal_nerf`) -> RGB-D database -> (``task.tune_retrieval``: its
+NetVLAD tuned on the mapping images, :mod:`diffloc.pipeline.crossmodal_retrieval`) ->
+localisation of each ``task.sequences`` (each a cached stage,
+:mod:`diffloc.pipeline.crossmodal_stage`; ``map=images``: the database of the mapping images,
+:mod:`diffloc.pipeline.crossmodal_images`, then the same localisation; ``map=hybrid``: both
+databases of ``map=images`` and ``map=mesh``, then their union,
+:mod:`diffloc.pipeline.crossmodal_hybrid`) -> scores, ``results.md``, ``results.json``, TUM
+files and plots in the run folder (:mod:`diffloc.pipeline.crossmodal_report`). A rerun with
+the same settings reuses every stage; a changed ``task.localizer`` setting runs only the
+localisation again.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from diffloc.pipeline.crossmodal_report import (
     plot_trajectory,
     score_sequence,
 )
+from diffloc.pipeline.crossmodal_retrieval import tune_retrieval_stage
 from diffloc.pipeline.crossmodal_stage import (
     MAPPING,
     build_rgbd_database,
@@ -89,7 +92,8 @@ def run_crossmodal(
     Raises:
         FileNotFoundError: a missing point map or sequence.
         ValueError: a point map without normals, without an upward normal, or with an empty
-            corridor (the message names the file and ``task.poses``).
+            corridor (the message names the file and ``task.poses``); ``task.tune_retrieval``
+            with ``map=images`` or ``map=hybrid``.
         MissingStageError: ``map=images`` or ``map=hybrid`` without a surfel map (the message
             names the ``task=build_map`` command).
         MissingStageError: ``map=nerf`` and a submap serving a render pose is not trained
@@ -98,6 +102,12 @@ def run_crossmodal(
     start = time.perf_counter()
     dataset, out = Path(dataset), Path(out)
     option = map_option(map_config)
+    if task.tune_retrieval and isinstance(map_config, ImageMapConfig | HybridMapConfig):
+        raise ValueError(
+            f"task.tune_retrieval tunes a rendered map's NetVLAD across the render/real gap; "
+            f"map={option} holds the mapping images themselves: set task.tune_retrieval=false"
+        )
+    retrieval = None
     camera = read_sequence(dataset, MAPPING).camera.scaled(task.image_scale)
     if isinstance(map_config, ImageMapConfig):
         database = build_image_database(dataset, map_config, task.database, camera, show_progress)
@@ -121,12 +131,25 @@ def run_crossmodal(
         database, stages = _rendered_database(
             dataset, map_config, task, camera, nerf, show_progress
         )
+        if task.tune_retrieval:
+            tuned, retrieval = tune_retrieval_stage(
+                dataset, option, task.retrieval, database, show_progress
+            )
+            database = (tuned, database[1])  # the database stage's outcome keys the rest
+            stages["retrieval"] = retrieval.summary.to_json()
     db = database[0]
     out.mkdir(parents=True, exist_ok=True)
     sequences = {}
     for name in task.sequences:
         loc, outcome = localize_sequence(
-            dataset, option, name, task.every, task.localizer_for(option), database, show_progress
+            dataset,
+            option,
+            name,
+            task.every,
+            task.localizer_for(option),
+            database,
+            show_progress,
+            retrieval,
         )
         stages[f"localize_{name}"] = outcome.summary.to_json()
         seq = read_sequence(dataset, name)  # ground truth: scoring only
@@ -175,7 +198,9 @@ def _rendered_database(
     """Render poses -> map -> database of a rendered map (each made or reused): the database
     with its outcome, and the three stages' summaries by :data:`STAGES` name."""
     option = map_option(map_config)
-    poses = render_pose_stage(dataset, map_config.point_map, task.poses, option)
+    poses = render_pose_stage(
+        dataset, map_config.point_map, task.poses_for(map_config.point_map), option
+    )
     if isinstance(map_config, NerfMapConfig):
         rgbd_map = build_nerf_map(dataset, map_config, nerf or TrainNerfConfig(), poses)
     else:
