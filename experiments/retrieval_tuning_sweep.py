@@ -22,7 +22,6 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -37,11 +36,11 @@ from diffloc.crossmodal.retrieval_tuning import (
     dense_maps,
     tune_on_dense_maps,
 )
+from diffloc.eval.report_files import write_report
 from diffloc.features.dense import DenseXFeat
 from diffloc.features.local import XFeatConfig, XFeatExtractor
 from diffloc.features.netvlad_training import FinetuneConfig, TripletConfig
 from diffloc.features.retrieval_eval import pairwise_pose_distances
-from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.pipeline.crossmodal_report import RETRIEVAL_ANGLE_DEG
 from diffloc.pipeline.crossmodal_stage import crossmodal_folder, scaled_images
@@ -217,8 +216,7 @@ def main() -> None:
         "machine": f"{platform.node()}, load {os.getloadavg()} at the end",
         "rows": rows,
     }
-    atomic_write_text(args.out.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
-    atomic_write_text(args.out.with_suffix(".md"), markdown(report))
+    write_report(args.out, markdown(report), report)
     print(markdown(report))
 
 
