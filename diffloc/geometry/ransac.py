@@ -23,7 +23,7 @@ scored candidates, and how to locally optimise them) and :func:`ransac` runs the
   local minima; the essential check, whose five-point candidates are few and cheap to
   optimise beside the epipolar scoring), or, as in Chum et al., only on a batch whose best
   candidate beats the best model as it is, and not when that candidate ends the search (the
-  solver's final refinement does the same work once). For PnP the second solves 142 instead
+  solver's final refinement does the same work once). For PnP the second solves 140 instead
   of 209 Gauss-Newton systems over 40 problems with 75 % outliers, the same samples drawn,
   and is 8-15 % faster at 50-75 % outliers (``experiments/results/refactor_before_after.md``).
 
