@@ -33,7 +33,19 @@ import torch
 
 from diffloc.checks import check_finite, check_shape
 
-__all__ = ["uncovered_views"]
+__all__ = ["check_coverage_bounds", "uncovered_views"]
+
+
+def check_coverage_bounds(max_distance_m: float, max_angle_deg: float) -> None:
+    """Refuse coverage bounds out of range: a distance not > 0, an angle not in (0, 180].
+
+    Raises:
+        ValueError: the first bound out of range, named.
+    """
+    if not (math.isfinite(max_distance_m) and max_distance_m > 0.0):
+        raise ValueError(f"max_distance_m must be a positive number, got {max_distance_m!r}")
+    if not 0.0 < max_angle_deg <= 180.0:
+        raise ValueError(f"max_angle_deg must be in (0, 180], got {max_angle_deg!r}")
 
 
 def uncovered_views(
@@ -65,10 +77,7 @@ def uncovered_views(
     check_shape(real_T_wc, "N,4,4", "real_T_wc")
     check_finite(T_wc, "T_wc")
     check_finite(real_T_wc, "real_T_wc")
-    if not (math.isfinite(max_distance_m) and max_distance_m > 0.0):
-        raise ValueError(f"max_distance_m must be a positive number, got {max_distance_m!r}")
-    if not 0.0 < max_angle_deg <= 180.0:
-        raise ValueError(f"max_angle_deg must be in (0, 180], got {max_angle_deg!r}")
+    check_coverage_bounds(max_distance_m, max_angle_deg)
     T, R = T_wc.to(torch.float64), real_T_wc.to(torch.float64)
     near = torch.cdist(T[:, :3, 3], R[:, :3, 3]) <= max_distance_m  # (M, N)
     cos = T[:, :3, 2] @ R[:, :3, 2].T  # (M, N) cosines of the optical axes' angles

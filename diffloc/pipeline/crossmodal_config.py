@@ -34,6 +34,7 @@ from dataclasses import dataclass, field, replace
 
 from diffloc.checks import check_positive_int
 from diffloc.crossmodal.database import DatabaseConfig as RGBDDatabaseConfig
+from diffloc.crossmodal.hybrid import check_coverage_bounds
 from diffloc.crossmodal.mesh_map import POINT_MAPS, TexturedMeshConfig
 from diffloc.crossmodal.pose_selection import PoseSelectionConfig
 from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig
@@ -185,10 +186,7 @@ class HybridMapConfig:
 
     def __post_init__(self) -> None:
         check_positive_int(self.every, "every")
-        if not (math.isfinite(self.max_distance_m) and self.max_distance_m > 0.0):
-            raise ValueError(f"max_distance_m must be > 0, got {self.max_distance_m!r}")
-        if not 0.0 < self.max_angle_deg <= 180.0:
-            raise ValueError(f"max_angle_deg must be in (0, 180], got {self.max_angle_deg!r}")
+        check_coverage_bounds(self.max_distance_m, self.max_angle_deg)
 
     def images(self) -> ImageMapConfig:
         """The real-image part's settings (``map=images`` with the same ``every``)."""
@@ -241,8 +239,8 @@ class CrossmodalTaskConfig:
         database: features and NetVLAD of the rendered database.
         tune_retrieval: fine-tune the rendered database's NetVLAD on the mapping images
             against the renders before localising (a cached stage,
-            :mod:`diffloc.pipeline.crossmodal_retrieval`); ``map=images``, whose database is
-            the mapping images, ignores it.
+            :mod:`diffloc.pipeline.crossmodal_retrieval`); refused with ``map=images`` and
+            ``map=hybrid``, whose databases hold the mapping images themselves.
         retrieval: the settings of that fine-tuning.
         localizer: Algorithm 1 with re-ranking and validation.
         min_photometric: per ``map`` option, the lowest photometric consistency of an
