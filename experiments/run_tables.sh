@@ -229,4 +229,6 @@ python3 experiments/validation_evidence.py "$runs/heldout_main_outdoor" \
   --out experiments/results/validation_evidence_outdoor
 heldout_ablation ablation_xfeat_outdoor
 heldout_noise heldout_table3_noise_outdoor table3_noise_outdoor_prior2x "0.2:0.4 0.4:0.8"
+heldout_noise heldout_table3_noise_outdoor table3_noise_outdoor_prior1x "0.2:0.2 0.4:0.4"
+heldout_noise heldout_table3_noise_outdoor table3_noise_outdoor_priorhalf "0.2:0.1 0.4:0.2"
 heldout_noise heldout_table3_noise_outdoor table3_noise_outdoor "$all_levels"

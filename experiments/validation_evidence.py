@@ -3,7 +3,9 @@
 Reads the ``queries.json`` files of finished relocalisation jobs (``diffloc task=main`` or a
 sweep of it) and, for every query whose best candidate passes seed 1's inlier test, takes the
 evidence the validation sees (:mod:`diffloc.reloc.validation`): inliers, inlier ratio, grid
-coverage and the strongest rival candidate farther than 1 m (its share of the best inliers).
+coverage, the strongest rival candidate farther than 1 m (its share of the best inliers) and
+the position's standard deviation (:mod:`diffloc.reloc.pose_uncertainty`; NaN for runs of an
+older diffloc, which did not record it).
 Poses within 0.3 m of the truth are *right*, the others *wrong* (scoring only).
 
 For each evidence figure the report gives its distribution (5th / 50th / 95th percentile) over
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shlex
 import sys
 from pathlib import Path
@@ -42,6 +45,7 @@ FIGURES = {
     "inlier_ratio": ("inlier ratio", "higher"),
     "coverage": ("grid coverage", "higher"),
     "rival_share": ("rival inliers / best", "lower"),
+    "position_sigma": ("position sigma [m]", "lower"),
 }
 """Evidence figure -> (label, the direction a right pose is expected in)."""
 
@@ -60,6 +64,12 @@ def evidence(query: dict) -> dict[str, float] | None:
         "inlier_ratio": best["inliers"] / max(best["matches"], 1),
         "coverage": float(best["coverage"]),
         "rival_share": max(rivals, default=0) / best["inliers"],
+        # null: unbounded; missing: a run of an older diffloc, which did not measure it
+        "position_sigma": math.nan
+        if "position_sigma_m" not in best
+        else math.inf
+        if best["position_sigma_m"] is None
+        else float(best["position_sigma_m"]),
         "right": query["translation_error_m"] is not None
         and query["translation_error_m"] <= MAX_TRANS_M,
     }

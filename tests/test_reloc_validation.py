@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from diffloc.checks import ShapeError
+from diffloc.geometry.se3 import so3_exp
 from diffloc.reloc.hierarchical import Candidate, RelocResult
-from diffloc.reloc.validation import PoseValidator, ValidationConfig
+from diffloc.reloc.validation import PoseEvidence, PoseValidator, ValidationConfig
 
 
 def pose_at(x: float) -> torch.Tensor:
@@ -76,6 +77,122 @@ def test_speed_allowance_grows_with_the_time_gap():
     assert not v.validate(pose_at(2.1), 30, 1.5)  # 0.9 > 0.3 + 1.0 * 0.5
 
 
+def pose_on_circle(angle: float, radius_m: float = 5.0) -> torch.Tensor:
+    """A camera on a circle about the origin in the xy plane, looking along its path."""
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = so3_exp(torch.tensor([0.0, 0.0, angle], dtype=torch.float64))
+    T[:3, 3] = torch.tensor([radius_m * math.sin(angle), radius_m * (1 - math.cos(angle)), 0.0])
+    return T
+
+
+MOTION = ValidationConfig(
+    theta_in=15, theta_dist_m=0.3, max_speed_mps=6.0, max_reference_age_s=2.0, max_accel_mps2=1.0
+)
+
+
+def test_motion_test_rejects_a_pose_snapped_one_period_back_along_the_track():
+    """2 m/s along x, a query every 0.5 s; the third pose lands 1.25 m short (a ground tile one
+    period back). The speed allowance (0.3 + 6 * 0.5 m) passes it; the motion test does not."""
+    for accel, expected in ((None, True), (1.0, False)):
+        v = PoseValidator(replace(MOTION, max_accel_mps2=accel))
+        v.validate(pose_at(0.0), 30, 0.0)
+        assert v.validate(pose_at(1.0), 30, 0.5)
+        assert v.validate(pose_at(2.0 - 1.25), 30, 1.0) is expected
+    # Within theta_dist + accel dt^2 / 2 = 0.425 m of the prediction (2.0 m): a change of speed.
+    v = PoseValidator(MOTION)
+    v.validate(pose_at(0.0), 30, 0.0)
+    v.validate(pose_at(1.0), 30, 0.5)
+    assert v.validate(pose_at(2.4), 30, 1.0)
+    assert not replace(MOTION).seed1_rule().max_accel_mps2
+
+
+def test_a_pose_failing_the_motion_test_keeps_the_reference_and_drops_the_velocity():
+    v = PoseValidator(MOTION)
+    v.validate(pose_at(0.0), 30, 0.0)
+    v.validate(pose_at(1.0), 30, 0.5)  # velocity 2 m/s
+    assert not v.validate(pose_at(0.75), 30, 1.0)  # snapped back: rejected
+    # The reference is still at 1.0 m (t = 0.5 s), without a velocity: a pose 0.8 m on, 1 s
+    # later (1.2 m short of the old velocity's prediction of 3.0 m), meets the distance test
+    # alone.
+    assert v.validate(pose_at(1.8), 30, 1.5)
+
+
+def test_motion_test_follows_a_turning_track():
+    """3 m/s on a 5 m circle (a 34 degree turn per 0.5 s): a velocity not turned with the
+    camera would miss the next pose by 0.44 m; the turned one predicts it."""
+    step = 3.0 * 0.5 / 5.0
+    v = PoseValidator(MOTION)
+    assert not v.validate(pose_on_circle(0.0), 30, 0.0)
+    assert all(v.validate(pose_on_circle(k * step), 30, 0.5 * k) for k in range(1, 8))
+    straight = pose_on_circle(step)[:3, 3] - pose_on_circle(0.0)[:3, 3]
+    miss = pose_on_circle(2 * step)[:3, 3] - pose_on_circle(step)[:3, 3] - straight
+    assert 0.4 < float(torch.linalg.vector_norm(miss)) < 0.5
+
+
+def test_motion_test_needs_the_rotation():
+    v = PoseValidator(MOTION)
+    with pytest.raises(ValueError, match="max_accel_mps2"):
+        v.validate_position(torch.zeros(3, dtype=torch.float64), 30, 0.0)
+    with pytest.raises(ValueError, match="max_accel_mps2"):
+        ValidationConfig(max_accel_mps2=-1.0)
+
+
+def test_evidence_reads_the_recorded_rotation():
+    T = pose_on_circle(0.3)
+    record = {
+        "found": True,
+        "position_m": T[:3, 3].tolist(),
+        "rotation_wc": T[:3, :3].tolist(),
+        "candidates": [{"inliers": 40, "matches": 60, "coverage": 0.8, "distance_to_chosen_m": 0}],
+    }
+    evidence = PoseEvidence.from_record(record)
+    assert torch.equal(evidence.rotation, T[:3, :3])
+    assert PoseEvidence.from_record({**record, "rotation_wc": None}).rotation is None
+
+
+def test_a_loosely_fixed_position_is_rejected():
+    cfg = replace(STRICT, max_position_sigma_m=0.1)
+    precise, loose = candidate(0.1, 60), candidate(0.1, 60)
+    precise.position_sigma_m, loose.position_sigma_m = 0.02, 0.25
+    for sigma_candidate, expected in ((precise, True), (loose, False)):
+        v = PoseValidator(cfg)
+        v.validate_result(result_of(candidate(0.0, 60, position_sigma=0.02)), 0.0)
+        assert v.validate_result(result_of(sigma_candidate), 1.0) is expected
+    # seed 1's rule does not ask
+    seed1 = PoseValidator(cfg.seed1_rule())
+    seed1.validate_result(result_of(candidate(0.0, 60)), 0.0)
+    assert seed1.validate_result(result_of(loose), 1.0)
+
+
+def test_the_precision_test_needs_the_measurement():
+    v = PoseValidator(replace(STRICT, max_position_sigma_m=0.1))
+    with pytest.raises(ValueError, match="max_position_sigma_m"):
+        v.validate_result(result_of(candidate(0.0, 60)), 0.0)  # NaN: not measured
+    with pytest.raises(ValueError, match="max_position_sigma_m"):
+        ValidationConfig(max_position_sigma_m=0.0)
+
+
+def test_evidence_reads_the_recorded_position_sigma():
+    record = {
+        "found": True,
+        "position_m": [0.0, 0.0, 0.0],
+        "candidates": [
+            {
+                "inliers": 40,
+                "matches": 60,
+                "coverage": 0.8,
+                "distance_to_chosen_m": 0,
+                "position_sigma_m": 0.03,
+            }
+        ],
+    }
+    assert PoseEvidence.from_record(record).position_sigma == 0.03
+    record["candidates"][0]["position_sigma_m"] = None  # JSON for an unbounded position
+    assert PoseEvidence.from_record(record).position_sigma == math.inf
+    del record["candidates"][0]["position_sigma_m"]
+    assert PoseEvidence.from_record(record).position_sigma is None
+
+
 def test_single_image_mode_checks_inliers_only():
     v = PoseValidator(ValidationConfig(theta_in=15, temporal=False))
     assert v.validate(pose_at(0.0), 15, 0.0)
@@ -110,8 +227,16 @@ def test_bad_poses_are_clear_errors():
         v.validate(pose_at(0.0), 30, math.nan)
 
 
-def candidate(x: float, inliers: int, matches: int = 100, coverage: float = 1.0) -> Candidate:
-    return Candidate(pose_at(x), inliers, matches, coverage, canonical=0)
+def candidate(
+    x: float,
+    inliers: int,
+    matches: int = 100,
+    coverage: float = 1.0,
+    position_sigma: float = math.nan,
+) -> Candidate:
+    return Candidate(
+        pose_at(x), inliers, matches, coverage, canonical=0, position_sigma_m=position_sigma
+    )
 
 
 def result_of(*candidates: Candidate) -> RelocResult:

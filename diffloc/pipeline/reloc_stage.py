@@ -9,10 +9,10 @@ into ``out``:
   found pose, accepted or not: what a replay of other validation settings reads),
   ``groundtruth.tum``,
   ``queries.json`` (per query: found, accepted by the configured validation and by seed 1's
-  rule, correct, the found position, inliers, the photometric consistency of the found pose
-  where it passed the inlier test (:mod:`diffloc.reloc.photometric`, null for no overlap),
-  errors, stage times and every candidate's inliers, matches, coverage and distance to the
-  chosen pose);
+  rule, correct, the found position and rotation, inliers, the photometric consistency of the
+  found pose where it passed the inlier test (:mod:`diffloc.reloc.photometric`, null for no
+  overlap), errors, stage times and every candidate's inliers, matches, coverage and distance
+  to the chosen pose);
 - ``<sequence>/precision_recall.png`` (precision and recall of every found pose as the inlier
   threshold is swept, with the operating points of pose validation and of seed 1's rule),
   ``trajectory.png``, ``errors.png`` (cumulative position error of the found and of the
@@ -390,6 +390,7 @@ def _candidate_entry(candidate: Candidate, T_wc_best: torch.Tensor) -> dict:
         "matches": candidate.num_matches,
         "coverage": round(candidate.coverage, 4),
         "distance_to_chosen_m": round(float(distance), 4),
+        "position_sigma_m": finite_or_none(round(candidate.position_sigma_m, 5)),
     }
 
 
@@ -461,6 +462,11 @@ def _report_sequence(
             "correct": bool(correct[q]),
             "position_m": (
                 [round(float(x), 6) for x in run.T_wc_est[q, :3, 3]] if run.found[q] else None
+            ),
+            "rotation_wc": (
+                [[round(float(x), 9) for x in row] for row in run.T_wc_est[q, :3, :3]]
+                if run.found[q]
+                else None
             ),
             "inliers": int(run.inliers[q]),
             **(

@@ -51,6 +51,7 @@ from diffloc.geometry.essential_ransac import EssentialCheckConfig, essential_ch
 from diffloc.geometry.se3 import invert, transform_points
 from diffloc.optim.motion_cost import MotionRefineConfig, refine_pose
 from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
+from diffloc.reloc.pose_uncertainty import position_sigma_m
 from diffloc.reloc.retrieval import KeyframeRetriever
 
 __all__ = [
@@ -187,6 +188,9 @@ class Candidate:
         inlier_matches: (n_in, 2) int64 ``(query keypoint, map point)`` of the inliers, for
             the repetition test (:mod:`diffloc.reloc.repetition`); ``None`` for the ``naive``
             method, whose 3D points are surfel centres, not map points.
+        position_sigma_m: standard deviation of the camera position along its worst
+            direction, from the inliers (:func:`~diffloc.reloc.pose_uncertainty.position_sigma_m`;
+            ``inf``: they do not fix it, NaN: not measured).
     """
 
     T_wc: torch.Tensor
@@ -195,6 +199,7 @@ class Candidate:
     coverage: float
     canonical: int
     inlier_matches: torch.Tensor | None = None
+    position_sigma_m: float = math.nan
 
 
 class _Timer:
@@ -464,15 +469,18 @@ class HierarchicalRelocalizer:
             T0, mask = pnp.T_wc, pnp.inliers
         sigmas = (features.sizes[matches[:, 0]] / features.sizes.min()).double().clamp_min(1.0)
         refined = refine_pose(camera, T0, X, uv, sigmas, mask, self.config.refine)
-        timer.lap("refine")
         inliers = refined.inliers  # masked matches have chi2 = inf, so never inliers
+        T_wc = refined.T_wc.detach()
+        sigma_m = position_sigma_m(camera, T_wc, X[inliers], uv[inliers], sigmas[inliers])
+        timer.lap("refine")
         return Candidate(
-            T_wc=refined.T_wc.detach(),
+            T_wc=T_wc,
             num_inliers=int(refined.num_inliers),
             num_matches=int(len(uv) if mask is None else mask.sum()),
             coverage=grid_coverage(uv[inliers], camera, self.config.coverage_grid),
             canonical=canonical,
             inlier_matches=None if points_world is not None else matches[inliers],
+            position_sigma_m=sigma_m,
         )
 
     def _projection_search(

@@ -19,6 +19,19 @@ does not replace it either: a jump to a repeated place (two consecutive queries 
 match the other storey) then cannot verify itself on the next query while the right track's
 reference is still young.
 
+The speed allowance is loose (at 6 m/s, 3.8 m after half a second): a pose snapped one period
+along a repeated ground or facade (1-3 m) passes it. With ``max_accel_mps2``, a track that has
+a velocity (its last pose was verified against the one before) must also keep moving as that
+velocity predicts: the previous interval's world velocity ``v = (p_1 - p_0) / (t_1 - t_0)``,
+turned by half the camera's rotation from ``t_0`` to ``t`` (a constant turn rate turns the
+heading by that much between the middles of the two intervals: a vehicle moves along its
+heading), predicts ``p_1 + R_half v (t - t_1)``; the pose must lie within
+``theta_dist + max_accel_mps2 (t - t_1)^2 / 2`` of it (what a change of speed moves it by).
+The rotation needs no up axis and comes from the poses themselves. A pose that fails only the
+motion test is not verified and does not replace the reference, and the track forgets its
+velocity: either may be the wrong one (one pose 0.8 m off gives a velocity that would reject
+the right poses after it), so the next pose meets the distance test alone.
+
 Seed 1's tests let confident wrong poses through where the scene repeats or is seen from the
 other side: a chain of consistently wrong poses passes the distance test. Three further tests,
 on the evidence of the relocaliser's candidates (:class:`PoseEvidence`),
@@ -42,7 +55,11 @@ make an *inlier pose* also need
   multiples, the other candidates), refined and scored like the pose itself, explains the
   query with at least ``uniqueness_ratio`` times the pose's own score (the share of the map
   points in view that are its refined guided inliers)
-  (:mod:`diffloc.reloc.uniqueness`).
+  (:mod:`diffloc.reloc.uniqueness`);
+- a precise position: the first-order standard deviation of the camera position along its
+  worst direction, from the inliers' geometry and residuals, at most ``max_position_sigma_m``
+  (:mod:`diffloc.reloc.pose_uncertainty`): inliers that all lie far away or along one
+  direction leave the camera free to slide, and such a pose is not one to trust.
 
 :meth:`ValidationConfig.seed1_rule` switches them off, giving seed 1's rule.
 
@@ -61,11 +78,12 @@ from dataclasses import dataclass, replace
 import torch
 
 from diffloc.checks import check_finite, check_shape
+from diffloc.geometry.se3 import so3_exp, so3_log
 from diffloc.reloc.hierarchical import RelocResult
 from diffloc.reloc.repetition import RepeatedShift
 from diffloc.reloc.uniqueness import Uniqueness
 
-__all__ = ["PoseEvidence", "PoseValidator", "ValidationConfig"]
+__all__ = ["PoseEvidence", "PoseValidator", "ValidationConfig", "predicted_displacement"]
 
 
 @dataclass
@@ -97,6 +115,13 @@ class ValidationConfig:
             replace the reference (seed 1: every inlier pose replaces it, ``False``). A jump
             to a repeated place then needs the reference to expire before it can verify
             itself (module docstring).
+        max_position_sigma_m: largest standard deviation (metres) of an inlier pose's camera
+            position along its worst direction (:mod:`diffloc.reloc.pose_uncertainty`;
+            ``None`` disables the test).
+        max_accel_mps2: the motion test's largest change of speed (m/s^2) of a track with a
+            velocity: the pose must lie within ``theta_dist_m + max_accel_mps2 dt^2 / 2`` of
+            the position the turned velocity predicts (module docstring; ``None``: no motion
+            test, as seed 1).
     """
 
     theta_in: int = 15
@@ -111,6 +136,8 @@ class ValidationConfig:
     max_repeated: float | None = None
     uniqueness_ratio: float | None = None
     conflict_keeps_reference: bool = False
+    max_accel_mps2: float | None = None
+    max_position_sigma_m: float | None = None
 
     def __post_init__(self) -> None:
         if self.theta_in < 0:
@@ -119,6 +146,12 @@ class ValidationConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {value}")
+        sigma = self.max_position_sigma_m
+        if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
+            raise ValueError(f"validation.max_position_sigma_m must be > 0 or null, got {sigma}")
+        accel = self.max_accel_mps2
+        if accel is not None and not (math.isfinite(accel) and accel >= 0):
+            raise ValueError(f"validation.max_accel_mps2 must be >= 0 or null, got {accel}")
         age = self.max_reference_age_s
         if age is not None and not (math.isfinite(age) and age > 0):
             raise ValueError(f"validation.max_reference_age_s must be > 0 or null, got {age}")
@@ -143,8 +176,8 @@ class ValidationConfig:
 
     def seed1_rule(self) -> ValidationConfig:
         """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity,
-        photometric consistency, repetition, uniqueness, the reference age, the kept
-        reference) off; the
+        photometric consistency, repetition, uniqueness, position precision, the reference
+        age, the kept reference, the motion test) off; the
         speed allowance of sparse query streams stays."""
         return replace(
             self,
@@ -156,6 +189,8 @@ class ValidationConfig:
             uniqueness_ratio=None,
             max_reference_age_s=None,
             conflict_keeps_reference=False,
+            max_accel_mps2=None,
+            max_position_sigma_m=None,
         )
 
 
@@ -179,6 +214,10 @@ class PoseEvidence:
         uniqueness: the best alternative's score over the pose's own
             (:attr:`~diffloc.reloc.uniqueness.Uniqueness.ratio`), or ``None`` when it was not
             measured.
+        rotation: (3, 3) float64 camera-to-world rotation of that pose, or ``None`` (a record
+            of an older run, which did not keep it); the motion test needs it.
+        position_sigma: the best candidate's position standard deviation in metres
+            (``inf``: its inliers do not fix it), or ``None`` when it was not measured.
     """
 
     position: torch.Tensor
@@ -189,6 +228,8 @@ class PoseEvidence:
     photometric: float | None = None
     repeated: int | None = None
     uniqueness: float | None = None
+    rotation: torch.Tensor | None = None
+    position_sigma: float | None = None
 
     @classmethod
     def from_result(
@@ -218,6 +259,8 @@ class PoseEvidence:
             photometric,
             repeated,
             uniqueness,
+            best.T_wc[:3, :3].to(torch.float64),
+            None if math.isnan(best.position_sigma_m) else best.position_sigma_m,
         )
 
     @classmethod
@@ -227,8 +270,9 @@ class PoseEvidence:
         ``coverage`` and ``distance_to_chosen_m``, ``photometric`` where it was measured,
         null for no overlap, ``repetition`` with its ``support`` and ``uniqueness`` with its
         ``own``, ``own_visible``, ``rival`` and ``rival_visible`` counts where they were
-        measured); ``None`` when it found
-        nothing.
+        measured, ``rotation_wc`` (3 x 3, row-major) and the best candidate's
+        ``position_sigma_m`` (null: unbounded) where they were recorded); ``None`` when it
+        found nothing.
 
         Raises:
             ValueError: a found query without a position or candidates.
@@ -256,6 +300,12 @@ class PoseEvidence:
                 0.0,
                 0,
             ).ratio
+        rotation = record.get("rotation_wc")
+        sigma = None
+        if "position_sigma_m" in best:
+            sigma = (
+                math.inf if best["position_sigma_m"] is None else float(best["position_sigma_m"])
+            )
         return cls(
             position,
             int(best["inliers"]),
@@ -265,6 +315,8 @@ class PoseEvidence:
             photometric,
             repeated,
             uniqueness,
+            None if rotation is None else torch.tensor(rotation, dtype=torch.float64),
+            sigma,
         )
 
 
@@ -282,15 +334,20 @@ class PoseValidator:
     def reset(self) -> None:
         """Forget the previous inlier pose (start of a new sequence)."""
         self._last_position: torch.Tensor | None = None
+        self._last_rotation: torch.Tensor | None = None
         self._last_time = 0.0
+        # The track's velocity (3,) over its last verified interval, and the rotation (3, 3)
+        # at that interval's start; None until a pose is verified against the one before.
+        self._velocity: tuple[torch.Tensor, torch.Tensor] | None = None
 
     def plausible(self, evidence: PoseEvidence) -> bool:
         """The tests beyond seed 1's: inlier ratio, coverage, photometric consistency, no
-        repeated structure, uniqueness and no well-supported rival.
+        repeated structure, uniqueness, position precision and no well-supported rival.
 
         Raises:
-            ValueError: ``min_photometric``, ``max_repeated`` or ``uniqueness_ratio`` is set
-                but the evidence lacks that measurement (a run that did not measure it).
+            ValueError: ``min_photometric``, ``max_repeated``, ``uniqueness_ratio`` or
+                ``max_position_sigma_m`` is set but the evidence lacks that measurement (a run
+                that did not measure it).
         """
         cfg = self.config
         if cfg.min_photometric is not None:
@@ -319,6 +376,15 @@ class PoseValidator:
                     "reloc.validation.uniqueness_ratio=null)"
                 )
             if evidence.uniqueness >= cfg.uniqueness_ratio:
+                return False
+        if cfg.max_position_sigma_m is not None:
+            if evidence.position_sigma is None:
+                raise ValueError(
+                    "validation.max_position_sigma_m is set but this answer's position "
+                    "uncertainty was not measured (a relocalisation run of an older diffloc: run "
+                    "it again, or set reloc.validation.max_position_sigma_m=null)"
+                )
+            if not evidence.position_sigma <= cfg.max_position_sigma_m:
                 return False
         if evidence.num_inliers < cfg.min_inlier_ratio * max(evidence.num_matches, 1):
             return False
@@ -355,7 +421,9 @@ class PoseValidator:
             return False
         if evidence.num_inliers >= self.config.theta_in and not self.plausible(evidence):
             return False
-        return self.validate_position(evidence.position, evidence.num_inliers, timestamp)
+        return self.validate_position(
+            evidence.position, evidence.num_inliers, timestamp, evidence.rotation
+        )
 
     def validate(self, T_wc: torch.Tensor, num_inliers: int, timestamp: float) -> bool:
         """Whether a refined pose is verified (:meth:`validate_position` of its position).
@@ -366,40 +434,105 @@ class PoseValidator:
         """
         check_shape(T_wc, "4,4", "T_wc")
         check_finite(T_wc, "T_wc")
-        return self.validate_position(T_wc[:3, 3], num_inliers, timestamp)
+        return self.validate_position(T_wc[:3, 3], num_inliers, timestamp, T_wc[:3, :3])
 
-    def validate_position(self, position: torch.Tensor, num_inliers: int, timestamp: float) -> bool:
+    def validate_position(
+        self,
+        position: torch.Tensor,
+        num_inliers: int,
+        timestamp: float,
+        rotation: torch.Tensor | None = None,
+    ) -> bool:
         """Whether a refined pose is verified; updates the reference on inlier poses.
 
         Args:
             position: (3,) camera position of the refined pose (world frame).
             num_inliers: its inlier matches ``n_in``.
             timestamp: query time in seconds (increasing over the sequence).
+            rotation: (3, 3) its camera-to-world rotation; needed by the motion test
+                (``max_accel_mps2``) only.
 
         Returns:
             ``True`` if the pose passes the inlier test and, in sequence mode, the distance
             test against the previous inlier pose.
 
         Raises:
-            ShapeError: ``position`` is not (3,).
-            ValueError: a non-finite position or timestamp.
+            ShapeError: ``position`` is not (3,), ``rotation`` not (3, 3).
+            ValueError: a non-finite position, rotation or timestamp, or the motion test is
+                set and ``rotation`` is missing.
         """
         check_shape(position, "3", "position")
         check_finite(position, "position")
         if not math.isfinite(timestamp):
             raise ValueError(f"timestamp must be finite, got {timestamp}")
-        if num_inliers < self.config.theta_in:
+        cfg = self.config
+        if cfg.temporal and cfg.max_accel_mps2 is not None:
+            if rotation is None:
+                raise ValueError(
+                    "validation.max_accel_mps2 is set but this pose has no rotation (a "
+                    "relocalisation record of an older diffloc: run it again, or set "
+                    "reloc.validation.max_accel_mps2=null)"
+                )
+            check_shape(rotation, "3,3", "rotation")
+            check_finite(rotation, "rotation")
+            rotation = rotation.to(torch.float64)
+        if num_inliers < cfg.theta_in:
             return False
-        if not self.config.temporal:
+        if not cfg.temporal:
             return True
         position = position.to(torch.float64)
         previous, dt = self._last_position, abs(timestamp - self._last_time)
-        age = self.config.max_reference_age_s
+        age = cfg.max_reference_age_s
         if previous is None or (age is not None and dt > age):
-            self._last_position, self._last_time = position, float(timestamp)
+            self._set_reference(position, rotation, timestamp, None)
             return False
-        limit = self.config.theta_dist_m + self.config.max_speed_mps * dt
+        limit = cfg.theta_dist_m + cfg.max_speed_mps * dt
         verified = bool(torch.linalg.vector_norm(position - previous) <= limit)
-        if verified or not self.config.conflict_keeps_reference:
-            self._last_position, self._last_time = position, float(timestamp)
+        if verified and cfg.max_accel_mps2 is not None and self._velocity is not None:
+            assert rotation is not None  # checked above
+            predicted = previous + predicted_displacement(*self._velocity, rotation, dt)
+            deviation = torch.linalg.vector_norm(position - predicted)
+            if deviation > cfg.theta_dist_m + 0.5 * cfg.max_accel_mps2 * dt**2:
+                self._velocity = None  # the pose or the velocity is wrong: trust neither
+                return False
+        if verified or not cfg.conflict_keeps_reference:
+            velocity = None
+            if verified and dt > 0 and self._last_rotation is not None:
+                velocity = ((position - previous) / dt, self._last_rotation)
+            self._set_reference(position, rotation, timestamp, velocity)
         return verified
+
+    def _set_reference(
+        self,
+        position: torch.Tensor,
+        rotation: torch.Tensor | None,
+        timestamp: float,
+        velocity: tuple[torch.Tensor, torch.Tensor] | None,
+    ) -> None:
+        self._last_position, self._last_rotation = position, rotation
+        self._last_time, self._velocity = float(timestamp), velocity
+
+
+def predicted_displacement(
+    velocity: torch.Tensor, R_start: torch.Tensor, R_now: torch.Tensor, dt: float
+) -> torch.Tensor:
+    """Displacement over ``dt`` seconds of a track moving at a constant speed and turn rate.
+
+    ``velocity`` (3,) is the world velocity over the track's previous interval, whose start had
+    the camera-to-world rotation ``R_start`` (3, 3); ``R_now`` (3, 3) is the rotation now. At a
+    constant turn rate the heading turns between the middles of the two intervals by half the
+    rotation from ``R_start`` to ``R_now``, so the velocity is turned by that half.
+
+    Returns:
+        (3,) the predicted displacement ``R_half velocity dt``.
+
+    Example (driving along x at 2 m/s while turning 90 degrees left about z over the two
+    intervals: the velocity turns by 45 degrees):
+        >>> R_now = so3_exp(torch.tensor([0.0, 0.0, math.pi / 2], dtype=torch.float64))
+        >>> d = predicted_displacement(torch.tensor([2.0, 0.0, 0.0], dtype=torch.float64),
+        ...                            torch.eye(3, dtype=torch.float64), R_now, 1.0)
+        >>> [round(x, 3) for x in d.tolist()]
+        [1.414, 1.414, 0.0]
+    """
+    half_turn = so3_exp(0.5 * so3_log(R_now @ R_start.transpose(-1, -2)))
+    return half_turn @ velocity * dt
