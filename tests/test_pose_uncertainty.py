@@ -9,6 +9,7 @@ import torch
 
 from diffloc.checks import ShapeError
 from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.se3 import so3_exp, transform_points
 from diffloc.optim.motion_cost import refine_pose
 from diffloc.reloc.pose_uncertainty import position_covariance, position_sigma_m
 
@@ -26,9 +27,11 @@ def scene(depth_m: float, n: int = 60, seed: int = 0) -> torch.Tensor:
 def test_the_covariance_matches_the_spread_of_refined_poses():
     """Monte Carlo: 1 px noise on the keypoints, 300 refinements; the predicted standard
     deviation of the camera centre along its worst direction is within 15 % of the spread."""
-    X = scene(depth_m=8.0)
-    T = torch.eye(4, dtype=torch.float64)
-    clean = CAMERA.project(X)[0]
+    T = torch.eye(4, dtype=torch.float64)  # a turned camera: the covariance is in the world
+    T[:3, :3] = so3_exp(torch.tensor([0.3, -1.1, 0.4], dtype=torch.float64))
+    T[:3, 3] = torch.tensor([2.0, -1.0, 0.5], dtype=torch.float64)
+    X = transform_points(T, scene(depth_m=8.0))
+    clean = CAMERA.project_world(X, T)[0]
     g = torch.Generator().manual_seed(1)
     noisy = clean + torch.randn(300, *clean.shape, generator=g, dtype=torch.float64)
     refined = refine_pose(CAMERA, T.expand(300, 4, 4), X.expand(300, -1, -1), noisy)

@@ -5,17 +5,16 @@ all lie far away or in one narrow direction (the end of an avenue seen from its 
 reprojection errors hardly change as the camera slides along the viewing direction. The
 validation can ask how far the camera could move for the same residuals.
 
-For the inliers' map points ``X_i`` (world), keypoints ``u_i`` and keypoint scales ``s_i``, the
-pose is perturbed by ``delta = (d_c, phi)``: the camera centre moves by ``d_c`` (world, metres)
-and the rotation by ``phi`` (camera frame, radians), ``R = R_wc exp(phi)``,
-``x_i = R^T (X_i - c - d_c)``. With ``J`` (2N, 6) the Jacobian of the scaled projections
-``pi(x_i) / s_i`` at ``delta = 0`` (through :meth:`PinholeCamera.project`, distortion included)
-and the residual variance estimated from the inliers,
-``s^2 = sum ||(pi(x_i) - u_i) / s_i||^2 / (2N - 6)``, the covariance of ``delta`` is
-``Sigma = s^2 (J^T J)^-1``; its top-left (3, 3) block is the camera centre's covariance in
-metres^2, and the reported figure is the standard deviation along its worst direction,
-``sqrt(lambda_max)``. First order, and only as good as the residuals are independent: map
-point errors shared by many inliers are not in it.
+For the inliers' map points ``X_i`` (camera frame ``x_i``), keypoints ``u_i`` and keypoint
+scales ``s_i``, the pose is perturbed by a left twist ``delta = (v, w)`` of ``T_cw``
+(:meth:`PinholeCamera.project_jacobian_pose`, distortion included). With ``J`` (2N, 6) the
+Jacobian of the scaled projections ``pi(x_i) / s_i`` at ``delta = 0`` and the residual variance
+estimated from the inliers, ``s^2 = sum ||(pi(x_i) - u_i) / s_i||^2 / (2N - 6)``, the covariance
+of ``delta`` is ``Sigma = s^2 (J^T J)^-1``. To first order the camera centre moves by
+``-R_wc v``, so its covariance is ``R_wc Sigma_vv R_wc^T`` (metres^2, world frame), and the
+reported figure is the standard deviation along its worst direction, ``sqrt(lambda_max)``.
+First order, and only as good as the residuals are independent: map point errors shared by many
+inliers are not in it.
 
 Example (eight points 4 m in front of a camera; one pixel of noise):
     >>> import math
@@ -38,7 +37,7 @@ import torch
 
 from diffloc.checks import check_shape
 from diffloc.geometry.camera import PinholeCamera
-from diffloc.geometry.se3 import so3_exp
+from diffloc.geometry.se3 import invert, transform_points
 
 __all__ = ["position_covariance", "position_sigma_m"]
 
@@ -74,22 +73,18 @@ def position_covariance(
     unbounded = torch.full((3, 3), math.inf, dtype=torch.float64)
     if n < 4:
         return unbounded
-    T_wc, X = T_wc.double(), points_world.double()
+    T_wc = T_wc.double()
+    camera = camera.to(torch.float64)
+    points_cam = transform_points(invert(T_wc), points_world.double())
     scale = sigmas.double()[:, None]
-
-    def scaled_projections(delta: torch.Tensor) -> torch.Tensor:
-        R = T_wc[:3, :3] @ so3_exp(delta[3:])
-        points_cam = (X - (T_wc[:3, 3] + delta[:3])) @ R  # rows of R^T (X - c)
-        return (camera.project(points_cam)[0] / scale).flatten()
-
-    zero = torch.zeros(6, dtype=torch.float64)
-    J = torch.autograd.functional.jacobian(scaled_projections, zero, vectorize=True)  # (2N, 6)
-    residuals = scaled_projections(zero) - (keypoints.double() / scale).flatten()
-    variance = (residuals @ residuals) / (2 * n - 6)
+    residuals = (camera.project(points_cam)[0] - keypoints.double()) / scale  # (N, 2)
+    J = (camera.project_jacobian_pose(points_cam) / scale[..., None]).reshape(2 * n, 6)
+    variance = (residuals * residuals).sum() / (2 * n - 6)
     information = J.T @ J
     if not torch.isfinite(information).all() or torch.linalg.matrix_rank(information) < 6:
         return unbounded
-    return variance * torch.linalg.inv(information)[:3, :3]
+    R_wc = T_wc[:3, :3]
+    return variance * R_wc @ torch.linalg.inv(information)[:3, :3] @ R_wc.T
 
 
 def position_sigma_m(
