@@ -76,22 +76,26 @@ from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline.nerf_config import TrainNerfConfig
 
-# variant -> (loss overrides, sampler overrides, field overrides). "uniform" drops the density
-# grid (importance samples and empty-cell skipping) and the lidar-guided samples and gives every
-# ray 40 stratified samples (camera rays get 32 and lidar rays 40 with the grid), so it never
-# has fewer samples than the default. "uncontracted" switches the contraction off (outdoors).
+# variant -> (loss overrides, sampler overrides, field overrides, data overrides). "uniform"
+# drops the density grid (importance samples and empty-cell skipping) and the lidar-guided
+# samples and gives every ray 40 stratified samples (camera rays get 32 and lidar rays 40 with
+# the grid), so it never has fewer samples than the default. "uncontracted" switches the
+# contraction off (outdoors: nothing beyond the box of the returns within 15 m is in the field);
+# "uncontracted_all" also spans the box over all the returns used (up to 80 m outdoors).
 VARIANTS = {
-    "full": ({}, {}, {}),
-    "rgb_only": ({"depth_weight": 0.0, "normal_weight": 0.0}, {}, {}),
-    "rgb_depth": ({"normal_weight": 0.0}, {}, {}),
-    "grid": ({}, {"guided_samples": 0}, {}),
-    "noskip": ({}, {"skip_density": 0.0}, {}),
+    "full": ({}, {}, {}, {}),
+    "rgb_only": ({"depth_weight": 0.0, "normal_weight": 0.0}, {}, {}, {}),
+    "rgb_depth": ({"normal_weight": 0.0}, {}, {}, {}),
+    "grid": ({}, {"guided_samples": 0}, {}, {}),
+    "noskip": ({}, {"skip_density": 0.0}, {}, {}),
     "uniform": (
         {},
         {"importance_samples": 0, "guided_samples": 0, "uniform_samples": 40, "skip_density": 0},
         {},
+        {},
     ),
-    "uncontracted": ({}, {}, {"contracted": False}),
+    "uncontracted": ({}, {}, {"contracted": False}, {}),
+    "uncontracted_all": ({}, {}, {"contracted": False}, {"box_range_m": 0.0}),
 }
 EVAL_AT_S = (30, 60, 90, 120, 180, 240, 300, 450, 600, 900)
 
@@ -451,25 +455,27 @@ def _runs_table(title: str, first_column: str, record: dict, rows: tuple) -> lis
 
 # contraction rows: (key suffix of the run, label).
 CONTRACTION = (
-    ("_uncontracted", "box only (no contraction)"),
+    ("_uncontracted_all", "no contraction, box of all the returns used"),
+    ("_uncontracted", "no contraction, the same box"),
     ("", "mip-NeRF 360 contraction"),
 )
 
 
 def contraction_markdown(record: dict) -> str:
-    """The runs ``uncontracted`` and ``full`` of a record as a Markdown table (all losses,
-    same budget).
+    """The runs ``full`` and ``uncontracted`` / ``uncontracted_all`` (those the record holds)
+    of a record as a Markdown table (all losses, same budget).
 
     Raises:
-        ValueError: a run is missing (naming the ``--variants`` to run).
+        ValueError: the full run or both uncontracted runs are missing (naming the
+            ``--variants`` to run).
     """
-    missing = [
-        s.lstrip("_") or "full" for s, _ in CONTRACTION if f"psnr_heldout_db{s}" not in record
-    ]
-    if missing:
+    held = {s for s, _ in CONTRACTION if f"psnr_heldout_db{s}" in record}
+    if "" not in held or held == {""}:
         raise ValueError(
-            f"the contraction table needs the runs {missing}, not in the record of "
-            f"{record.get('data')}: run bench_nerf.py with --variants full,uncontracted"
+            f"the contraction table needs the run full and one of uncontracted, "
+            f"uncontracted_all; the record of {record.get('data')} has "
+            f"{sorted(s.lstrip('_') or 'full' for s in held)}: run bench_nerf.py with "
+            "--variants full,uncontracted,uncontracted_all"
         )
     lines = _runs_table("Scene contraction", "field", record, CONTRACTION)
     return "\n".join(lines) + "\n"
@@ -556,7 +562,7 @@ def nerf_settings(scene: str) -> TrainNerfConfig:
 
 def variant_config(base: NerfTrainConfig, encoding: str, variant: str) -> NerfTrainConfig:
     """``base`` with the encoding ``encoding`` and the overrides of ``VARIANTS[variant]``."""
-    loss, sampler, field = VARIANTS[variant]
+    loss, sampler, field, _ = VARIANTS[variant]
     return dataclasses.replace(
         base,
         field=dataclasses.replace(base.field, encoding=encoding, **field),
@@ -633,7 +639,14 @@ def main() -> None:
             budget = args.budget_s if main_run else ablation_budget
             print(f"{encoding} {variant}: {budget:.0f} s", flush=True)
             out = Path(args.work) / f"{encoding}_{variant}"
-            result = run_variant(seq, rays, config, budget, out, args.clock, args.eval_every_s)
+            data_changes = VARIANTS[variant][3]
+            used = rays
+            if data_changes:
+                data_config = dataclasses.replace(nerf.data, **data_changes)
+                used = build_submap_rays(seq, submap.frames, data_config)
+            result = run_variant(seq, used, config, budget, out, args.clock, args.eval_every_s)
+            if data_changes:
+                result["box_m"] = [round(float(v), 2) for v in used.box_max - used.box_min]
             suffix = "" if variant == "full" else f"_{variant}"
             prefix = "" if encoding == encodings[0] else f"{encoding}_"
             record |= {f"{prefix}{k}{suffix}": v for k, v in result.items()}

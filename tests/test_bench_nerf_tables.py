@@ -134,11 +134,13 @@ def test_contraction_table_puts_each_field_in_its_row_after_the_command():
     text = bench.contraction_markdown(record(("full", "uncontracted")) | {"command": command})
     assert text.startswith(f"Made by: `{command}`")
     rows = table_rows(text)
-    assert rows["box only (no contraction)"][:4] == ["22.00", "35.0", "30.0", "450"]
+    assert rows["no contraction, the same box"][:4] == ["22.00", "35.0", "30.0", "450"]
     assert rows["mip-NeRF 360 contraction"][:4] == ["26.50", "1.9", "9.4", "500"]
-    assert list(rows)[1:] == ["box only (no contraction)", "mip-NeRF 360 contraction"]
-    with pytest.raises(ValueError, match=r"\['uncontracted'\].*--variants full,uncontracted"):
+    assert list(rows)[1:] == ["no contraction, the same box", "mip-NeRF 360 contraction"]
+    with pytest.raises(ValueError, match=r"has \['full'\].*--variants full,uncontracted"):
         bench.contraction_markdown(record(("full",)))
+    with pytest.raises(ValueError, match=r"has \['uncontracted'\]"):
+        bench.contraction_markdown(record(("uncontracted",)))
 
 
 def test_the_outdoor_variant_switches_only_the_contraction_off():
