@@ -430,12 +430,17 @@ def _runs_table(title: str, first_column: str, record: dict, rows: tuple) -> lis
         else f"{budget:.0f} s full, {ablation_budget:.0f} s ablations"
     )
     processes = (
-        f"{len(record['parts'])} processes side by side"
+        f"{len(record['parts'])} processes merged by --merge (loads at their starts: "
+        + ", ".join(f"{part['load_avg_start']:.1f}" for part in record["parts"])
+        + ")"
         if "parts" in record
         else "runs one after another in one process"
     )
     clock = record.get("clock", "wall")
+    parts = [f"`{part['command']}`" for part in record.get("parts", ()) if "command" in part]
     command = [f"Made by: `{record['command']}`", ""] if "command" in record else []
+    if parts:
+        command.insert(1, f"merging the last records of {', '.join(parts)}")
     return [
         *command,
         f"{title} ({record['data']}, submap {record['submap']}, {record['train_frames']} "

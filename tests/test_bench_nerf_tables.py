@@ -137,6 +137,16 @@ def test_contraction_table_puts_each_field_in_its_row_after_the_command():
     assert rows["no contraction, the same box"][:4] == ["22.00", "35.0", "30.0", "450"]
     assert rows["mip-NeRF 360 contraction"][:4] == ["26.50", "1.9", "9.4", "500"]
     assert list(rows)[1:] == ["no contraction, the same box", "mip-NeRF 360 contraction"]
+    merged = record(("full", "uncontracted")) | {
+        "command": "python3 experiments/bench_nerf.py --merge a.jsonl b.jsonl",
+        "parts": [
+            {"command": "python3 a", "load_avg_start": 3.5},
+            {"command": "python3 b", "load_avg_start": 3.9},
+        ],
+    }
+    lines = bench.contraction_markdown(merged).splitlines()
+    assert lines[1] == "merging the last records of `python3 a`, `python3 b`"
+    assert "2 processes merged by --merge (loads at their starts: 3.5, 3.9)" in lines[3]
     with pytest.raises(ValueError, match=r"has \['full'\].*--variants full,uncontracted"):
         bench.contraction_markdown(record(("full",)))
     with pytest.raises(ValueError, match=r"has \['uncontracted'\]"):
