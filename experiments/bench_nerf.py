@@ -82,6 +82,7 @@ from diffloc.pipeline.nerf_config import TrainNerfConfig
 # the grid), so it never has fewer samples than the default. "uncontracted" switches the
 # contraction off (outdoors: nothing beyond the box of the returns within 15 m is in the field);
 # "uncontracted_all" also spans the box over all the returns used (up to 80 m outdoors).
+# "planes512" adds a 512 x 512 tri-plane level (finer texture in a large outdoor box).
 VARIANTS = {
     "full": ({}, {}, {}, {}),
     "rgb_only": ({"depth_weight": 0.0, "normal_weight": 0.0}, {}, {}, {}),
@@ -96,6 +97,7 @@ VARIANTS = {
     ),
     "uncontracted": ({}, {}, {"contracted": False}, {}),
     "uncontracted_all": ({}, {}, {"contracted": False}, {"box_range_m": 0.0}),
+    "planes512": ({}, {}, {"triplane_resolutions": [64, 128, 256, 512]}, {}),
 }
 EVAL_AT_S = (30, 60, 90, 120, 180, 240, 300, 450, 600, 900)
 
