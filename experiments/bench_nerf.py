@@ -8,7 +8,8 @@ The clustering, data and training settings are the ``nerf`` node ``diffloc task=
 composes for ``--scene`` (``indoor``, the default, or ``outdoor``: mip-NeRF 360 contraction,
 lidar returns up to 80 m, a 15 m box; ``diffloc/conf/nerf/scene/silvr_outdoor.yaml``), so
 ``--scene outdoor --data data/outdoor_seed0`` measures the outdoor courtyard; variant
-``uncontracted`` trains the same field without the contraction.
+``uncontracted`` trains the same field without the contraction, ``uncontracted_all`` also with
+the box over all the returns used, ``planes512`` adds a 512 tri-plane level.
 Training uses the images, mapping poses and lidar sweeps only. A held-out image's appearance
 code is fitted on its left half (field frozen) and PSNR is taken on its right half (NeRF-W).
 Ground-truth depth images are read here for scoring only (depth error, normal error).
