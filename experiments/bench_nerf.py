@@ -4,6 +4,12 @@ photometric-only / photometric+depth ablations, and for both grid encodings.
 
 Protocol: default indoor scene (seed 0), mapping run clustered into submaps (spectral, k=4),
 the first submap (<= 80 frames); every 8th mapping frame is held out; images at 160x120.
+The clustering, data and training settings are the ``nerf`` node ``diffloc task=train_nerf``
+composes for ``--scene`` (``indoor``, the default, or ``outdoor``: mip-NeRF 360 contraction,
+lidar returns up to 80 m, a 15 m box; ``diffloc/conf/nerf/scene/silvr_outdoor.yaml``), so
+``--scene outdoor --data data/outdoor_seed0`` measures the outdoor courtyard; variant
+``uncontracted`` trains the same field without the contraction, ``uncontracted_all`` also with
+the box over all the returns used, ``planes512`` adds a 512 tri-plane level.
 Training uses the images, mapping poses and lidar sweeps only. A held-out image's appearance
 code is fitted on its left half (field frozen) and PSNR is taken on its right half (NeRF-W).
 Ground-truth depth images are read here for scoring only (depth error, normal error).
@@ -18,6 +24,8 @@ only, uniform, grid without empty-cell skipping; ``sampling``; ``--sampling-md``
 ``--ablation-md`` writes the loss ablation (photometric only, + depth, + depth and normals) as
 a Markdown table, with ``--ablation-reference`` (a JSONL whose last line is a full-variant run
 measured at another moment, e.g. on a quiet machine) as an extra, marked row.
+``--contraction-md`` writes the runs ``full`` and ``uncontracted`` as a Markdown table.
+The record's first key, ``command``, is the command line that made it.
 ``--loc-results`` fills ``loc_rate_nerf`` from the ``results.json`` of a ``diffloc
 task=crossmodal map=nerf`` run (rate within the loose bound, 1 m / 30 deg indoors, on
 ``query_same``; ``loc_rate_nerf_query_reverse`` too when it ran).
@@ -43,6 +51,8 @@ import dataclasses
 import json
 import math
 import os
+import shlex
+import sys
 import time
 from pathlib import Path
 
@@ -53,33 +63,42 @@ import torch.nn.functional as F
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from diffloc.config import compose_config, to_object
 from diffloc.eval.curves import common_level, time_to_reach
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.io.dataset import read_sequence
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.nerf.appearance import fit_appearance_code
-from diffloc.maps.nerf.data import SubmapDataConfig, SubmapRays, build_submap_rays, load_image
-from diffloc.maps.nerf.field import FieldConfig
+from diffloc.maps.nerf.data import SubmapRays, build_submap_rays, load_image
 from diffloc.maps.nerf.module import NerfModule, NerfTrainConfig
 from diffloc.maps.nerf.rays import camera_rays
 from diffloc.maps.nerf.renderer import render_image, render_rays
-from diffloc.maps.nerf.submaps import SubmapConfig, cluster_trajectory
+from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.maps.nerf.train import fit_submap
+from diffloc.pipeline.nerf_config import TrainNerfConfig
 
-# variant -> (loss overrides, sampler overrides). "uniform" drops the density grid (importance
-# samples and empty-cell skipping) and the lidar-guided samples and gives every ray 40
-# stratified samples (camera rays get 32 and lidar rays 40 with the grid), so it never has
-# fewer samples than the default.
+# variant -> (loss overrides, sampler overrides, field overrides, data overrides). "uniform"
+# drops the density grid (importance samples and empty-cell skipping) and the lidar-guided
+# samples and gives every ray 40 stratified samples (camera rays get 32 and lidar rays 40 with
+# the grid), so it never has fewer samples than the default. "uncontracted" switches the
+# contraction off (outdoors: nothing beyond the box of the returns within 15 m is in the field);
+# "uncontracted_all" also spans the box over all the returns used (up to 80 m outdoors).
+# "planes512" adds a 512 x 512 tri-plane level (finer texture in a large outdoor box).
 VARIANTS = {
-    "full": ({}, {}),
-    "rgb_only": ({"depth_weight": 0.0, "normal_weight": 0.0}, {}),
-    "rgb_depth": ({"normal_weight": 0.0}, {}),
-    "grid": ({}, {"guided_samples": 0}),
-    "noskip": ({}, {"skip_density": 0.0}),
+    "full": ({}, {}, {}, {}),
+    "rgb_only": ({"depth_weight": 0.0, "normal_weight": 0.0}, {}, {}, {}),
+    "rgb_depth": ({"normal_weight": 0.0}, {}, {}, {}),
+    "grid": ({}, {"guided_samples": 0}, {}, {}),
+    "noskip": ({}, {"skip_density": 0.0}, {}, {}),
     "uniform": (
         {},
         {"importance_samples": 0, "guided_samples": 0, "uniform_samples": 40, "skip_density": 0},
+        {},
+        {},
     ),
+    "uncontracted": ({}, {}, {"contracted": False}, {}),
+    "uncontracted_all": ({}, {}, {"contracted": False}, {"box_range_m": 0.0}),
+    "planes512": ({}, {}, {"triplane_resolutions": [64, 128, 256, 512]}, {}),
 }
 EVAL_AT_S = (30, 60, 90, 120, 180, 240, 300, 450, 600, 900)
 
@@ -294,10 +313,9 @@ def merge(parts: list[str], out: Path, args: argparse.Namespace) -> None:
     for record in records:
         for key, value in record.items():
             merged.setdefault(key, value)
-    merged["parts"] = [
-        {k: r[k] for k in ("prepare_s", "threads", "load_avg_start", "load_avg_end") if k in r}
-        for r in records
-    ]
+    merged["command"] = shlex.join(["python3", *sys.argv])
+    keys = ("command", "prepare_s", "threads", "load_avg_start", "load_avg_end")
+    merged["parts"] = [{k: r[k] for k in keys if k in r} for r in records]
     _finish(merged, out, args)
 
 
@@ -405,6 +423,72 @@ def _budget(record: dict, key: str = "budget_s") -> float:
     return record["train_cpu_s"] if record.get("clock") == "cpu" else record["train_s"]
 
 
+def _runs_table(title: str, first_column: str, record: dict, rows: tuple) -> list[str]:
+    """The lines of a table of a record's runs ``rows`` ((key suffix, label) pairs, those the
+    record holds), after the record's command (when it has one) and a caption."""
+    budget, ablation_budget = _budget(record), _budget(record, "ablation_budget_s")
+    budgets = (
+        f"{budget:.0f} s"
+        if ablation_budget == budget
+        else f"{budget:.0f} s full, {ablation_budget:.0f} s ablations"
+    )
+    processes = (
+        f"{len(record['parts'])} processes merged by --merge (loads at their starts: "
+        + ", ".join(f"{part['load_avg_start']:.1f}" for part in record["parts"])
+        + ")"
+        if "parts" in record
+        else "runs one after another in one process"
+    )
+    clock = record.get("clock", "wall")
+    parts = [f"`{part['command']}`" for part in record.get("parts", ()) if "command" in part]
+    command = [f"Made by: `{record['command']}`", ""] if "command" in record else []
+    if parts:
+        command.insert(1, f"merging the last records of {', '.join(parts)}")
+    return [
+        *command,
+        f"{title} ({record['data']}, submap {record['submap']}, {record['train_frames']} "
+        f"training frames, 160x120; {record['threads']} thread(s) per process, {processes}, "
+        f"{budgets} {clock}-clock budget each; load "
+        f"{record['load_avg_start']:.1f} at the start, {record['load_avg_end']:.1f} at the end).",
+        "",
+        f"| {first_column} | " + " | ".join(name for name, *_ in _ABLATION_COLUMNS) + " |",
+        "|---|" + "---|" * len(_ABLATION_COLUMNS),
+        *(
+            _ablation_row(label, record, suffix)
+            for suffix, label in rows
+            if f"psnr_heldout_db{suffix}" in record
+        ),
+    ]
+
+
+# contraction rows: (key suffix of the run, label).
+CONTRACTION = (
+    ("_uncontracted_all", "no contraction, box of all the returns used"),
+    ("_uncontracted", "no contraction, the same box"),
+    ("", "mip-NeRF 360 contraction"),
+)
+
+
+def contraction_markdown(record: dict) -> str:
+    """The runs ``full`` and ``uncontracted`` / ``uncontracted_all`` (those the record holds)
+    of a record as a Markdown table (all losses, same budget).
+
+    Raises:
+        ValueError: the full run or both uncontracted runs are missing (naming the
+            ``--variants`` to run).
+    """
+    held = {s for s, _ in CONTRACTION if f"psnr_heldout_db{s}" in record}
+    if "" not in held or held == {""}:
+        raise ValueError(
+            f"the contraction table needs the run full and one of uncontracted, "
+            f"uncontracted_all; the record of {record.get('data')} has "
+            f"{sorted(s.lstrip('_') or 'full' for s in held)}: run bench_nerf.py with "
+            "--variants full,uncontracted,uncontracted_all"
+        )
+    lines = _runs_table("Scene contraction", "field", record, CONTRACTION)
+    return "\n".join(lines) + "\n"
+
+
 def ablation_markdown(record: dict, reference: dict | None = None) -> str:
     """The loss ablation of a record (runs ``rgb_only``, ``rgb_depth`` and ``full``) as a
     Markdown table; ``reference``, a full-variant record measured at another moment, is added
@@ -422,32 +506,7 @@ def ablation_markdown(record: dict, reference: dict | None = None) -> str:
             f"{record.get('data')}: run bench_nerf.py with --variants full,rgb_only,rgb_depth "
             "(or give the full run of another moment with --ablation-reference)"
         )
-    budget, ablation_budget = _budget(record), _budget(record, "ablation_budget_s")
-    budgets = (
-        f"{budget:.0f} s"
-        if ablation_budget == budget
-        else f"{budget:.0f} s full, {ablation_budget:.0f} s ablations"
-    )
-    processes = (
-        f"{len(record['parts'])} processes side by side"
-        if "parts" in record
-        else "runs one after another in one process"
-    )
-    clock = record.get("clock", "wall")
-    lines = [
-        f"Loss ablation ({record['data']}, submap {record['submap']}, {record['train_frames']} "
-        f"training frames, 160x120; {record['threads']} thread(s) per process, {processes}, "
-        f"{budgets} {clock}-clock budget each; load "
-        f"{record['load_avg_start']:.1f} at the start, {record['load_avg_end']:.1f} at the end).",
-        "",
-        "| losses | " + " | ".join(name for name, *_ in _ABLATION_COLUMNS) + " |",
-        "|---|" + "---|" * len(_ABLATION_COLUMNS),
-        *(
-            _ablation_row(label, record, suffix)
-            for suffix, label in ABLATIONS
-            if f"psnr_heldout_db{suffix}" in record
-        ),
-    ]
+    lines = _runs_table("Loss ablation", "losses", record, ABLATIONS)
     if reference is not None:
         label = (
             f"{ABLATIONS[2][1]}, measured at another moment ({reference['threads']} thread(s), "
@@ -499,11 +558,31 @@ def _finish(record: dict, out: Path, args: argparse.Namespace) -> None:
             lines = Path(args.ablation_reference).read_text().splitlines()
             reference = json.loads(lines[-1])
         Path(args.ablation_md).write_text(ablation_markdown(record, reference))
+    if args.contraction_md:
+        Path(args.contraction_md).write_text(contraction_markdown(record))
+
+
+def nerf_settings(scene: str) -> TrainNerfConfig:
+    """The ``nerf`` node ``diffloc task=train_nerf scene=<scene>`` composes (clustering,
+    data and training settings; ``nerf/scene/silvr_<scene>.yaml`` where it exists)."""
+    return to_object(compose_config([f"scene={scene}", "task=train_nerf"])).nerf
+
+
+def variant_config(base: NerfTrainConfig, encoding: str, variant: str) -> NerfTrainConfig:
+    """``base`` with the encoding ``encoding`` and the overrides of ``VARIANTS[variant]``."""
+    loss, sampler, field, _ = VARIANTS[variant]
+    return dataclasses.replace(
+        base,
+        field=dataclasses.replace(base.field, encoding=encoding, **field),
+        loss=dataclasses.replace(base.loss, **loss),
+        sampler=dataclasses.replace(base.sampler, **sampler),
+    )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default="data/indoor_seed0")
+    parser.add_argument("--scene", choices=("indoor", "outdoor"), default="indoor")
+    parser.add_argument("--data", help="dataset folder (default: data/<scene>_seed0)")
     parser.add_argument("--budget-s", type=float, default=600.0)
     parser.add_argument("--clock", choices=("wall", "cpu"), default="wall")
     parser.add_argument("--sampling-md", help="write the sampler table (Markdown) here")
@@ -521,6 +600,9 @@ def main() -> None:
     parser.add_argument("--merge", nargs="+", help="merge the last lines of these JSONL files")
     parser.add_argument("--ablation-md", help="write the loss ablation table (Markdown) here")
     parser.add_argument(
+        "--contraction-md", help="write the contracted / uncontracted table (Markdown) here"
+    )
+    parser.add_argument(
         "--ablation-reference", help="JSONL whose last line is a full run of another moment"
     )
     parser.add_argument("--loc-results", help="results.json of task=crossmodal map=nerf")
@@ -529,13 +611,18 @@ def main() -> None:
         merge(args.merge, Path(args.out), args)
         return
     torch.set_num_threads(args.threads)
-    seq = read_sequence(args.data, "mapping")
-    submaps = cluster_trajectory(seq.T_wc, SubmapConfig(num_submaps=4))
+    data = args.data or f"data/{args.scene}_seed0"
+    nerf = nerf_settings(args.scene)
+    seq = read_sequence(data, "mapping")
+    submaps = cluster_trajectory(seq.T_wc, nerf.submaps)
     submap = submaps[args.submap]
     tic = time.perf_counter()
-    rays = build_submap_rays(seq, submap.frames, SubmapDataConfig())
+    rays = build_submap_rays(seq, submap.frames, nerf.data)
     record: dict = {
-        "data": args.data,
+        "command": shlex.join(["python3", *sys.argv]),
+        "data": data,
+        "scene": args.scene,
+        "contracted": nerf.train.field.contracted,
         "submap": args.submap,
         "frames": len(submap.frames),
         "train_frames": len(rays.frames),
@@ -555,18 +642,19 @@ def main() -> None:
         for variant in args.variants.split(","):
             if encoding != encodings[0] and variant != "full":
                 continue
-            base = NerfTrainConfig(field=FieldConfig(encoding=encoding))
-            loss, sampler = VARIANTS[variant]
-            config = dataclasses.replace(
-                base,
-                loss=dataclasses.replace(base.loss, **loss),
-                sampler=dataclasses.replace(base.sampler, **sampler),
-            )
+            config = variant_config(nerf.train, encoding, variant)
             main_run = variant == "full" and encoding == encodings[0]
             budget = args.budget_s if main_run else ablation_budget
             print(f"{encoding} {variant}: {budget:.0f} s", flush=True)
             out = Path(args.work) / f"{encoding}_{variant}"
-            result = run_variant(seq, rays, config, budget, out, args.clock, args.eval_every_s)
+            data_changes = VARIANTS[variant][3]
+            used = rays
+            if data_changes:
+                data_config = dataclasses.replace(nerf.data, **data_changes)
+                used = build_submap_rays(seq, submap.frames, data_config)
+            result = run_variant(seq, used, config, budget, out, args.clock, args.eval_every_s)
+            if data_changes:
+                result["box_m"] = [round(float(v), 2) for v in used.box_max - used.box_min]
             suffix = "" if variant == "full" else f"_{variant}"
             prefix = "" if encoding == encodings[0] else f"{encoding}_"
             record |= {f"{prefix}{k}{suffix}": v for k, v in result.items()}

@@ -9,6 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from diffloc.maps.nerf.data import SubmapDataConfig
+from diffloc.maps.nerf.submaps import SubmapConfig
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -37,6 +40,7 @@ def record(variants=("full", "rgb_only", "rgb_depth")) -> dict:
         "full": run(26.5, 0.0194, 9.37, 500, 120.0),
         "rgb_only": run(24.0, 0.4, 60.0, 800, None),
         "rgb_depth": run(26.0, 0.021, 20.4, 600, 150.0),
+        "uncontracted": run(22.0, 0.35, 30.0, 450, None),
     }
     out = {
         "data": "data/indoor_seed0",
@@ -122,6 +126,48 @@ def test_ablation_table_names_the_missing_runs():
         bench.ablation_markdown(record(("full", "rgb_only")))
     with pytest.raises(ValueError, match=r"\['full'\].*--ablation-reference"):
         bench.ablation_markdown(record(("rgb_only", "rgb_depth")))
+
+
+def test_contraction_table_puts_each_field_in_its_row_after_the_command():
+    bench = load_script()
+    command = "python3 experiments/bench_nerf.py --scene outdoor --variants full,uncontracted"
+    text = bench.contraction_markdown(record(("full", "uncontracted")) | {"command": command})
+    assert text.startswith(f"Made by: `{command}`")
+    rows = table_rows(text)
+    assert rows["no contraction, the same box"][:4] == ["22.00", "35.0", "30.0", "450"]
+    assert rows["mip-NeRF 360 contraction"][:4] == ["26.50", "1.9", "9.4", "500"]
+    assert list(rows)[1:] == ["no contraction, the same box", "mip-NeRF 360 contraction"]
+    merged = record(("full", "uncontracted")) | {
+        "command": "python3 experiments/bench_nerf.py --merge a.jsonl b.jsonl",
+        "parts": [
+            {"command": "python3 a", "load_avg_start": 3.5},
+            {"command": "python3 b", "load_avg_start": 3.9},
+        ],
+    }
+    lines = bench.contraction_markdown(merged).splitlines()
+    assert lines[1] == "merging the last records of `python3 a`, `python3 b`"
+    assert "2 processes merged by --merge (loads at their starts: 3.5, 3.9)" in lines[3]
+    with pytest.raises(ValueError, match=r"has \['full'\].*--variants full,uncontracted"):
+        bench.contraction_markdown(record(("full",)))
+    with pytest.raises(ValueError, match=r"has \['uncontracted'\]"):
+        bench.contraction_markdown(record(("uncontracted",)))
+
+
+def test_the_outdoor_variant_switches_only_the_contraction_off():
+    bench = load_script()
+    outdoor = bench.nerf_settings("outdoor")
+    assert outdoor.train.field.contracted and outdoor.data.lidar_max_range_m == 80.0
+    plain = bench.variant_config(outdoor.train, "hashgrid", "uncontracted")
+    assert not plain.field.contracted and plain.field.encoding == "hashgrid"
+    assert plain.loss == outdoor.train.loss and plain.sampler == outdoor.train.sampler
+
+
+def test_the_indoor_settings_are_the_defaults_the_benchmark_used_before():
+    bench = load_script()
+    indoor = bench.nerf_settings("indoor")
+    assert indoor.train == bench.NerfTrainConfig() and not indoor.train.field.contracted
+    assert indoor.data == SubmapDataConfig()
+    assert indoor.submaps == SubmapConfig(num_submaps=4)
 
 
 def results(tmp_path: Path, map_name: str, loose_m: float, sequences: dict) -> Path:

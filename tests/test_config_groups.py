@@ -6,11 +6,15 @@ map, feature extractor or experiment is covered the moment its YAML exists.
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from diffloc.config import CONF_DIR, UnknownKeyError, compose_config, to_object
 from diffloc.features.local import OrbConfig, XFeatConfig
+from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.reloc.retrieval import BowConfig, NetVLADConfig
 
 SCENES = sorted(p.stem for p in (CONF_DIR / "scene").glob("*.yaml"))
@@ -129,6 +133,34 @@ def test_the_floor_closing_of_the_render_poses_follows_the_point_map(scene, opti
     )
     tls = to_object(mesh_of_tls).task.poses_for("tls_map").floor_closing_radius_m
     assert tls == (0.1 if scene == "indoor" else 0.4)
+
+
+@pytest.mark.parametrize(
+    ("scene", "contracted", "max_range_m", "box_range_m", "overlap_m"),
+    [("indoor", False, 10.0, 0.0, 1.0), ("outdoor", True, 80.0, 15.0, 4.0)],
+)
+def test_nerf_settings_follow_the_scene_kind(
+    scene, contracted, max_range_m, box_range_m, overlap_m
+):
+    nerf = to_object(compose_config([f"scene={scene}", "task=train_nerf"])).nerf
+    assert nerf.train.field.contracted is contracted
+    assert (nerf.data.lidar_max_range_m, nerf.data.box_range_m) == (max_range_m, box_range_m)
+    assert nerf.submaps.overlap_m == overlap_m
+    explicit = compose_config(["scene=indoor", "task=train_nerf", "nerf/scene=silvr_outdoor"])
+    assert to_object(explicit).nerf.train.field.contracted is True
+
+
+def test_outdoor_submaps_overlap_at_the_outdoor_frame_spacing():
+    """The outdoor mapping run takes a frame every 2 m: neighbouring submaps must share frames
+    (with the indoor overlap of 1 m they shared none)."""
+    spacing_m = 4.0 / 2.0  # scene outdoor: trajectory.speed_mps / frame_rate_hz
+    T_wc = torch.eye(4, dtype=torch.float64).repeat(40, 1, 1)
+    T_wc[:, 0, 3] = torch.arange(40, dtype=torch.float64) * spacing_m
+    nerf = to_object(compose_config(["scene=outdoor", "task=train_nerf"])).nerf
+    submaps = cluster_trajectory(T_wc, nerf.submaps)
+    assert len(submaps) == nerf.submaps.num_submaps
+    for a, b in itertools.pairwise(sorted(submaps, key=lambda s: s.core[0])):
+        assert set(a.frames) & set(b.frames)
 
 
 def test_group_options_swap_the_classes_by_target():

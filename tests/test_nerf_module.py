@@ -10,7 +10,12 @@ import pytest
 import torch
 
 from diffloc.io.dataset import read_sequence
-from diffloc.maps.nerf.data import SubmapDataConfig, build_submap_rays, split_frames
+from diffloc.maps.nerf.data import (
+    SubmapDataConfig,
+    build_submap_rays,
+    split_frames,
+    training_sweeps,
+)
 from diffloc.maps.nerf.export import export_field, load_field
 from diffloc.maps.nerf.field import FieldConfig
 from diffloc.maps.nerf.module import NerfTrainConfig
@@ -124,3 +129,41 @@ def test_a_submap_without_lidar_or_with_one_frame_is_refused(tiny_indoor_dataset
     blind = dataclasses.replace(seq, lidar_paths=[], lidar_timestamps=np.zeros(0), T_wl=None)
     with pytest.raises(ValueError, match="no lidar sweeps"):
         build_submap_rays(blind, list(range(len(seq))), DATA)
+
+
+def test_box_range_shrinks_the_box_to_the_near_returns_and_keeps_every_ray(
+    tiny_indoor_dataset: Path,
+) -> None:
+    seq = read_sequence(tiny_indoor_dataset, "mapping")
+    frames = list(range(len(seq)))
+    full = build_submap_rays(seq, frames, DATA)
+    near = build_submap_rays(seq, frames, dataclasses.replace(DATA, box_range_m=2.0))
+    assert len(near.lidar) == len(full.lidar)
+    assert bool((near.box_max - near.box_min < full.box_max - full.box_min).any())
+    assert bool(((near.origins >= near.box_min) & (near.origins <= near.box_max)).all())
+    with pytest.raises(ValueError, match="no lidar return within box_range_m"):
+        build_submap_rays(seq, frames, dataclasses.replace(DATA, box_range_m=0.01))
+
+
+def test_the_sweep_of_a_held_out_frame_is_not_trained_on(tiny_indoor_dataset: Path) -> None:
+    """A lidar at half the camera rate (outdoors: 1 Hz against 2 Hz): training frame 1 lies
+    as near to the sweep taken at held-out frame 0 as to the next one; the held-out frame's
+    sweep must stay out of training, the others must stay in."""
+    seq = read_sequence(tiny_indoor_dataset, "mapping")
+    slow = dataclasses.replace(
+        seq,
+        lidar_paths=seq.lidar_paths[::2],
+        lidar_timestamps=seq.lidar_timestamps[::2],
+        T_wl=seq.T_wl[::2],
+    )
+    frames = list(range(len(seq)))
+    train, heldout = split_frames(frames, 8)
+    rays = build_submap_rays(slow, frames, dataclasses.replace(DATA, holdout_every=8))
+    gap = np.abs(slow.lidar_timestamps[None] - slow.timestamps[heldout][:, None])
+    at_heldout = set(gap.argmin(axis=1).tolist())
+    sensors = {tuple(p) for p in rays.lidar.origins.unique(dim=0).tolist()}
+    positions = [tuple(p) for p in slow.T_wl[:, :3, 3].float().tolist()]
+    used = {i for i, p in enumerate(positions) if p in sensors}
+    assert used and not used & at_heldout
+    assert used == set(training_sweeps(slow, train, heldout))
+    assert len(used) == len(positions) - len(at_heldout)

@@ -1,5 +1,6 @@
 """Training rays of one submap: pixels of its mapping images (with their poses) and the
-returns of its lidar sweeps; every ``holdout_every``-th mapping frame is held out."""
+returns of its lidar sweeps; every ``holdout_every``-th mapping frame is held out, with the
+sweep nearest to it."""
 
 from __future__ import annotations
 
@@ -15,7 +16,14 @@ from diffloc.io.sequence import SequenceData
 from diffloc.maps.nerf.lidar_rays import LidarRays, lidar_rays
 from diffloc.maps.nerf.rays import camera_rays
 
-__all__ = ["SubmapDataConfig", "SubmapRays", "build_submap_rays", "load_image", "split_frames"]
+__all__ = [
+    "SubmapDataConfig",
+    "SubmapRays",
+    "build_submap_rays",
+    "load_image",
+    "split_frames",
+    "training_sweeps",
+]
 
 
 @dataclass
@@ -26,6 +34,10 @@ class SubmapDataConfig:
         image_scale: image resize factor (0.25: 640x480 -> 160x120).
         holdout_every: frames whose index is a multiple of this are held out (0: none).
         lidar_max_range_m: returns farther than this are not used.
+        box_range_m: returns within this range of the sensor span the field's box (with the
+            camera positions); 0: every return used. With the mip-NeRF 360 contraction the box
+            is the part of the cube at full resolution and farther returns still supervise
+            depth in the contracted space (outdoors: a 15 m box, returns up to 80 m).
         lidar_stride: every n-th return becomes a ray.
         normal_radius_m: neighbourhood radius of the lidar normals.
         box_percentile: the field's box spans these percentiles of the lidar endpoints.
@@ -35,6 +47,7 @@ class SubmapDataConfig:
     image_scale: float = 0.25
     holdout_every: int = 8
     lidar_max_range_m: float = 10.0
+    box_range_m: float = 0.0
     lidar_stride: int = 2
     normal_radius_m: float = 0.15
     box_percentile: float = 0.5
@@ -44,6 +57,7 @@ class SubmapDataConfig:
         check_number(self.image_scale, "image_scale", 0.0, 1.0, open_low=True)
         check_int_at_least(self.holdout_every, "holdout_every", 0)
         check_number(self.lidar_max_range_m, "lidar_max_range_m", 0.0, open_low=True)
+        check_number(self.box_range_m, "box_range_m", 0.0)
         check_int_at_least(self.lidar_stride, "lidar_stride", 1)
         check_number(self.normal_radius_m, "normal_radius_m", 0.0, open_low=True)
         check_number(self.box_percentile, "box_percentile", 0.0, 50.0, open_high=True)
@@ -92,13 +106,30 @@ def load_image(seq: SequenceData, frame: int, camera: PinholeCamera) -> torch.Te
     return F.interpolate(rgb, size=(camera.height, camera.width), mode="area")[0]
 
 
-def _sweeps_of(seq: SequenceData, frames: list[int]) -> list[int]:
-    """Index of the sweep nearest in time to each frame (unique, sorted)."""
-    if not len(seq.lidar_timestamps):
-        return []
+def _sweeps_of(seq: SequenceData, frames: list[int]) -> set[int]:
+    """Indices of the sweeps nearest in time to the frames."""
+    if not len(seq.lidar_timestamps) or not frames:
+        return set()
     times = seq.timestamps[frames]
     nearest = np.abs(seq.lidar_timestamps[None] - times[:, None]).argmin(axis=1)
-    return sorted(set(nearest.tolist()))
+    return set(nearest.tolist())
+
+
+def training_sweeps(seq: SequenceData, train: list[int], heldout: list[int]) -> list[int]:
+    """The sweeps a submap trains on: those nearest in time to its training frames, except
+    those nearest to a held-out frame. With a lidar slower than the camera (outdoors 1 Hz
+    against 2 Hz) a training frame's nearest sweep can be the one taken at a held-out frame;
+    it is left out, so that nothing recorded at a held-out frame is trained on.
+
+    Args:
+        seq: the mapping sequence.
+        train: training frame indices.
+        heldout: held-out frame indices.
+
+    Returns:
+        Sorted sweep indices (empty when the sequence has no sweeps).
+    """
+    return sorted(_sweeps_of(seq, train) - _sweeps_of(seq, heldout))
 
 
 def build_submap_rays(
@@ -118,12 +149,13 @@ def build_submap_rays(
         The :class:`SubmapRays`.
 
     Raises:
-        ValueError: fewer than two training frames, or no lidar sweep near them.
+        ValueError: fewer than two training frames, no lidar sweep near them, or no return
+            within ``box_range_m``.
     """
     train, heldout = split_frames(sorted(frames), config.holdout_every)
     if len(train) < 2:
         raise ValueError(f"{name}: needs at least 2 training frames, has {len(train)}")
-    sweeps = _sweeps_of(seq, train)
+    sweeps = training_sweeps(seq, train, heldout)
     if not sweeps:
         raise ValueError(f"{name}: no lidar sweeps (the depth and normal losses need them)")
     lidar = lidar_rays(
@@ -138,7 +170,10 @@ def build_submap_rays(
         origins.append(o)
         directions.append(d)
         image.append(torch.full((len(uv),), i, dtype=torch.int64))
-    ends = (lidar.origins + lidar.ranges[:, None] * lidar.directions).numpy()
+    near = lidar.ranges <= config.box_range_m if config.box_range_m > 0 else slice(None)
+    ends = (lidar.origins + lidar.ranges[:, None] * lidar.directions)[near].numpy()
+    if not len(ends):
+        raise ValueError(f"{name}: no lidar return within box_range_m={config.box_range_m} m")
     cams = seq.T_wc[train, :3, 3].float().numpy()
     low = np.minimum(np.percentile(ends, config.box_percentile, axis=0), cams.min(0))
     high = np.maximum(np.percentile(ends, 100 - config.box_percentile, axis=0), cams.max(0))
