@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 from pathlib import Path
 
@@ -72,6 +73,15 @@ def tiny_indoor_mapped(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempP
         root, BuildMapConfig(point_maps=[], preview_frames=1), FINE_SURFELS, show_progress=False
     )
     return root
+
+
+def digests(root: Path) -> dict[str, str]:
+    """sha256 of every file under ``root``, by its path relative to ``root``."""
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def copy_dataset(source: Path, tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:

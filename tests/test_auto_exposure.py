@@ -1,9 +1,7 @@
 """Per-frame auto exposure in the simulator: off by default (datasets unchanged), recorded."""
 
-import hashlib
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,16 +11,7 @@ from diffloc.io.dataset import read_sequence
 from diffloc.io.exposure import EXPOSURE_FILE, read_exposures, write_exposures
 from diffloc.sim.dataset import simulate_dataset
 from diffloc.sim.imaging import AutoExposureConfig, auto_exposure_scales
-from tests.conftest import TINY, scene_config
-
-
-def file_digests(root: Path, folder: str) -> dict[str, str]:
-    """sha256 of every file under ``root / folder`` but the exposure record, by relative path."""
-    return {
-        str(path.relative_to(root)): hashlib.sha256(path.read_bytes()).hexdigest()
-        for path in sorted((root / folder).rglob("*"))
-        if path.is_file() and path.name != EXPOSURE_FILE
-    }
+from tests.conftest import TINY, digests, scene_config
 
 
 def test_auto_exposure_is_off_by_default_and_at_unit_gain_changes_no_byte(
@@ -42,7 +31,9 @@ def test_auto_exposure_is_off_by_default_and_at_unit_gain_changes_no_byte(
     root = simulate_dataset(scene_config(overrides), tmp_path / "unit", show_progress=False)
     _, exposures = read_exposures(root / "mapping" / EXPOSURE_FILE)
     np.testing.assert_array_equal(exposures, np.ones_like(exposures))
-    assert file_digests(root, "mapping") == file_digests(tiny_indoor_dataset, "mapping")
+    auto_exposed = digests(root / "mapping")
+    del auto_exposed[EXPOSURE_FILE]
+    assert auto_exposed == digests(tiny_indoor_dataset / "mapping")
 
 
 def reference_scales(metered: torch.Tensor, previous: float, cfg: AutoExposureConfig) -> list:

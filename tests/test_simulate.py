@@ -1,8 +1,6 @@
 """End-to-end simulation of tiny datasets: layout, determinism, caching, atomicity, errors."""
 
-import hashlib
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,17 +12,9 @@ from diffloc.sim import dataset as sim_dataset
 from diffloc.sim.dataset import DatasetSimulator, simulate_dataset
 from diffloc.sim.placement import check_free_space
 from diffloc.sim.scene import generate_world
-from tests.conftest import TINY, scene_config
+from tests.conftest import TINY, digests, scene_config
 
 SEQUENCES = ["mapping", "query_same", "query_lane", "query_reverse", "changed"]
-
-
-def digests(root: Path) -> dict[str, str]:
-    return {
-        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file()
-    }
 
 
 def test_dataset_layout(tiny_indoor_dataset):
