@@ -137,6 +137,43 @@ def test_motion_test_needs_the_rotation():
         ValidationConfig(max_accel_mps2=-1.0)
 
 
+def test_a_track_needs_three_poses_before_its_poses_are_accepted():
+    """Two consecutive poses of one wrong place pass the distance test against each other; the
+    third must come from a track whose reference was itself verified."""
+    for track, expected in ((2, [False, True, True, True]), (3, [False, False, True, True])):
+        v = PoseValidator(replace(MOTION, min_track_poses=track))
+        got = [v.validate(pose_at(1.0 * k), 30, 0.5 * k) for k in range(4)]
+        assert got == expected
+    assert replace(MOTION, min_track_poses=3).seed1_rule().min_track_poses == 2
+
+
+def test_a_track_restarts_after_a_pose_fails_the_motion_test():
+    v = PoseValidator(replace(MOTION, min_track_poses=3))
+    v.validate(pose_at(0.0), 30, 0.0)
+    v.validate(pose_at(1.0), 30, 0.5)
+    assert v.validate(pose_at(2.0), 30, 1.0)  # three poses: accepted
+    assert not v.validate(pose_at(3.0 - 1.25), 30, 1.5)  # snapped back: the track ends at 2.0
+    assert not v.validate(pose_at(4.0), 30, 2.0)  # verified against 2.0: a track of two
+    assert v.validate(pose_at(5.0), 30, 2.5)  # three again
+
+
+def test_an_unverified_pose_starts_a_new_track():
+    """A pose that fails the distance test and replaces the reference (seed 1's rule) starts a
+    track of one, so the pose after it is not yet accepted."""
+    v = PoseValidator(ValidationConfig(theta_in=15, theta_dist_m=0.3, min_track_poses=3))
+    for k in range(3):
+        v.validate(pose_at(0.1 * k), 30, 0.1 * k)
+    assert not v.validate(pose_at(5.0), 30, 0.3)  # a jump: the new reference, track of one
+    assert not v.validate(pose_at(5.1), 30, 0.4)
+    assert v.validate(pose_at(5.2), 30, 0.5)
+
+
+@pytest.mark.parametrize("poses", [0, 1, -3])
+def test_a_track_shorter_than_two_poses_is_refused(poses: int):
+    with pytest.raises(ValueError, match="min_track_poses"):
+        ValidationConfig(min_track_poses=poses)
+
+
 def test_evidence_reads_the_recorded_rotation():
     T = pose_on_circle(0.3)
     record = {

@@ -32,6 +32,15 @@ motion test is not verified and does not replace the reference, and the track fo
 velocity: either may be the wrong one (one pose 0.8 m off gives a velocity that would reject
 the right poses after it), so the next pose meets the distance test alone.
 
+A track's first verified pose rests on one loose distance test against a pose that nothing
+verified; two consecutive wrong poses of one repeated place pass it. With
+``min_track_poses = 3`` a verified pose is accepted only once its track holds three consecutive
+poses, each verified against the one before: the reference must itself have been verified, so
+the track has a velocity (and the motion test, where set, has checked the pose). A pose that
+fails the motion test ends its track: the next verified pose starts counting again from its
+reference. The pose that is not yet accepted still serves as the reference. ``2`` is seed 1's
+test: a pose and its reference.
+
 Seed 1's tests let confident wrong poses through where the scene repeats or is seen from the
 other side: a chain of consistently wrong poses passes the distance test. Three further tests,
 on the evidence of the relocaliser's candidates (:class:`PoseEvidence`),
@@ -122,6 +131,9 @@ class ValidationConfig:
             velocity: the pose must lie within ``theta_dist_m + max_accel_mps2 dt^2 / 2`` of
             the position the turned velocity predicts (module docstring; ``None``: no motion
             test, as seed 1).
+        min_track_poses: fewest consecutive poses, each verified against the one before, a
+            pose's track must hold (the pose included) for the pose to be accepted (module
+            docstring; seed 1: 2, a pose and its reference).
     """
 
     theta_in: int = 15
@@ -138,10 +150,16 @@ class ValidationConfig:
     conflict_keeps_reference: bool = False
     max_accel_mps2: float | None = None
     max_position_sigma_m: float | None = None
+    min_track_poses: int = 2
 
     def __post_init__(self) -> None:
         if self.theta_in < 0:
             raise ValueError(f"theta_in must be >= 0, got {self.theta_in}")
+        if self.min_track_poses < 2:
+            raise ValueError(
+                "validation.min_track_poses must be >= 2 (a pose and the reference it is "
+                f"verified against), got {self.min_track_poses}"
+            )
         for name in ("theta_dist_m", "max_speed_mps"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
@@ -177,8 +195,8 @@ class ValidationConfig:
     def seed1_rule(self) -> ValidationConfig:
         """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity,
         photometric consistency, repetition, uniqueness, position precision, the reference
-        age, the kept reference, the motion test) off; the
-        speed allowance of sparse query streams stays."""
+        age, the kept reference, the motion test, the track length) off; the speed allowance
+        of sparse query streams stays."""
         return replace(
             self,
             min_inlier_ratio=0.0,
@@ -191,6 +209,7 @@ class ValidationConfig:
             conflict_keeps_reference=False,
             max_accel_mps2=None,
             max_position_sigma_m=None,
+            min_track_poses=2,
         )
 
 
@@ -339,6 +358,8 @@ class PoseValidator:
         # The track's velocity (3,) over its last verified interval, and the rotation (3, 3)
         # at that interval's start; None until a pose is verified against the one before.
         self._velocity: tuple[torch.Tensor, torch.Tensor] | None = None
+        # Consecutive poses of the reference's track, each verified against the one before.
+        self._track_poses = 0
 
     def plausible(self, evidence: PoseEvidence) -> bool:
         """The tests beyond seed 1's: inlier ratio, coverage, photometric consistency, no
@@ -454,7 +475,8 @@ class PoseValidator:
 
         Returns:
             ``True`` if the pose passes the inlier test and, in sequence mode, the distance
-            test against the previous inlier pose.
+            test against the previous inlier pose, the motion test where it applies, and ends
+            a track of at least ``min_track_poses`` poses.
 
         Raises:
             ShapeError: ``position`` is not (3,), ``rotation`` not (3, 3).
@@ -484,7 +506,7 @@ class PoseValidator:
         previous, dt = self._last_position, abs(timestamp - self._last_time)
         age = cfg.max_reference_age_s
         if previous is None or (age is not None and dt > age):
-            self._set_reference(position, rotation, timestamp, None)
+            self._set_reference(position, rotation, timestamp, None, 1)
             return False
         limit = cfg.theta_dist_m + cfg.max_speed_mps * dt
         verified = bool(torch.linalg.vector_norm(position - previous) <= limit)
@@ -493,14 +515,17 @@ class PoseValidator:
             predicted = previous + predicted_displacement(*self._velocity, rotation, dt)
             deviation = torch.linalg.vector_norm(position - predicted)
             if deviation > cfg.theta_dist_m + 0.5 * cfg.max_accel_mps2 * dt**2:
-                self._velocity = None  # the pose or the velocity is wrong: trust neither
+                # The pose or the velocity is wrong: trust neither; the track restarts at the
+                # reference.
+                self._velocity, self._track_poses = None, 1
                 return False
         if verified or not cfg.conflict_keeps_reference:
             velocity = None
             if verified and dt > 0 and self._last_rotation is not None:
                 velocity = ((position - previous) / dt, self._last_rotation)
-            self._set_reference(position, rotation, timestamp, velocity)
-        return verified
+            track_poses = self._track_poses + 1 if verified else 1
+            self._set_reference(position, rotation, timestamp, velocity, track_poses)
+        return verified and self._track_poses >= cfg.min_track_poses
 
     def _set_reference(
         self,
@@ -508,9 +533,11 @@ class PoseValidator:
         rotation: torch.Tensor | None,
         timestamp: float,
         velocity: tuple[torch.Tensor, torch.Tensor] | None,
+        track_poses: int,
     ) -> None:
         self._last_position, self._last_rotation = position, rotation
         self._last_time, self._velocity = float(timestamp), velocity
+        self._track_poses = track_poses
 
 
 def predicted_displacement(
