@@ -49,7 +49,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import os
 import shlex
 import sys
@@ -59,20 +58,17 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
-import torch.nn.functional as F
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from diffloc.config import compose_config, to_object
 from diffloc.eval.curves import common_level, time_to_reach
-from diffloc.geometry.camera import PinholeCamera
+from diffloc.eval.field_scores import heldout_field_scores
 from diffloc.io.dataset import read_sequence
 from diffloc.io.sequence import SequenceData
-from diffloc.maps.nerf.appearance import fit_appearance_code
-from diffloc.maps.nerf.data import SubmapRays, build_submap_rays, load_image
+from diffloc.maps.nerf.data import SubmapRays, build_submap_rays
 from diffloc.maps.nerf.module import NerfModule, NerfTrainConfig
-from diffloc.maps.nerf.rays import camera_rays
-from diffloc.maps.nerf.renderer import render_image, render_rays
+from diffloc.maps.nerf.renderer import render_image
 from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline.nerf_config import TrainNerfConfig
@@ -103,83 +99,12 @@ VARIANTS = {
 EVAL_AT_S = (30, 60, 90, 120, 180, 240, 300, 450, 600, 900)
 
 
-def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    return -10 * math.log10(max(float(((a - b) ** 2).mean()), 1e-12))
-
-
-def _gt_normals(depth: torch.Tensor, camera: PinholeCamera) -> torch.Tensor:
-    """Camera-frame normals (3, H, W) of a depth image by central differences; zero where a
-    neighbour is missing or across a depth jump of more than 5 %."""
-    h, w = depth.shape[-2:]
-    uv = camera.pixel_grid(torch.float32)
-    x = (uv[..., 0] - camera.cx) / camera.fx * depth[0]
-    y = (uv[..., 1] - camera.cy) / camera.fy * depth[0]
-    p = torch.stack((x, y, depth[0]), dim=0).float()
-    du = p[:, 1:-1, 2:] - p[:, 1:-1, :-2]
-    dv = p[:, 2:, 1:-1] - p[:, :-2, 1:-1]
-    n = torch.cross(dv, du, dim=0)
-    n = -n / n.norm(dim=0, keepdim=True).clamp_min(1e-9)
-    n = torch.where((n * p[:, 1:-1, 1:-1]).sum(0, keepdim=True) > 0, -n, n)
-    d = depth[0]
-    patch = torch.stack((d[1:-1, 2:], d[1:-1, :-2], d[2:, 1:-1], d[:-2, 1:-1]))
-    ok = (patch > 0).all(0) & ((patch - d[1:-1, 1:-1]).abs() < 0.05 * d[1:-1, 1:-1]).all(0)
-    out = torch.zeros(3, h, w)
-    out[:, 1:-1, 1:-1] = n * ok
-    return out
-
-
-@torch.no_grad()
-def _render_right_half(field, grid, origins, directions, code) -> torch.Tensor:
-    g = torch.Generator().manual_seed(0)
-    parts = [
-        render_rays(field, grid, origins[sl], directions[sl], g, code.expand(len(sl), -1)).rgb
-        for sl in torch.arange(len(origins)).split(8192)
-    ]
-    return torch.cat(parts)
-
-
 def evaluate(
     module: NerfModule, seq: SequenceData, rays: SubmapRays, full: bool
 ) -> dict[str, float]:
-    """Held-out PSNR (left-half code, right-half PSNR); with ``full`` also depth / normal
-    errors against the ground-truth depth images (scoring only)."""
-    field, grid, camera = module.field, module.grid, rays.camera
-    field.eval()
-    psnrs, depth_err, normal_err = [], [], []
-    uv = camera.pixel_grid(torch.float32).reshape(-1, 2)
-    left = uv[:, 0] < camera.width / 2
-    for frame in rays.heldout:
-        T_wc = seq.T_wc[frame].float()
-        image = load_image(seq, frame, camera)
-        o, d, _ = camera_rays(camera, T_wc, uv)
-        colours = image.reshape(3, -1).T
-        code = fit_appearance_code(
-            field, grid, o[left], d[left], colours[left], steps=20, batch=512, lr=0.05
-        )
-        half = camera.width // 2
-        if full:
-            out = render_image(field, grid, camera, T_wc, code, with_normals=True)
-            right = out["rgb"][:, :, half:]
-        else:
-            right = _render_right_half(field, grid, o[~left], d[~left], code)
-            right = right.T.reshape(3, camera.height, camera.width - half)
-        psnrs.append(_psnr(right, image[:, :, half:]))
-        if full:
-            gt = seq.load_depth(frame)
-            gt = F.interpolate(gt[None], size=(camera.height, camera.width), mode="nearest")[0]
-            valid = gt[0] > 0
-            depth_err.append((out["depth"][0] - gt[0])[valid].abs())
-            n_gt = _gt_normals(gt, camera)
-            n_gt_world = torch.einsum("ij,jhw->ihw", T_wc[:3, :3], n_gt)
-            ok = n_gt.abs().sum(0) > 0
-            cos = (out["normal"] * n_gt_world).sum(0)[ok].clamp(-1, 1)
-            normal_err.append(torch.rad2deg(torch.acos(cos)))
-    field.train()
-    result = {"psnr_heldout_db": float(np.mean(psnrs))}
-    if full:
-        result["depth_median_abs_err_m"] = float(torch.cat(depth_err).median())
-        result["normal_median_err_deg"] = float(torch.cat(normal_err).median())
-    return result
+    """Held-out scores of the submap's field (``heldout_field_scores``: left-half code,
+    right-half PSNR; with ``full`` depth / normal errors, scoring only)."""
+    return heldout_field_scores(module.field, module.grid, seq, rays.camera, rays.heldout, full)
 
 
 class TimedEvaluation(L.Callback):
