@@ -55,6 +55,7 @@ from diffloc.pipeline.crossmodal_task import run_crossmodal
 from diffloc.pipeline.database_stage import build_database, optimize_database
 from diffloc.pipeline.database_summary import BuiltDatabase, OptimizedDatabase
 from diffloc.pipeline.hints import Command, CommandHint, MissingStageError, override_key
+from diffloc.pipeline.nerf_heldout import heldout_line
 from diffloc.pipeline.nerf_stage import NerfSummary, train_nerf_submap
 from diffloc.pipeline.reloc_stage import relocalize_dataset
 from diffloc.pipeline.rig_stage import RigCalibrationSummary, calibrate_database_rig
@@ -244,6 +245,7 @@ def run_train_nerf(cfg: DictConfig) -> NerfSummary:
     summary = train_nerf_submap(Path(cfg.dataset), to_object(cfg.nerf), cfg.progress)
     print(f"submap {summary.submap} of {summary.submaps}: {summary.steps} steps")
     print(f"field: {summary.field}")
+    print(heldout_line(summary.heldout_scores, summary.heldout_note))
     return summary
 
 

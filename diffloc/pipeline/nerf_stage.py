@@ -20,6 +20,10 @@ from the last checkpoint only if it reads (tensors and plain values only), belon
 training, holds finite weights and is not past ``nerf.epochs``; otherwise the run warns why (a
 checkpoint of other settings, a spoilt one, e.g. cut short by a kill) and trains from scratch.
 A training that ends with non-finite weights is refused before anything is committed.
+
+After training, the field is scored on the submap's held-out frames
+(:mod:`diffloc.pipeline.nerf_heldout`: NeRF-W PSNR, median depth and normal errors) and the
+scores go into the same record (``heldout_scores``, ``heldout_note``), committed with the field.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from diffloc.maps.nerf.submaps import cluster_trajectory, plot_submaps, save_sub
 from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline.hints import Command, StaleStageError
 from diffloc.pipeline.nerf_config import TrainNerfConfig
+from diffloc.pipeline.nerf_heldout import heldout_scores
 from diffloc.pipeline.stage import (
     LockLevel,
     StageSummary,
@@ -76,6 +81,10 @@ class NerfSummary(StageSummary):
         final_loss: the last step's loss (``None`` if no step ran).
         field: path of the exported field (safetensors + JSON).
         plot: path of the clustered-trajectory plot.
+        heldout_scores: the field's scores on the held-out frames
+            (:data:`~diffloc.pipeline.nerf_heldout.HELDOUT_KEYS`), ``None`` when no frame is
+            held out.
+        heldout_note: how they were taken, or why there are none.
     """
 
     submaps: int
@@ -87,6 +96,8 @@ class NerfSummary(StageSummary):
     final_loss: float | None
     field: str
     plot: str
+    heldout_scores: dict[str, float | None] | None
+    heldout_note: str
 
 
 TRAINING_KEY = "diffloc_training"
@@ -275,6 +286,9 @@ def train_nerf_submap(
         )
         _check_finite(module, name)
         export_field(work / "field", module.field, module.grid)
+        scores, note = heldout_scores(
+            module.field, module.grid, seq, rays, config.data.holdout_every
+        )
         summary = NerfSummary(
             submaps=len(submaps),
             submap=config.submap,
@@ -285,5 +299,7 @@ def train_nerf_submap(
             final_loss=module.losses[-1] if module.losses else None,
             field=str(run_dir / "field"),
             plot=str(out_dir / "submaps.png"),
+            heldout_scores=scores,
+            heldout_note=note,
         )
         return stage.commit(key, summary, ["field"])
