@@ -196,9 +196,12 @@ def main() -> None:
                 "sequences": {s: score(tuned.database, q, reranker) for s, q in queries.items()},
             }
         )
+    threads = os.environ.get("OMP_NUM_THREADS")
     command = " ".join(
         [
-            "PYTHONPATH=. OMP_NUM_THREADS=2 python3 experiments/retrieval_tuning_sweep.py",
+            "PYTHONPATH=.",
+            *([f"OMP_NUM_THREADS={threads}"] if threads else []),
+            "python3 experiments/retrieval_tuning_sweep.py",
             f"--dataset {args.dataset} --map {args.map}",
             *(f"--sequence {s}" for s in args.sequence),
             f"--every {args.every}",
