@@ -225,6 +225,7 @@ heldout_noise heldout_table3_noise_epipolar table3_noise_epipolar "$all_levels"
 
 # Outdoors: main job and Tables I/II on seeds 1-3, Table III on seeds 1-2.
 heldout_main main_outdoor
+heldout_main main_outdoor_fresh  # seeds 4-6: run after the track rule was chosen on seeds 1-3
 python3 experiments/validation_evidence.py "$runs/heldout_main_outdoor" \
   --out experiments/results/validation_evidence_outdoor
 heldout_ablation ablation_xfeat_outdoor
