@@ -19,6 +19,10 @@ ONE outcome, the first stage that decides it:
 - ``wrong pose, near reference``: a wrong pose (rejected) from a reference within them:
   matching or PnP failed on the right render.
 
+With the pose prior on (``task.localizer.prior``), each row says whether the reference came
+from the prior (``from_prior``), and per map and sequence the report counts the accepted and
+the wrong accepted poses whose reference came from it.
+
 ``--min-photometric`` replays another threshold from the recorded scores
 (``accepted_without_photometric`` and ``photometric >= t``); by default the run's own verdict.
 Per map and sequence the report also gives the photometric test's effect: accepted poses,
@@ -37,6 +41,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import json
 from collections import Counter
 from pathlib import Path
 
@@ -157,11 +162,13 @@ def breakdown(
             "error_m": float(errors.translation_m[q]) if found[q] else None,
             "error_deg": float(errors.rotation_deg[q]) if found[q] else None,
             "accepted": bool(accepted[q]),
+            "from_prior": bool(loc.from_prior[q]),
             "outcome": verdicts[q],
         }
         for q in range(len(loc.frames))
     ]
     counts = Counter(verdicts)
+    from_prior = accepted & loc.from_prior.astype(bool)
     return {
         "map": option,
         "sequence": sequence,
@@ -171,6 +178,11 @@ def breakdown(
             "with": _effect(accepted, correct),
             "right_scores": loc.photometric[geometric & correct].tolist(),
         },
+        "accepted_from_prior": int(from_prior.sum()),
+        "wrong_from_prior": int((from_prior & ~correct).sum()),
+        "queries_with_prior": int((loc.prior_images > 0).sum()),
+        "median_ms": float(np.median(loc.time_ms)),
+        "load_average": json.loads((path.parent / "localize.json").read_text())["load_average"],
         "top1_retrieval_rate": float(top1_hit.mean()),
         "reference_hit_rate": float(reference_hit.mean()),
         "counts": {name: counts.get(name, 0) for name in OUTCOMES},
@@ -272,6 +284,20 @@ def markdown(report: dict) -> str:
     ]
     for name in OUTCOMES:
         lines.append(f"| {name} | " + " | ".join(str(m["counts"][name]) for m in maps) + " |")
+    for key, label in (
+        ("accepted_from_prior", "accepted from the prior"),
+        ("wrong_from_prior", "wrong accepted from the prior"),
+        ("queries_with_prior", "queries with prior images"),
+    ):
+        lines.append(f"| {label} | " + " | ".join(str(m[key]) for m in maps) + " |")
+    lines.append(
+        "| median ms per query | " + " | ".join(f"{m['median_ms']:.0f}" for m in maps) + " |"
+    )
+    lines.append(
+        "| load (1/5/15 min) when the localisation ended | "
+        + " | ".join("/".join(f"{x:.1f}" for x in m["load_average"]) for m in maps)
+        + " |"
+    )
     for key, label in (
         ("top1_retrieval_rate", "top-1 render near"),
         ("reference_hit_rate", "reference near"),

@@ -54,11 +54,14 @@ CASES = [
 
 def _overrides(group: str, option: str) -> list[str]:
     """The overrides that select ``option``; a scene-kind option ``<parent>/scene`` named
-    ``<choice>_<scene>`` (``task/scene/crossmodal_indoor``) also selects its parent's choice."""
+    ``<choice>_<scene>`` (``task/scene/crossmodal_indoor``) also selects its parent's choice,
+    and an option of the rendered-database localiser (``task/localizer/...``) its task."""
     chosen = [f"{group}={option}" if group in DEFAULTS else f"+{group}={option}"]
     parent, _, leaf = group.rpartition("/")
     if leaf == "scene" and parent:
         chosen.insert(0, f"{parent}={option.rsplit('_', 1)[0]}")
+    if group.startswith("task/localizer/"):
+        chosen.insert(0, "task=crossmodal")
     return chosen
 
 

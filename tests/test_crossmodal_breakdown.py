@@ -53,6 +53,8 @@ def test_every_query_gets_the_first_stage_that_decides_it():
         num_inliers=inliers,
         photometric=np.full(q, 0.5),
         accepted_without_photometric=geometric,
+        from_prior=np.zeros(q, dtype=bool),
+        prior_images=np.zeros(q, dtype=np.int64),
         time_ms=np.ones(q),
     )
     assert script.outcomes(loc, accepted, correct, near, renders, 150) == list(cases)

@@ -134,6 +134,28 @@ def test_a_changed_localizer_setting_runs_only_the_localization(
     assert record["stage"]["key"]["config"]["localizer"]["top_k"] == 3
 
 
+def test_the_pose_prior_is_used_after_an_accepted_pose_and_recorded(
+    dataset, first, tmp_path, monkeypatch
+):
+    _refuse(monkeypatch, UPSTREAM)
+    results = _run(dataset, tmp_path, "+task/localizer/prior=sequence")
+    assert results["prior"]["growth_mps"] == 1.0  # the indoor scene's
+    folder = dataset / "crossmodal" / "tls" / "localize_query_same"
+    loc = crossmodal_stage.SequenceLocalization.load(folder / "localization.npz")
+    times = read_sequence(dataset, "query_same").timestamps[loc.frames]
+    accepted = loc.accepted.astype(bool)
+    assert accepted.any()
+    for q in range(len(loc.frames)):
+        earlier = times[:q][accepted[:q]]
+        active = len(earlier) and times[q] - earlier[-1] <= results["prior"]["max_age_s"]
+        assert (loc.prior_images[q] > 0) == bool(active)
+        assert loc.prior_images[q] <= results["prior"]["max_images"]
+    assert not loc.from_prior[loc.prior_images == 0].any()
+    entry = results["sequences"]["query_same"]
+    assert entry["accepted_from_prior"] == int((accepted & loc.from_prior).sum())
+    assert "pose prior on" in (tmp_path / "results.md").read_text()
+
+
 def test_an_empty_corridor_names_the_map_and_the_settings(dataset, first, tmp_path):
     before = _records(dataset)
     with pytest.raises(ValueError, match=r"tls_map.ply: .*empty corridor.*task\.poses"):

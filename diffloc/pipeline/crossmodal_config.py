@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
-from diffloc.checks import check_positive_int
+from diffloc.checks import check_number, check_positive_int
 from diffloc.crossmodal.database import DatabaseConfig as RGBDDatabaseConfig
 from diffloc.crossmodal.hybrid import check_coverage_bounds
 from diffloc.crossmodal.mesh_map import POINT_MAPS, TexturedMeshConfig
@@ -242,7 +242,12 @@ class CrossmodalTaskConfig:
             :mod:`diffloc.pipeline.crossmodal_retrieval`); refused with ``map=images`` and
             ``map=hybrid``, whose databases hold the mapping images themselves.
         retrieval: the settings of that fine-tuning.
-        localizer: Algorithm 1 with re-ranking and validation.
+        localizer: Algorithm 1 with re-ranking and validation (``localizer.prior``: the pose
+            prior over a query sequence, off by default).
+        prior_growth_mps: the scene kind's growth of the pose prior's radius per second
+            (the platform's top speed: 1 m/s indoors, 6 m/s outdoors; set in
+            ``task/scene/crossmodal_<scene>.yaml``), used where ``localizer.prior.growth_mps``
+            is unset (see :meth:`localizer_for`).
         min_photometric: per ``map`` option, the lowest photometric consistency of an
             accepted pose (``localizer.validation.min_photometric`` for that map; an option
             not listed keeps the localizer's own, by default off). Set per scene kind
@@ -264,6 +269,7 @@ class CrossmodalTaskConfig:
     tune_retrieval: bool = False
     retrieval: RetrievalTuningConfig = field(default_factory=RetrievalTuningConfig)
     localizer: RenderedLocalizerConfig = field(default_factory=RenderedLocalizerConfig)
+    prior_growth_mps: float = 1.0
     floor_closing_m: dict[str, float] = field(default_factory=dict)
     min_photometric: dict[str, float] = field(default_factory=dict)
     loose_m: float = 1.0
@@ -278,6 +284,7 @@ class CrossmodalTaskConfig:
             raise ValueError(f"image_scale must be in (0, 1], got {self.image_scale!r}")
         if not 0.0 < self.loose_m < math.inf:
             raise ValueError(f"loose_m must be a positive finite number, got {self.loose_m!r}")
+        check_number(self.prior_growth_mps, "task.prior_growth_mps", 0.0)
         for point_map in self.floor_closing_m:
             if point_map not in POINT_MAP_OPTIONS:
                 raise ValueError(
@@ -319,7 +326,8 @@ class CrossmodalTaskConfig:
         """The localiser settings of the ``map`` option ``option``: ``localizer`` with the
         validation's ``min_photometric`` from :attr:`min_photometric` where it lists the
         option (a localiser without validation stays without); ``map=hybrid`` holds its
-        real images to the ``images`` threshold (``min_photometric_real``) where it is listed.
+        real images to the ``images`` threshold (``min_photometric_real``) where it is listed;
+        a pose prior without its own ``growth_mps`` takes :attr:`prior_growth_mps`.
 
         Example:
             >>> task = CrossmodalTaskConfig(min_photometric={"images": 0.7})
@@ -331,8 +339,17 @@ class CrossmodalTaskConfig:
             >>> hybrid = task.localizer_for("hybrid")
             >>> hybrid.validation.min_photometric, hybrid.min_photometric_real
             (0.4, 0.7)
+            >>> from diffloc.reloc.pose_prior import PosePriorConfig
+            >>> prior = replace(task.localizer, prior=PosePriorConfig())
+            >>> task = CrossmodalTaskConfig(localizer=prior, prior_growth_mps=6.0)
+            >>> task.localizer_for("mesh").prior.growth_mps
+            6.0
         """
-        localizer, validation = self.localizer, self.localizer.validation
+        localizer = self.localizer
+        if localizer.prior is not None and localizer.prior.growth_mps is None:
+            prior = replace(localizer.prior, growth_mps=self.prior_growth_mps)
+            localizer = replace(localizer, prior=prior)
+        validation = localizer.validation
         if option not in self.min_photometric or validation is None:
             return localizer
         threshold = self.min_photometric[option]

@@ -3,7 +3,9 @@
 The only place the task reads the query sequences' ground-truth poses. Per sequence:
 
 - queries, found (a PnP pose), accepted (found and validated: the answer) and the precision
-  of the accepted poses (within the loose bound ``loose_m`` / 30 deg);
+  of the accepted poses (within the loose bound ``loose_m`` / 30 deg), the wrong accepted
+  ones, and how many accepted (and wrong accepted) poses took their reference from the pose
+  prior (``task.localizer.prior``; 0 without it);
 - localisation rates (shares of all queries accepted within the bound) at 0.25 m / 2 deg,
   0.5 m / 5 deg and ``loose_m`` / 30 deg (seed 2: 1 m indoors, 2 m outdoors);
 - retrieval rate: the top-1 retrieved render lies within the render spacing and 45 deg of
@@ -121,11 +123,15 @@ def score_sequence(
     hits = retrieval_hits(T_gt, T_render[top.clamp_min(0)], loc.top1 >= 0, spacing_m)
     correct = is_correct(errors, loose_m, 30.0)
     count = int(accepted.sum())
+    from_prior = accepted & loc.from_prior.astype(bool)
     return {
         "queries": len(loc.frames),
         "found": int(loc.success.sum()),
         "accepted": count,
         "precision": correct.sum() / count if count else None,
+        "wrong_accepted": count - int(correct.sum()),
+        "accepted_from_prior": int(from_prior.sum()),
+        "wrong_from_prior": int((from_prior & ~correct).sum()),
         "rates": localization_rates(errors.translation_m, errors.rotation_deg, accepted, loose_m),
         "retrieval_rate": float(hits.mean()),
         "mate_m": _finite(mean_ate(errors)),
@@ -135,7 +141,7 @@ def score_sequence(
 
 def markdown_table(rows: dict[str, dict], loose_m: float) -> str:
     """The per-sequence table of :func:`score_sequence` results (Markdown)."""
-    head = ["sequence", "queries", "accepted", "precision"]
+    head = ["sequence", "queries", "accepted", "precision", "from prior (wrong)"]
     head += [f"{m:g} m / {d:g} deg" for m, d in thresholds(loose_m)]
     head += ["retrieval", "mATE [m]", "ms/query"]
 
@@ -149,6 +155,7 @@ def markdown_table(rows: dict[str, dict], loose_m: float) -> str:
             str(r["queries"]),
             f"{r['accepted']} ({pct(r['accepted'] / r['queries'])})",
             pct(r["precision"]),
+            f"{r['accepted_from_prior']} ({r['wrong_from_prior']})",
             *[pct(v) for v in r["rates"].values()],
             pct(r["retrieval_rate"]),
             "-" if r["mate_m"] is None else f"{r['mate_m']:.3f}",

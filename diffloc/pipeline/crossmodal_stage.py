@@ -66,6 +66,7 @@ from diffloc.pipeline.stage import (
 )
 from diffloc.progress import progress
 from diffloc.reloc.rendered import RenderedDatabaseLocalizer, RenderedLocalizerConfig
+from diffloc.reloc.sequence_prior import SequencePrior, localize_in_order
 from diffloc.render.point_render import render_points
 from diffloc.render.point_sizes import PointSizes
 
@@ -438,6 +439,9 @@ class SequenceLocalization:
             or too little overlap).
         accepted_without_photometric: (Q,) bool, found and passed every validation test but
             the photometric one (a replay of another threshold needs it).
+        from_prior: (Q,) bool, the reference came from the pose prior (``task.localizer.prior``;
+            all false without it).
+        prior_images: (Q,) int64 database images the pose prior put first (0: no prior).
         time_ms: (Q,) float64 wall time per query (features, retrieval, matching, PnP,
             photometric consistency).
     """
@@ -453,6 +457,8 @@ class SequenceLocalization:
     num_inliers: np.ndarray
     photometric: np.ndarray
     accepted_without_photometric: np.ndarray
+    from_prior: np.ndarray
+    prior_images: np.ndarray
     time_ms: np.ndarray
 
     @classmethod
@@ -475,7 +481,9 @@ def localize_sequence(
     """Localise every ``every``-th frame of ``sequence`` (made or reused) and the stage's
     outcome.
 
-    Query images are resized (area) to the database camera's size. ``retrieval``: the outcome
+    Query images are resized (area) to the database camera's size. With ``config.prior`` set
+    (its ``growth_mps`` too), the frames are localised in time order with the last accepted
+    pose as a prior (:mod:`diffloc.reloc.sequence_prior`). ``retrieval``: the outcome
     of the stage that tuned the database's NetVLAD
     (:func:`~diffloc.pipeline.crossmodal_retrieval.tune_retrieval_stage`, whose database
     ``database`` then is), part of the key; ``None`` for the database as built.
@@ -499,10 +507,13 @@ def localize_sequence(
             camera = seq.camera.scaled(db.camera.width / seq.camera.width)
             localizer = RenderedDatabaseLocalizer(db, config)
             frames = list(range(0, len(seq), every))
-            results = [
-                localizer.localize(scaled_images(seq, camera, [i])[0], camera)
+            prior = None if config.prior is None else SequencePrior(config.prior, db.T_wc)
+            images = (
+                scaled_images(seq, camera, [i])[0]
                 for i in progress(frames, sequence, show_progress)
-            ]
+            )
+            times = seq.timestamps[frames].tolist()
+            results = list(localize_in_order(localizer, images, times, camera, prior))
             arrays = {
                 "frames": np.array(frames, dtype=np.int64),
                 "T_wc": torch.stack([r.T_wc for r in results]).numpy(),
@@ -520,6 +531,8 @@ def localize_sequence(
                 "accepted_without_photometric": np.array(
                     [r.accepted_without_photometric for r in results]
                 ),
+                "from_prior": np.array([r.from_prior for r in results]),
+                "prior_images": np.array([len(r.prior) for r in results], dtype=np.int64),
                 "time_ms": np.array([r.time_ms for r in results], dtype=np.float64),
             }
             with atomic_open(stage.workdir() / "localization.npz", "wb") as handle:

@@ -138,6 +138,7 @@ def run_crossmodal(
             database = (tuned, database[1])  # the database stage's outcome keys the rest
             stages["retrieval"] = retrieval.summary.to_json()
     db = database[0]
+    prior = task.localizer_for(option).prior
     out.mkdir(parents=True, exist_ok=True)
     sequences = {}
     for name in task.sequences:
@@ -177,6 +178,7 @@ def run_crossmodal(
         "image_size": f"{db.camera.width}x{db.camera.height}",
         "loose_m": task.loose_m,
         "every": task.every,
+        "prior": None if prior is None else asdict(prior),
         "sequences": sequences,
         "machine": f"{platform.node()} {os.cpu_count()} cores, load {os.getloadavg()}",
         "wall_s": round(time.perf_counter() - start, 1),
@@ -217,18 +219,22 @@ def _rendered_database(
 
 def _markdown(results: dict) -> str:
     loose = results["loose_m"]
+    prior = results["prior"]
     return "\n".join(
         [
             f"# Rendered-database localisation in `map={results['map']}` ({results['dataset']})",
             "",
             f"Database: {results['database_images']} images of {results['image_size']}, "
             f"hole share {100 * results['hole_share']:.1f} %; queries: every "
-            f"{results['every']}-th frame of each sequence.",
+            f"{results['every']}-th frame of each sequence; pose prior "
+            + ("off." if prior is None else f"on: {prior}."),
             "",
             markdown_table(results["sequences"], loose),
             "",
             f"Accepted: a pose was found and passed the validation. Precision: share of the "
-            f"accepted poses within {loose:g} m / 30 deg. Rates: share of all queries accepted "
+            f"accepted poses within {loose:g} m / 30 deg. From prior: accepted poses whose "
+            "reference the pose prior put first (task.localizer.prior), wrong ones in brackets. "
+            "Rates: share of all queries accepted "
             "within the bound (a query not localised is a failure). Retrieval: the top-1 "
             "render lies within the render spacing and 45 deg of the query. mATE: mean "
             "position error of the accepted queries. ms/query: median wall time (features, "

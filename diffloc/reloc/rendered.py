@@ -68,6 +68,7 @@ from diffloc.geometry.camera import PinholeCamera
 from diffloc.reloc.hierarchical import grid_coverage
 from diffloc.reloc.photometric import PhotometricConfig, grey_image, warped_ncc
 from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
+from diffloc.reloc.pose_prior import PosePriorConfig
 from diffloc.reloc.rerank import MutualNNReranker, RerankConfig
 from diffloc.reloc.retrieval import (
     BowConfig,
@@ -191,6 +192,10 @@ class RenderedLocalizerConfig:
         bow: bag-of-words settings (vocabulary trained on the database's descriptors).
         rerank: re-ranking of the global retrieval's best by mutual-nearest-neighbour
             matches before ``top_k`` are matched (``None``: the global order).
+        prior: in a query sequence, the database images near the last accepted pose are
+            tried before the retrieval's (:mod:`diffloc.reloc.sequence_prior`, beyond seed
+            2); ``None``: every query on its own (Algorithm 1). The localiser itself only
+            takes the prior's images (:meth:`RenderedDatabaseLocalizer.localize`).
         seed: seed of the per-query RANSAC generator.
     """
 
@@ -209,6 +214,7 @@ class RenderedLocalizerConfig:
     min_photometric_real: float | None = None
     bow: BowConfig = field(default_factory=BowConfig)
     rerank: RerankConfig | None = field(default_factory=RerankConfig)
+    prior: PosePriorConfig | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -283,7 +289,10 @@ class RenderedLocalization:
         reference: database image the pose came from; when not localised, the last one tried
             (``select="first"``) or the one with the most inliers; -1 if none was retrieved.
         retrieved: (k,) int64 database images in retrieval order (after re-ranking).
-        candidates: every reference tried, in rank order.
+        prior: (p,) int64 database images of the pose prior, tried before the retrieval's
+            (empty without a prior).
+        from_prior: ``reference`` is one of ``prior``'s images.
+        candidates: every reference tried, in the order tried.
         num_matches: LighterGlue matches with the reference.
         num_points: of those, matches whose reference keypoint has depth.
         num_inliers: PnP inliers (0 without a PnP attempt).
@@ -302,6 +311,8 @@ class RenderedLocalization:
     accepted: bool
     reference: int
     retrieved: torch.Tensor
+    prior: torch.Tensor
+    from_prior: bool
     candidates: tuple[RenderedCandidate, ...]
     num_matches: int
     num_points: int
@@ -451,6 +462,7 @@ class RenderedDatabaseLocalizer:
         image: torch.Tensor,
         camera: PinholeCamera,
         references: torch.Tensor | None = None,
+        prior: torch.Tensor | None = None,
     ) -> RenderedLocalization:
         """Localise one query image.
 
@@ -461,27 +473,34 @@ class RenderedDatabaseLocalizer:
             references: optional (k,) int64 database images to try in place of the
                 retrieval and re-ranking (e.g. an oracle for diagnostics); ``None``
                 retrieves ``top_k``.
+            prior: optional (p,) int64 database images tried first, in their order (a pose
+                prior, :mod:`diffloc.reloc.sequence_prior`); the retrieval's images follow
+                without repeating them, and ``stop_inliers`` and the validation apply as
+                without a prior.
 
         Returns:
             The :class:`RenderedLocalization` (``success`` false when it could not localise).
 
         Raises:
             ShapeError: an image not (3, H, W) or not the camera's size, or ``references``
-                not a vector.
-            IndexError: a reference outside the database.
+                or ``prior`` not a vector.
+            IndexError: a reference or prior image outside the database.
         """
         check_shape(image, f"3,{camera.height},{camera.width}", "image")
-        if references is not None:
-            check_shape(references, "k", "references")
-            if bool(((references < 0) | (references >= self.database.num_images)).any()):
-                raise IndexError(f"references must lie in [0, {self.database.num_images})")
+        prior = torch.zeros(0, dtype=torch.int64) if prior is None else prior
+        for name, given in (("references", references), ("prior", prior)):
+            if given is not None:
+                check_shape(given, "k", name)
+                if bool(((given < 0) | (given >= self.database.num_images)).any()):
+                    raise IndexError(f"{name} must lie in [0, {self.database.num_images})")
         start, start_cpu = time.perf_counter(), time.process_time()
         query = self.extractor.extract(image)
         retrieved = references if references is not None else self._retrieve(image, query)
+        order = torch.cat([prior, retrieved[~torch.isin(retrieved, prior)]])
         generator = torch.Generator().manual_seed(self.config.seed)
         attempts = (
             self._try_reference(query, camera, int(reference), generator)
-            for reference in retrieved.tolist()
+            for reference in order.tolist()
         )
         best, candidates = choose_candidate(attempts, self.config.select, self.config.stop_inliers)
         photometric = self._photometric(image, camera, best) if best.success else math.nan
@@ -497,6 +516,8 @@ class RenderedDatabaseLocalizer:
             accepted=accept_pose(best, candidates, validation, photometric),
             reference=best.reference,
             retrieved=retrieved,
+            prior=prior,
+            from_prior=bool((prior == best.reference).any()),
             candidates=candidates,
             num_matches=best.num_matches,
             num_points=best.num_points,
