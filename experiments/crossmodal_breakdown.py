@@ -11,7 +11,8 @@ ONE outcome, the first stage that decides it:
 - ``no pose``: no reference gave a PnP pose with enough inliers;
 - ``right pose rejected: inliers`` / ``...: coverage or rival`` / ``...: photometric``: a pose
   within the bound that the validation refused, by the first test it failed (fewer than
-  ``theta_in`` inliers; the coverage or ambiguity tests; the photometric consistency);
+  ``theta_in`` inliers; the inlier ratio, coverage or ambiguity tests; the photometric
+  consistency);
 - ``wrong pose, no render near``: a wrong pose (rejected) and no database image at all lies
   within the render spacing and 45 deg of the query: the render poses do not cover it;
 - ``wrong pose, far reference``: a wrong pose (rejected) from a reference that is not within
@@ -23,13 +24,19 @@ With the pose prior on (``task.localizer.prior``), each row says whether the ref
 from the prior (``from_prior``), and per map and sequence the report counts the accepted and
 the wrong accepted poses whose reference came from it.
 
-``--min-photometric`` replays another threshold from the recorded scores
-(``accepted_without_photometric`` and ``photometric >= t``); by default the run's own verdict.
-Per map and sequence the report also gives the photometric test's effect: accepted poses,
-wrong accepted poses, precision and localisation rate without it (``accepted_without_photometric``)
-and with it, and per map the threshold rule of ``task.min_photometric``: the 1st percentile of
-the scores of the right poses the other tests accept, over the given sequences, rounded down
-to 0.1.
+The verdicts are replayed from the recorded evidence
+(:func:`~diffloc.pipeline.crossmodal_replay.replay_validation`) with the thresholds the run
+used (read from its ``localize.json``), or with ``--theta-in``, ``--min-coverage``,
+``--ambiguity-ratio``, ``--min-inlier-ratio`` and ``--min-photometric`` in their place
+(``none`` turns a test off): other thresholds are scored without relocalising.
+Without any of them the replay must give the run's own verdicts (it stops otherwise).
+
+Per map and sequence the report also gives which tests reject the poses found (every test a
+rejected pose fails, and the poses it alone rejects, right and wrong poses apart), the
+photometric test's effect: accepted poses, wrong accepted poses, precision and localisation
+rate without it and with it, and per map the threshold rule of ``task.min_photometric``: the
+1st percentile of the scores of the right poses the other tests accept, over the given
+sequences, rounded down to 0.1.
 
 Usage:
     PYTHONPATH=. python3 experiments/crossmodal_breakdown.py --dataset data/indoor_seed0 \\
@@ -43,6 +50,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections import Counter
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -53,9 +61,16 @@ from diffloc.eval.metrics import is_correct, pose_errors
 from diffloc.eval.report_files import write_report
 from diffloc.features.retrieval_eval import pairwise_pose_distances
 from diffloc.io.dataset import read_sequence
+from diffloc.pipeline.crossmodal_replay import (
+    REPLAYED_TESTS,
+    recorded_evidence,
+    recorded_validation,
+    replay_validation,
+    verdict_effect,
+)
 from diffloc.pipeline.crossmodal_report import RETRIEVAL_ANGLE_DEG, retrieval_hits
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization, crossmodal_folder
-from diffloc.reloc.rendered import THETA_IN
+from diffloc.reloc.validation import ValidationConfig
 
 OUTCOMES = (
     "localized",
@@ -76,7 +91,7 @@ def outcomes(
     correct: np.ndarray,
     reference_hit: np.ndarray,
     near_renders: np.ndarray,
-    theta_in: int,
+    failed: list[tuple[str, ...]],
 ) -> list[str]:
     """The outcome (:data:`OUTCOMES`) of each of the Q queries (module docstring).
 
@@ -87,7 +102,8 @@ def outcomes(
         reference_hit: (Q,) bool, the reference of the pose lies within the render spacing
             and 45 deg of the query.
         near_renders: (Q,) int, database images within them.
-        theta_in: the validation's fewest inliers.
+        failed: per query, the validation tests its pose fails
+            (:func:`~diffloc.pipeline.crossmodal_replay.replay_validation`).
     """
     result = []
     for q in range(len(loc.frames)):
@@ -95,9 +111,9 @@ def outcomes(
             result.append("localized" if correct[q] else "wrong accepted")
         elif not loc.success[q]:
             result.append("no pose")
-        elif correct[q] and loc.num_inliers[q] < theta_in:
+        elif correct[q] and "inliers" in failed[q]:
             result.append("right pose rejected: inliers")
-        elif correct[q] and not loc.accepted_without_photometric[q]:
+        elif correct[q] and set(failed[q]) != {"photometric"}:
             result.append("right pose rejected: coverage or rival")
         elif correct[q]:
             result.append("right pose rejected: photometric")
@@ -115,10 +131,10 @@ def breakdown(
     sequence: str,
     spacing_m: float,
     loose_m: float,
-    theta_in: int,
-    min_photometric: float | None,
+    overrides: dict,
 ) -> dict:
-    """Per-query rows and outcome counts of one map's localisation of ``sequence``."""
+    """Per-query rows, outcome counts and rejecting tests of one map's localisation of
+    ``sequence``, the validation replayed with ``overrides`` of the run's thresholds."""
     folder = crossmodal_folder(dataset) / option
     path = folder / f"localize_{sequence}" / "localization.npz"
     if not path.is_file():
@@ -127,27 +143,33 @@ def breakdown(
             f"task.sequences=[{sequence}] first"
         )
     loc = SequenceLocalization.load(path)
-    T_render = RenderedDatabase.load(folder / "database" / "rgbd").T_wc
+    db = RenderedDatabase.load(folder / "database" / "rgbd")
+    recorded, real_threshold = recorded_validation(path.parent)
+    validation = replace(recorded, **overrides)
+    real = None if db.real is None else db.real.numpy()
+    evidence = recorded_evidence(loc)
+
+    def replay(config: ValidationConfig) -> tuple[np.ndarray, list[tuple[str, ...]]]:
+        return replay_validation(evidence, config, real, real_threshold)
+
+    accepted, failed = replay(validation)
+    if not overrides and not np.array_equal(accepted, loc.accepted.astype(bool)):
+        raise SystemExit(f"{path}: the replay of the run's own thresholds differs from its verdict")
+    geometric, _ = replay(replace(validation, min_photometric=None))
     T_gt = read_sequence(dataset, sequence).T_wc[loc.frames]  # ground truth: scoring only
-    accepted = loc.accepted.astype(bool)
-    if min_photometric is not None:
-        accepted = loc.accepted_without_photometric.astype(bool) & (
-            loc.photometric >= min_photometric
-        )
     found = loc.success.astype(bool)
     errors = pose_errors(loc.T_wc, T_gt.numpy(), found)
     correct = is_correct(errors, loose_m, 30.0)
 
     def hits(index: np.ndarray) -> np.ndarray:
         chosen = torch.from_numpy(index).clamp_min(0)
-        return retrieval_hits(T_gt, T_render[chosen], index >= 0, spacing_m)
+        return retrieval_hits(T_gt, db.T_wc[chosen], index >= 0, spacing_m)
 
     top1_hit, reference_hit = hits(loc.top1), hits(loc.reference)
-    distance, angle = pairwise_pose_distances(T_gt, T_render)
+    distance, angle = pairwise_pose_distances(T_gt, db.T_wc)
     near = (distance <= spacing_m) & (angle <= np.radians(RETRIEVAL_ANGLE_DEG))
     near_renders = near.sum(1).numpy()
-    verdicts = outcomes(loc, accepted, correct, reference_hit, near_renders, theta_in)
-    geometric = loc.accepted_without_photometric.astype(bool)
+    verdicts = outcomes(loc, accepted, correct, reference_hit, near_renders, failed)
     rows = [
         {
             "frame": int(loc.frames[q]),
@@ -157,11 +179,13 @@ def breakdown(
             "matches": int(loc.num_matches[q]),
             "points": int(loc.num_points[q]),
             "inliers": int(loc.num_inliers[q]),
+            "coverage": None if evidence[q] is None else evidence[q][1].coverage,
             "pnp": bool(found[q]),
             "photometric": None if np.isnan(loc.photometric[q]) else float(loc.photometric[q]),
             "error_m": float(errors.translation_m[q]) if found[q] else None,
             "error_deg": float(errors.rotation_deg[q]) if found[q] else None,
             "accepted": bool(accepted[q]),
+            "failed": ", ".join(failed[q]),
             "from_prior": bool(loc.from_prior[q]),
             "outcome": verdicts[q],
         }
@@ -173,9 +197,11 @@ def breakdown(
         "map": option,
         "sequence": sequence,
         "queries": len(rows),
+        "validation": asdict(validation),
+        "rejections": rejections(failed, found & ~accepted, correct),
         "photometric": {
-            "without": _effect(geometric, correct),
-            "with": _effect(accepted, correct),
+            "without": verdict_effect(geometric, correct),
+            "with": verdict_effect(accepted, correct),
             "right_scores": loc.photometric[geometric & correct].tolist(),
         },
         "accepted_from_prior": int(from_prior.sum()),
@@ -190,15 +216,32 @@ def breakdown(
     }
 
 
-def _effect(accepted: np.ndarray, correct: np.ndarray) -> dict:
-    """Accepted and wrong accepted poses, precision and localisation rate of a verdict."""
-    count, right = int(accepted.sum()), int((accepted & correct).sum())
-    return {
-        "accepted": count,
-        "wrong": count - right,
-        "precision": right / count if count else None,
-        "rate": right / len(accepted),
-    }
+def rejections(failed: list[tuple[str, ...]], rejected: np.ndarray, correct: np.ndarray) -> dict:
+    """Per test (:data:`REPLAYED_TESTS`), the rejected right and wrong poses that fail it
+    (``right``, ``wrong``) and those it alone rejects (``right_only``, ``wrong_only``).
+
+    Args:
+        failed: per query, the tests its pose fails.
+        rejected: (Q,) bool, a pose was found and rejected.
+        correct: (Q,) bool, the pose is within the bound.
+
+    Example:
+        >>> table = rejections([("coverage", "rival"), ("rival",), ()],
+        ...                    np.array([True, True, False]), np.array([True, False, True]))
+        >>> table["rival"], table["coverage"]["right_only"]
+        ({'right': 1, 'wrong': 1, 'right_only': 0, 'wrong_only': 1}, 0)
+    """
+    table = {}
+    for test in REPLAYED_TESTS:
+        fails = np.array([test in f for f in failed], dtype=bool) & rejected
+        alone = fails & np.array([len(f) == 1 for f in failed], dtype=bool)
+        table[test] = {
+            "right": int((fails & correct).sum()),
+            "wrong": int((fails & ~correct).sum()),
+            "right_only": int((alone & correct).sum()),
+            "wrong_only": int((alone & ~correct).sum()),
+        }
+    return table
 
 
 def threshold_rule(scores: list[float]) -> float | None:
@@ -225,6 +268,18 @@ def _cell(value: object) -> str:
     return str(value)
 
 
+THRESHOLDS = ("theta_in", "min_inlier_ratio", "min_coverage", "ambiguity_ratio", "min_photometric")
+"""The single-image thresholds a replay can change (``theta_dist_m`` stays the run's)."""
+
+
+def _thresholds(validation: dict) -> dict:
+    return {name: validation[name] for name in THRESHOLDS}
+
+
+def _settings(values: dict) -> str:
+    return ", ".join(f"{name}={value}" for name, value in values.items())
+
+
 def _label(entry: dict) -> str:
     return f"{entry['map']} {entry['sequence']}"
 
@@ -248,12 +303,36 @@ def markdown(report: dict) -> str:
         f"Each query (frames {_frames(maps[0]['rows'])}) gets the outcome of the first stage "
         "that decides it (experiments/crossmodal_breakdown.py docstring). Bound "
         f"{report['loose_m']:g} m / 30 deg; a reference is near the query within "
-        f"{report['spacing_m']:g} m and 45 deg; theta_in {report['theta_in']}; "
+        f"{report['spacing_m']:g} m and 45 deg. Validation replayed from the recorded "
+        "evidence with "
         + (
-            f"photometric threshold replayed at {report['min_photometric']:g}."
-            if report["min_photometric"] is not None
-            else "the runs' own validation."
-        ),
+            "the runs' own thresholds (the replay reproduces their verdicts)"
+            if not report["overrides"]
+            else f"the runs' thresholds but {_settings(report['overrides'])}"
+        )
+        + f": {_settings(_thresholds(maps[0]['validation']))}.",
+        "",
+        "## Which tests reject the poses found",
+        "",
+        "Per test, the rejected right / wrong poses that fail it (a pose may fail several), "
+        "and in brackets those it alone rejects.",
+        "",
+        "| test | " + " | ".join(_label(m) + " right / wrong" for m in maps) + " |",
+        "|:---|" + "---:|" * len(maps),
+    ]
+    for test in REPLAYED_TESTS:
+        cells = [m["rejections"][test] for m in maps]
+        if not any(c["right"] or c["wrong"] for c in cells):
+            continue
+        lines.append(
+            f"| {test} | "
+            + " | ".join(
+                f"{c['right']} / {c['wrong']} ({c['right_only']} / {c['wrong_only']})"
+                for c in cells
+            )
+            + " |"
+        )
+    lines += [
         "",
         "## The photometric test (without -> with)",
         "",
@@ -313,6 +392,15 @@ def markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+KEEP = object()
+"""A threshold's command-line default: the run's own."""
+
+
+def optional_float(text: str) -> float | None:
+    """A threshold from the command line; ``none`` turns the test off."""
+    return None if text.lower() == "none" else float(text)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", type=Path, required=True)
@@ -320,22 +408,22 @@ def main() -> None:
     parser.add_argument("--sequence", action="append", required=True)
     parser.add_argument("--spacing-m", type=float, default=2.0, help="render spacing")
     parser.add_argument("--loose-m", type=float, default=1.0, help="loose position bound")
-    parser.add_argument("--theta-in", type=int, default=THETA_IN)
-    parser.add_argument("--min-photometric", type=float, help="replay this threshold")
+    parser.add_argument("--theta-in", type=int, default=KEEP, help="replay: fewest inliers")
+    for name in THRESHOLDS[1:]:
+        flag = "--" + name.replace("_", "-")
+        parser.add_argument(flag, type=optional_float, default=KEEP, help="replay (none: off)")
     parser.add_argument("--command", required=True, help="the command of the runs read")
     parser.add_argument("--note", default="", help="a paragraph under the outcome counts")
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
     args = parser.parse_args()
+    overrides = {
+        name: getattr(args, name) for name in THRESHOLDS if getattr(args, name) is not KEEP
+    }
+    for name in ("min_inlier_ratio", "min_coverage"):  # off is 0 for these
+        if overrides.get(name, 0.0) is None:
+            overrides[name] = 0.0
     maps = [
-        breakdown(
-            args.dataset,
-            option,
-            sequence,
-            args.spacing_m,
-            args.loose_m,
-            args.theta_in,
-            args.min_photometric,
-        )
+        breakdown(args.dataset, option, sequence, args.spacing_m, args.loose_m, overrides)
         for option in args.map
         for sequence in args.sequence
     ]
@@ -346,14 +434,13 @@ def main() -> None:
         for option in args.map
     }
     report = {
+        "command": args.command,
         "dataset": str(args.dataset),
         "sequences": args.sequence,
         "threshold_rule": rules,
         "spacing_m": args.spacing_m,
         "loose_m": args.loose_m,
-        "theta_in": args.theta_in,
-        "min_photometric": args.min_photometric,
-        "command": args.command,
+        "overrides": overrides,
         "note": args.note,
         "maps": maps,
     }

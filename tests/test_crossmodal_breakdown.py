@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffloc.pipeline.crossmodal_stage import SequenceLocalization
+from diffloc.pipeline.crossmodal_stage import SequenceLocalization, candidate_arrays
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -56,5 +56,18 @@ def test_every_query_gets_the_first_stage_that_decides_it():
         from_prior=np.zeros(q, dtype=bool),
         prior_images=np.zeros(q, dtype=np.int64),
         time_ms=np.ones(q),
+        **candidate_arrays([]),
     )
-    assert script.outcomes(loc, accepted, correct, near, renders, 150) == list(cases)
+    # the tests each pose fails, as the replay gives them
+    failed = [
+        (),
+        (),
+        (),
+        ("inliers", "coverage"),
+        ("rival",),
+        ("photometric",),
+        ("inliers",),
+        ("coverage",),
+        ("photometric", "rival"),
+    ]
+    assert script.outcomes(loc, accepted, correct, near, renders, failed) == list(cases)

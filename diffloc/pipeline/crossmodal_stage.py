@@ -65,17 +65,24 @@ from diffloc.pipeline.stage import (
     stage_key,
 )
 from diffloc.progress import progress
-from diffloc.reloc.rendered import RenderedDatabaseLocalizer, RenderedLocalizerConfig
+from diffloc.reloc.rendered import (
+    RenderedCandidate,
+    RenderedDatabaseLocalizer,
+    RenderedLocalization,
+    RenderedLocalizerConfig,
+)
 from diffloc.reloc.sequence_prior import SequencePrior, localize_in_order
 from diffloc.render.point_render import render_points
 from diffloc.render.point_sizes import PointSizes
 
 __all__ = [
+    "LOCALIZATION_RECORD",
     "MAP_OUTPUTS",
     "RETRIEVAL_FILE",
     "SequenceLocalization",
     "build_rgbd_database",
     "build_rgbd_map",
+    "candidate_arrays",
     "colored_point_map",
     "crossmodal_folder",
     "localize_sequence",
@@ -93,6 +100,9 @@ MAP_OUTPUTS: dict[type, str] = {
 }
 """The output of the map stage each map option renders the database from."""
 RETRIEVAL_FILE = "netvlad.safetensors"
+LOCALIZATION_RECORD = 2
+"""Version of ``localization.npz``'s contents, part of the localisation stage's key: a record
+of an older version (2: the ``candidate_*`` arrays, the validation's evidence) is made again."""
 """The output of the retrieval stage (:mod:`diffloc.pipeline.crossmodal_retrieval`)."""
 
 
@@ -444,6 +454,18 @@ class SequenceLocalization:
         prior_images: (Q,) int64 database images the pose prior put first (0: no prior).
         time_ms: (Q,) float64 wall time per query (features, retrieval, matching, PnP,
             photometric consistency).
+        candidate_query: (C,) int64 the query of each of the C candidates tried over all
+            queries (each query's in the order tried): the validation's evidence, so that a
+            replay (``experiments/crossmodal_breakdown.py``) can score other thresholds.
+        candidate_reference: (C,) int64 its database image.
+        candidate_chosen: (C,) bool, it is its query's answer.
+        candidate_success: (C,) bool, PnP found a pose.
+        candidate_matches: (C,) int64 LighterGlue matches.
+        candidate_points: (C,) int64 matches with depth.
+        candidate_inliers: (C,) int64 PnP inliers.
+        candidate_coverage: (C,) float64 share of the query grid cells holding an inlier.
+        candidate_rms_px: (C,) float64 RMS reprojection error of the inliers (NaN: none).
+        candidate_position: (C, 3) float64 camera position of its pose (world frame).
     """
 
     frames: np.ndarray
@@ -460,12 +482,69 @@ class SequenceLocalization:
     from_prior: np.ndarray
     prior_images: np.ndarray
     time_ms: np.ndarray
+    candidate_query: np.ndarray
+    candidate_reference: np.ndarray
+    candidate_chosen: np.ndarray
+    candidate_success: np.ndarray
+    candidate_matches: np.ndarray
+    candidate_points: np.ndarray
+    candidate_inliers: np.ndarray
+    candidate_coverage: np.ndarray
+    candidate_rms_px: np.ndarray
+    candidate_position: np.ndarray
 
     @classmethod
     def load(cls, path: Path) -> SequenceLocalization:
         """Read ``localization.npz`` written by :func:`localize_sequence`."""
         arrays = read_npz_archive(path)
         return cls(**{name: arrays[name] for name in cls.__dataclass_fields__})
+
+    def candidates(self, query: int) -> tuple[RenderedCandidate, tuple[RenderedCandidate, ...]]:
+        """``(best, tried)`` of query ``query`` (index into ``frames``) rebuilt from the record,
+        as :func:`~diffloc.reloc.rendered.choose_candidate` returned them (the poses carry
+        their positions only, which is all the validation reads); ``best`` is
+        :meth:`RenderedCandidate.none` when nothing was tried."""
+        tried = []
+        best = RenderedCandidate.none()
+        for c in np.flatnonzero(self.candidate_query == query).tolist():
+            T_wc = torch.eye(4, dtype=torch.float64)
+            T_wc[:3, 3] = torch.from_numpy(self.candidate_position[c])
+            candidate = RenderedCandidate(
+                int(self.candidate_reference[c]),
+                T_wc,
+                bool(self.candidate_success[c]),
+                int(self.candidate_matches[c]),
+                int(self.candidate_points[c]),
+                int(self.candidate_inliers[c]),
+                float(self.candidate_coverage[c]),
+                float(self.candidate_rms_px[c]),
+            )
+            tried.append(candidate)
+            if self.candidate_chosen[c]:
+                best = candidate
+        return best, tuple(tried)
+
+
+def candidate_arrays(results: list[RenderedLocalization]) -> dict[str, np.ndarray]:
+    """The ``candidate_*`` arrays of :class:`SequenceLocalization` from the answers of its
+    queries (the candidate of an answer is the one of its reference)."""
+    rows = [(q, r, c) for q, r in enumerate(results) for c in r.candidates]
+    if not rows:
+        position = np.zeros((0, 3))
+    else:
+        position = np.stack([c.T_wc[:3, 3].numpy() for _, _, c in rows])
+    return {
+        "candidate_query": np.array([q for q, _, _ in rows], dtype=np.int64),
+        "candidate_reference": np.array([c.reference for _, _, c in rows], dtype=np.int64),
+        "candidate_chosen": np.array([c.reference == r.reference for _, r, c in rows], dtype=bool),
+        "candidate_success": np.array([c.success for _, _, c in rows], dtype=bool),
+        "candidate_matches": np.array([c.num_matches for _, _, c in rows], dtype=np.int64),
+        "candidate_points": np.array([c.num_points for _, _, c in rows], dtype=np.int64),
+        "candidate_inliers": np.array([c.num_inliers for _, _, c in rows], dtype=np.int64),
+        "candidate_coverage": np.array([c.coverage for _, _, c in rows], dtype=np.float64),
+        "candidate_rms_px": np.array([c.rms_px for _, _, c in rows], dtype=np.float64),
+        "candidate_position": position.astype(np.float64),
+    }
 
 
 def localize_sequence(
@@ -492,7 +571,12 @@ def localize_sequence(
     folder = crossmodal_folder(dataset) / option / f"localize_{sequence}"
     tuned = {} if retrieval is None else {"retrieval": retrieval.outputs[RETRIEVAL_FILE]}
     key = stage_key(
-        {"localizer": asdict(config), "every": every, "camera": _camera(db.camera)},
+        {
+            "localizer": asdict(config),
+            "every": every,
+            "camera": _camera(db.camera),
+            "record": LOCALIZATION_RECORD,
+        },
         {
             "database": db_outcome.outputs["rgbd"],
             **tuned,
@@ -534,6 +618,7 @@ def localize_sequence(
                 "from_prior": np.array([r.from_prior for r in results]),
                 "prior_images": np.array([len(r.prior) for r in results], dtype=np.int64),
                 "time_ms": np.array([r.time_ms for r in results], dtype=np.float64),
+                **candidate_arrays(results),
             }
             with atomic_open(stage.workdir() / "localization.npz", "wb") as handle:
                 write_npz(handle, arrays)

@@ -92,7 +92,24 @@ from diffloc.reloc.hierarchical import RelocResult
 from diffloc.reloc.repetition import RepeatedShift
 from diffloc.reloc.uniqueness import Uniqueness
 
-__all__ = ["PoseEvidence", "PoseValidator", "ValidationConfig", "predicted_displacement"]
+__all__ = [
+    "PLAUSIBILITY_TESTS",
+    "PoseEvidence",
+    "PoseValidator",
+    "ValidationConfig",
+    "predicted_displacement",
+]
+
+PLAUSIBILITY_TESTS = (
+    "photometric",
+    "repeated",
+    "uniqueness",
+    "position sigma",
+    "inlier ratio",
+    "coverage",
+    "rival",
+)
+"""The names :meth:`PoseValidator.failed_tests` gives the tests beyond seed 1's."""
 
 
 @dataclass
@@ -363,14 +380,33 @@ class PoseValidator:
 
     def plausible(self, evidence: PoseEvidence) -> bool:
         """The tests beyond seed 1's: inlier ratio, coverage, photometric consistency, no
-        repeated structure, uniqueness, position precision and no well-supported rival.
+        repeated structure, uniqueness, position precision and no well-supported rival
+        (:meth:`failed_tests` finds none).
+
+        Raises:
+            ValueError: as :meth:`failed_tests`.
+        """
+        return not self.failed_tests(evidence)
+
+    def failed_tests(self, evidence: PoseEvidence) -> tuple[str, ...]:
+        """Every test beyond seed 1's the evidence fails, of :data:`PLAUSIBILITY_TESTS` in
+        that order (empty: plausible); a disabled test never fails.
 
         Raises:
             ValueError: ``min_photometric``, ``max_repeated``, ``uniqueness_ratio`` or
                 ``max_position_sigma_m`` is set but the evidence lacks that measurement (a run
                 that did not measure it).
+
+        Example (coverage 0.25 and a rival with 80 % of the 100 inliers 5 m away):
+            >>> check = PoseValidator(ValidationConfig(theta_in=20, theta_dist_m=1.0,
+            ...     temporal=False, min_coverage=0.5, ambiguity_ratio=0.7))
+            >>> evidence = PoseEvidence(torch.zeros(3, dtype=torch.float64), 100, 200, 0.25,
+            ...                         ((100, 0.0), (80, 5.0)))
+            >>> check.failed_tests(evidence)
+            ('coverage', 'rival')
         """
         cfg = self.config
+        failed = []
         if cfg.min_photometric is not None:
             if evidence.photometric is None:
                 raise ValueError(
@@ -379,7 +415,7 @@ class PoseValidator:
                     "run it again, or set reloc.validation.min_photometric=null)"
                 )
             if not evidence.photometric >= cfg.min_photometric:  # NaN (no overlap) fails
-                return False
+                failed.append("photometric")
         if cfg.max_repeated is not None:
             if evidence.repeated is None:
                 raise ValueError(
@@ -388,7 +424,7 @@ class PoseValidator:
                     "run it again, or set reloc.validation.max_repeated=null)"
                 )
             if evidence.repeated > cfg.max_repeated * evidence.num_inliers:
-                return False
+                failed.append("repeated")
         if cfg.uniqueness_ratio is not None:
             if evidence.uniqueness is None:
                 raise ValueError(
@@ -397,7 +433,7 @@ class PoseValidator:
                     "reloc.validation.uniqueness_ratio=null)"
                 )
             if evidence.uniqueness >= cfg.uniqueness_ratio:
-                return False
+                failed.append("uniqueness")
         if cfg.max_position_sigma_m is not None:
             if evidence.position_sigma is None:
                 raise ValueError(
@@ -406,17 +442,17 @@ class PoseValidator:
                     "it again, or set reloc.validation.max_position_sigma_m=null)"
                 )
             if not evidence.position_sigma <= cfg.max_position_sigma_m:
-                return False
+                failed.append("position sigma")
         if evidence.num_inliers < cfg.min_inlier_ratio * max(evidence.num_matches, 1):
-            return False
+            failed.append("inlier ratio")
         if evidence.coverage < cfg.min_coverage:
-            return False
-        if cfg.ambiguity_ratio is None:
-            return True
-        return not any(
+            failed.append("coverage")
+        if cfg.ambiguity_ratio is not None and any(
             distance > cfg.theta_dist_m and inliers >= cfg.ambiguity_ratio * evidence.num_inliers
             for inliers, distance in evidence.rivals
-        )
+        ):
+            failed.append("rival")
+        return tuple(failed)
 
     def validate_result(
         self,
