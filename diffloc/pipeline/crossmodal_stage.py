@@ -100,10 +100,10 @@ MAP_OUTPUTS: dict[type, str] = {
 }
 """The output of the map stage each map option renders the database from."""
 RETRIEVAL_FILE = "netvlad.safetensors"
+"""The output of the retrieval stage (:mod:`diffloc.pipeline.crossmodal_retrieval`)."""
 LOCALIZATION_RECORD = 2
 """Version of ``localization.npz``'s contents, part of the localisation stage's key: a record
 of an older version (2: the ``candidate_*`` arrays, the validation's evidence) is made again."""
-"""The output of the retrieval stage (:mod:`diffloc.pipeline.crossmodal_retrieval`)."""
 
 
 def crossmodal_folder(dataset: str | os.PathLike) -> Path:
