@@ -4,6 +4,7 @@ gradients, the render paths, export and the setting's validation."""
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import pytest
@@ -139,9 +140,13 @@ def test_export_round_trip_keeps_the_background(tmp_path: Path) -> None:
         assert torch.equal(loaded.background(codes), field.background(codes))
 
 
-def test_a_field_exported_without_background_loads_without_one(tmp_path: Path) -> None:
+def test_a_field_exported_before_the_setting_loads_without_background(tmp_path: Path) -> None:
     field, grid = _scene("none", density_bias=0.0)
-    loaded, _ = load_field(export_field(tmp_path / "field", field, grid))
+    out = export_field(tmp_path / "field", field, grid)
+    record = json.loads((out / "field.json").read_text())
+    del record["field"]["background"]
+    (out / "field.json").write_text(json.dumps(record))
+    loaded, _ = load_field(out)
     assert loaded.config.background == "none" and loaded.background_head is None
 
 
