@@ -9,7 +9,9 @@ composes for ``--scene`` (``indoor``, the default, or ``outdoor``: mip-NeRF 360 
 lidar returns up to 80 m, a 15 m box; ``diffloc/conf/nerf/scene/silvr_outdoor.yaml``), so
 ``--scene outdoor --data data/outdoor_seed0`` measures the outdoor courtyard; variant
 ``uncontracted`` trains the same field without the contraction, ``uncontracted_all`` also with
-the box over all the returns used, ``planes512`` adds a 512 tri-plane level.
+the box over all the returns used, ``planes512`` adds a 512 tri-plane level. ``--override``
+adds Hydra overrides to the composed config (``nerf.train.field.background=learned``: the
+learnt background colour the sky composites over, issue 19).
 Training uses the images, mapping poses and lidar sweeps only. A held-out image's appearance
 code is fitted on its left half (field frozen) and PSNR is taken on its right half (NeRF-W).
 Ground-truth depth images are read here for scoring only (depth error, normal error).
@@ -487,10 +489,11 @@ def _finish(record: dict, out: Path, args: argparse.Namespace) -> None:
         Path(args.contraction_md).write_text(contraction_markdown(record))
 
 
-def nerf_settings(scene: str) -> TrainNerfConfig:
-    """The ``nerf`` node ``diffloc task=train_nerf scene=<scene>`` composes (clustering,
-    data and training settings; ``nerf/scene/silvr_<scene>.yaml`` where it exists)."""
-    return to_object(compose_config([f"scene={scene}", "task=train_nerf"])).nerf
+def nerf_settings(scene: str, overrides: list[str] = ()) -> TrainNerfConfig:
+    """The ``nerf`` node ``diffloc task=train_nerf scene=<scene> <overrides>`` composes
+    (clustering, data and training settings; ``nerf/scene/silvr_<scene>.yaml`` where it
+    exists)."""
+    return to_object(compose_config([f"scene={scene}", "task=train_nerf", *overrides])).nerf
 
 
 def variant_config(base: NerfTrainConfig, encoding: str, variant: str) -> NerfTrainConfig:
@@ -531,13 +534,19 @@ def main() -> None:
         "--ablation-reference", help="JSONL whose last line is a full run of another moment"
     )
     parser.add_argument("--loc-results", help="results.json of task=crossmodal map=nerf")
+    parser.add_argument(
+        "--override",
+        nargs="+",
+        default=[],
+        help="Hydra overrides, e.g. nerf.train.field.background=learned",
+    )
     args = parser.parse_args()
     if args.merge:
         merge(args.merge, Path(args.out), args)
         return
     torch.set_num_threads(args.threads)
     data = args.data or f"data/{args.scene}_seed0"
-    nerf = nerf_settings(args.scene)
+    nerf = nerf_settings(args.scene, args.override)
     seq = read_sequence(data, "mapping")
     submaps = cluster_trajectory(seq.T_wc, nerf.submaps)
     submap = submaps[args.submap]
@@ -548,6 +557,7 @@ def main() -> None:
         "data": data,
         "scene": args.scene,
         "contracted": nerf.train.field.contracted,
+        "background": nerf.train.field.background,
         "submap": args.submap,
         "frames": len(submap.frames),
         "train_frames": len(rays.frames),

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from diffloc.config import compose_config, to_object
 from diffloc.eval.field_scores import heldout_field_scores
@@ -53,7 +54,22 @@ def test_the_record_holds_finite_held_out_scores_of_the_exported_field(
     seq = read_sequence(tiny_indoor_dataset, "mapping")
     camera = seq.camera.scaled(cfg.data.image_scale)
     again = heldout_field_scores(field, grid, seq, camera, [0], full=True)
-    assert again == pytest.approx(scores, rel=1e-5)
+    assert {key: again[key] for key in HELDOUT_KEYS} == pytest.approx(scores, rel=1e-5)
+
+    # the surface / sky split of the right half pools back to the frame's PSNR
+    gt = F.interpolate(seq.load_depth(0)[None], size=(camera.height, camera.width))
+    gt = gt[0, 0, :, camera.width // 2 :]
+    n_surface = int((gt > 0).sum())
+    n_sky = gt.numel() - n_surface
+    assert n_surface > 0 and (again["psnr_heldout_sky_db"] is None) == (n_sky == 0)
+    total = n_surface * _mse(again["psnr_heldout_surface_db"])
+    if n_sky:
+        total += n_sky * _mse(again["psnr_heldout_sky_db"])
+    assert total / gt.numel() == pytest.approx(_mse(again["psnr_heldout_db"]), rel=1e-4)
+
+
+def _mse(psnr_db: float) -> float:
+    return 10 ** (-psnr_db / 10)
 
 
 def test_without_held_out_frames_the_record_says_why_and_nothing_crashes(

@@ -117,7 +117,10 @@ def heldout_field_scores(
     Returns:
         ``psnr_heldout_db`` (mean over the frames); with ``full`` also
         ``depth_median_abs_err_m`` (over pixels with ground-truth depth) and
-        ``normal_median_err_deg`` (over pixels with a reference normal).
+        ``normal_median_err_deg`` (over pixels with a reference normal), and the PSNR of the
+        right halves split by the ground truth, pooled over the frames:
+        ``psnr_heldout_surface_db`` (pixels with depth) and ``psnr_heldout_sky_db`` (pixels
+        without, the sky outdoors; ``None`` when there is none).
 
     Raises:
         ValueError: no held-out frame.
@@ -127,6 +130,7 @@ def heldout_field_scores(
     was_training = field.training
     field.eval()
     psnrs, depth_err, normal_err = [], [], []
+    squared: dict[str, list[torch.Tensor]] = {"surface": [], "sky": []}
     uv = camera.pixel_grid(torch.float32).reshape(-1, 2)
     left = uv[:, 0] < camera.width / 2
     half = camera.width // 2
@@ -149,6 +153,9 @@ def heldout_field_scores(
             gt = seq.load_depth(frame)
             gt = F.interpolate(gt[None], size=(camera.height, camera.width), mode="nearest")[0]
             valid = gt[0] > 0
+            error = ((right - image[:, :, half:]) ** 2).mean(0)
+            squared["surface"].append(error[valid[:, half:]])
+            squared["sky"].append(error[~valid[:, half:]])
             depth_err.append((out["depth"][0] - gt[0])[valid].abs())
             n_gt = depth_image_normals(gt, camera)
             n_gt_world = torch.einsum("ij,jhw->ihw", T_wc[:3, :3], n_gt)
@@ -160,4 +167,9 @@ def heldout_field_scores(
     if full:
         result["depth_median_abs_err_m"] = float(torch.cat(depth_err).median())
         result["normal_median_err_deg"] = float(torch.cat(normal_err).median())
+        for name, errors in squared.items():
+            pooled = torch.cat(errors)
+            result[f"psnr_heldout_{name}_db"] = (
+                -10 * math.log10(max(float(pooled.mean()), 1e-12)) if len(pooled) else None
+            )
     return result

@@ -4,7 +4,9 @@
 (real spherical harmonics up to degree 2) and a learnt appearance code of the image
 (NeRF-W, Martin-Brualla et al. 2021), so that lighting that changes between runs is explained
 by the code rather than by geometry. Normals are the normalised negative density gradient,
-formed analytically in the same evaluation as the density.
+formed analytically in the same evaluation as the density. With ``background="learned"`` the
+field also has a background colour (:meth:`RadianceField.background`) that rays which leave it
+composite over (the sky outdoors).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from diffloc.maps.nerf.contraction import SceneNormalisation
 from diffloc.maps.nerf.encodings import HashGridEncoding, TriplaneEncoding
 
 __all__ = [
+    "BACKGROUNDS",
     "ENCODINGS",
     "FieldConfig",
     "FieldOutputs",
@@ -31,6 +34,10 @@ __all__ = [
 
 ENCODINGS = ("triplane", "hashgrid")
 """The position encodings of :class:`RadianceField`."""
+
+BACKGROUNDS = ("none", "learned")
+"""Background models of :class:`RadianceField`: none (rays that leave the field composite over
+black) or a learnt colour of the image's appearance code."""
 
 
 @dataclass
@@ -52,6 +59,9 @@ class FieldConfig:
         appearance_dim: length of the per-image appearance code (0: none).
         contracted: mip-NeRF 360 contraction (unbounded scenes).
         density_bias: added to the density logit before ``exp`` (start nearly empty).
+        background: ``"none"`` or ``"learned"`` (:data:`BACKGROUNDS`): the colour a ray's
+            remaining transmittance composites over, ``sigmoid(W a + b)`` of the image's
+            appearance code ``a`` (its colour input, as for the colour MLP).
     """
 
     encoding: str = "triplane"
@@ -68,8 +78,13 @@ class FieldConfig:
     appearance_dim: int = 8
     contracted: bool = False
     density_bias: float = -1.0
+    background: str = "none"
 
     def __post_init__(self) -> None:
+        if self.background not in BACKGROUNDS:
+            raise ValueError(
+                f"background must be one of {list(BACKGROUNDS)} (got {self.background!r})"
+            )
         if self.encoding not in ENCODINGS:
             raise ValueError(
                 f"encoding must be one of {list(ENCODINGS)} (unknown encoding {self.encoding!r})"
@@ -171,6 +186,20 @@ class RadianceField(nn.Module):
         self.colour_mlp = _mlp(colour_in, config.hidden, 3)
         self.appearance = nn.Embedding(max(num_images, 1), config.appearance_dim)
         nn.init.zeros_(self.appearance.weight)
+        self.background_head: nn.Linear | None = None
+        if config.background == "learned":
+            self.background_head = nn.Linear(config.appearance_dim, 3)
+            nn.init.zeros_(self.background_head.weight)
+            nn.init.zeros_(self.background_head.bias)
+
+    def background(self, appearance: torch.Tensor) -> torch.Tensor | None:
+        """Background RGB (N, 3) in [0, 1] of rays of images with appearance codes
+        (N, appearance_dim), ``None`` without a background model (``config.background``).
+        Starts at grey (0.5) for every code."""
+        if self.background_head is None:
+            return None
+        check_shape(appearance, f"N,{self.config.appearance_dim}", "appearance")
+        return torch.sigmoid(self.background_head(appearance))
 
     def geometry(self, points_world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Density (N,) in 1/m (zero outside the field) and the geometry features

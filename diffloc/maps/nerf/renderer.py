@@ -12,7 +12,7 @@ from diffloc.checks import check_shape
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.maps.nerf.field import RadianceField
 from diffloc.maps.nerf.rays import camera_rays, ray_box_bounds
-from diffloc.maps.nerf.rendering import composite, render_weights
+from diffloc.maps.nerf.rendering import composite, composite_over, render_weights
 from diffloc.maps.nerf.sampler import DensityGrid, interval_lengths
 
 __all__ = ["RenderedRays", "render_image", "render_rays"]
@@ -23,7 +23,8 @@ class RenderedRays:
     """Per-ray render results.
 
     Attributes:
-        rgb: (R, 3) colour, or ``None`` when colour was not asked for.
+        rgb: (R, 3) colour (over the field's background colour, if it has one), or ``None``
+            when colour was not asked for.
         range: (R,) expected termination distance along the ray, metres.
         opacity: (R,) sum of the weights.
         normal: (R, 3) unit rendered normal, or ``None``.
@@ -119,6 +120,9 @@ def render_rays(
     termination (``stop_transmittance`` without grad, ``grad_stop_transmittance`` with):
     samples after a ray's transmittance has fallen to the threshold are not evaluated
     (:class:`_Marcher`), which changes colour and opacity by at most the threshold.
+    A field with a background model (``field.config.background``) composites each ray's
+    remaining transmittance over its background colour (:func:`composite_over`); range,
+    opacity and normals do not see the background.
 
     Args:
         field: the radiance field.
@@ -177,7 +181,12 @@ def render_rays(
     rgb = normal = None
     if appearance is not None:
         colour = field.colour(geo[seen], directions[ray], appearance[ray])
-        rgb = composite(weights, _scatter(colour, visible, r * s).reshape(r, s, 3))
+        colours = _scatter(colour, visible, r * s).reshape(r, s, 3)
+        background = field.background(appearance)
+        if background is None:
+            rgb = composite(weights, colours)
+        else:
+            rgb = composite_over(weights, colours, background)
     if with_normals:
         if joint:
             normals, shaded = normals[0][seen], visible
