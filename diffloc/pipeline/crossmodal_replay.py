@@ -28,7 +28,6 @@ Usage::
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +35,7 @@ import numpy as np
 from diffloc.eval.metrics import PoseErrors, pose_errors
 from diffloc.io.dataset import read_sequence
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization
-from diffloc.reloc.rendered import pose_evidence
+from diffloc.reloc.rendered import pose_evidence, reference_validation
 from diffloc.reloc.validation import (
     PLAUSIBILITY_TESTS,
     PoseEvidence,
@@ -111,6 +110,7 @@ def replay_validation(
         ValueError: a sequence-mode validation, or ``min_photometric_real`` without ``real``.
 
     Example (a pose of 100 inliers over 80 % of the image, a rival of 90 inliers 5 m away):
+        >>> from dataclasses import replace
         >>> import torch
         >>> evidence = PoseEvidence(torch.zeros(3, dtype=torch.float64), 100, 150, 0.8,
         ...                         ((100, 0.0), (90, 5.0)), 0.6)
@@ -133,9 +133,10 @@ def replay_validation(
             failed.append(())
             continue
         reference, pose = answer
-        validator = plain
-        if min_photometric_real is not None and bool(real[reference]):
-            validator = PoseValidator(replace(validation, min_photometric=min_photometric_real))
+        config = reference_validation(
+            validation, min_photometric_real, real is not None and bool(real[reference])
+        )
+        validator = plain if config is validation else PoseValidator(config)
         tests = validator.failed_tests(pose)
         if pose.num_inliers < validation.theta_in:
             tests = ("inliers", *tests)

@@ -88,6 +88,7 @@ __all__ = [
     "choose_candidate",
     "lift_keypoints",
     "pose_evidence",
+    "reference_validation",
     "single_image_validation",
 ]
 
@@ -376,6 +377,25 @@ def accept_pose(
     return PoseValidator(validation).plausible(pose_evidence(best, candidates, photometric))
 
 
+def reference_validation(
+    validation: ValidationConfig | None, min_photometric_real: float | None, real: bool
+) -> ValidationConfig | None:
+    """The validation of a pose from one reference: for a real image (``real``) with
+    ``min_photometric_real`` set, that photometric threshold replaces ``min_photometric``;
+    otherwise ``validation`` itself.
+
+    Example:
+        >>> check = ValidationConfig(theta_in=20, temporal=False, min_photometric=0.4)
+        >>> reference_validation(check, 0.7, True).min_photometric
+        0.7
+        >>> reference_validation(check, 0.7, False) is check
+        True
+    """
+    if validation is None or min_photometric_real is None or not real:
+        return validation
+    return replace(validation, min_photometric=min_photometric_real)
+
+
 def lift_keypoints(
     keypoints: torch.Tensor, depth: torch.Tensor, camera: PinholeCamera
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -505,10 +525,12 @@ class RenderedDatabaseLocalizer:
         best, candidates = choose_candidate(attempts, self.config.select, self.config.stop_inliers)
         photometric = self._photometric(image, camera, best) if best.success else math.nan
         validation = self.config.validation
-        real = self.config.min_photometric_real
-        if validation is not None and real is not None and best.success:
-            if bool(self.database.real[best.reference]):
-                validation = replace(validation, min_photometric=real)
+        if best.success:
+            validation = reference_validation(
+                validation,
+                self.config.min_photometric_real,
+                bool(self.database.real[best.reference]),
+            )
         geometric = None if validation is None else replace(validation, min_photometric=None)
         return RenderedLocalization(
             T_wc=best.T_wc,
