@@ -20,6 +20,7 @@ from diffloc.pipeline.crossmodal_replay import (
 )
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization, candidate_arrays
 from diffloc.reloc.rendered import RenderedCandidate, accept_pose, single_image_validation
+from diffloc.reloc.stage_clock import STAGES
 from diffloc.reloc.validation import PoseEvidence
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,7 +51,15 @@ def _localization() -> tuple[SequenceLocalization, list]:
     answers = []
     for tried, chosen, _ in QUERIES:
         candidates = tuple(_candidate(*c) for c in tried)
-        answers.append(SimpleNamespace(reference=chosen, candidates=candidates))
+        retrieved = torch.tensor([c.reference for c in candidates], dtype=torch.int64)
+        answers.append(
+            SimpleNamespace(
+                reference=chosen,
+                candidates=candidates,
+                retrieved=retrieved,
+                rerank_matches=torch.full_like(retrieved, -1),
+            )
+        )
     q = len(QUERIES)
     bests = [next((c for c in a.candidates if c.reference == a.reference), None) for a in answers]
     loc = SequenceLocalization(
@@ -68,6 +77,9 @@ def _localization() -> tuple[SequenceLocalization, list]:
         from_prior=np.zeros(q, dtype=bool),
         prior_images=np.zeros(q, dtype=np.int64),
         time_ms=np.ones(q),
+        cpu_ms=np.ones(q),
+        stage_ms=np.zeros((q, len(STAGES))),
+        stage_cpu_ms=np.zeros((q, len(STAGES))),
         **candidate_arrays(answers),
     )
     return loc, answers
