@@ -212,7 +212,11 @@ class RenderedLocalizerConfig:
             ``query_same`` and ``query_reverse`` (80.6 / 42.4 % at 100 % precision), 1.9
             instead of 4.1 and 4.1 instead of 10.5 candidates matched per query on average,
             median CPU per ``query_reverse`` query 1440 -> 570 ms
-            (``experiments/results/crossmodal_time_mesh_indoor_seed0.md``).
+            (``experiments/results/crossmodal_time_mesh_indoor_seed0.md``); but on held-out
+            seed 1 it loses a ``query_same`` pose (71.9 -> 68.8 %) and accepts 2 wrong
+            ``query_reverse`` poses instead of 1 (fewer candidates, fewer rivals for the
+            ambiguity test; ``..._seed1.md``, ``experiments/rerank_ratio_replay.py``), so it
+            is off.
         prior: in a query sequence, the database images near the last accepted pose are
             tried before the retrieval's (:mod:`diffloc.reloc.sequence_prior`, beyond seed
             2); ``None``: every query on its own (Algorithm 1). The localiser itself only
