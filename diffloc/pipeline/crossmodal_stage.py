@@ -80,6 +80,7 @@ __all__ = [
     "LOCALIZATION_RECORD",
     "MAP_OUTPUTS",
     "RETRIEVAL_FILE",
+    "TIMING_ARRAYS",
     "SequenceLocalization",
     "build_rgbd_database",
     "build_rgbd_map",
@@ -100,6 +101,17 @@ MAP_OUTPUTS: dict[type, str] = {
     NerfMapConfig: "fields",
 }
 """The output of the map stage each map option renders the database from."""
+TIMING_ARRAYS = (
+    "time_ms",
+    "cpu_ms",
+    "stage_ms",
+    "stage_cpu_ms",
+    "candidate_match_ms",
+    "candidate_match_cpu_ms",
+    "candidate_pnp_ms",
+)
+"""The arrays of ``localization.npz`` that hold times: all others are the same in every run
+of the same settings."""
 RETRIEVAL_FILE = "netvlad.safetensors"
 """The output of the retrieval stage (:mod:`diffloc.pipeline.crossmodal_retrieval`)."""
 LOCALIZATION_RECORD = 3
