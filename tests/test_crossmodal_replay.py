@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from diffloc.io.npz import write_npz
 from diffloc.pipeline.crossmodal_replay import (
     recorded_evidence,
     recorded_validation,
@@ -183,3 +184,16 @@ def test_the_choice_takes_the_most_right_poses_without_more_wrong_ones():
     assert len(points) == np.prod([len(v) for v in script.GRID.values()])
     step = script.margin([run], best["setting"])["min_coverage"]
     assert (step["value"], step["right"], step["wrong"]) == (0.4375, 3, 0)
+
+
+def test_a_record_without_the_time_arrays_is_refused_by_name(tmp_path):
+    loc, _ = _localization()
+    arrays = {k: v for k, v in loc.__dict__.items() if k not in ("stage_ms", "cpu_ms")}
+    path = tmp_path / "localization.npz"
+    with path.open("wb") as handle:
+        write_npz(handle, arrays)
+    with pytest.raises(ValueError, match="localization.npz: no cpu_ms, stage_ms"):
+        SequenceLocalization.load(path)
+    with path.open("wb") as handle:
+        write_npz(handle, loc.__dict__)
+    assert np.array_equal(SequenceLocalization.load(path).stage_ms, loc.stage_ms)

@@ -526,8 +526,19 @@ class SequenceLocalization:
 
     @classmethod
     def load(cls, path: Path) -> SequenceLocalization:
-        """Read ``localization.npz`` written by :func:`localize_sequence`."""
+        """Read ``localization.npz`` written by :func:`localize_sequence`.
+
+        Raises:
+            ValueError: an archive without some of the arrays (e.g. one written before
+                :data:`LOCALIZATION_RECORD` had them); the message names the file.
+        """
         arrays = read_npz_archive(path)
+        missing = sorted(set(cls.__dataclass_fields__) - set(arrays))
+        if missing:
+            raise ValueError(
+                f"{path}: no {', '.join(missing)} (written before record version "
+                f"{LOCALIZATION_RECORD}?); run the localisation again (diffloc task=crossmodal)"
+            )
         return cls(**{name: arrays[name] for name in cls.__dataclass_fields__})
 
     def candidates(self, query: int) -> tuple[RenderedCandidate, tuple[RenderedCandidate, ...]]:
