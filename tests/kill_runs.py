@@ -23,6 +23,7 @@ from diffloc.cli import run
 from diffloc.config import compose_config, to_object
 from diffloc.pipeline.build_map import BuildMapConfig, build_maps
 from diffloc.pipeline.colmap_stage import ExportColmapTaskConfig, export_colmap
+from diffloc.pipeline.crossmodal_stage import TIMING_ARRAYS
 from diffloc.pipeline.database_select import updated_dir
 from diffloc.pipeline.database_stage import (
     DatabaseConfig,
@@ -245,14 +246,15 @@ TIMED = {".png", ".md", ".json"}
 
 def _comparable(stage: str, path: Path) -> bytes | None:
     """What two runs of ``stage`` must agree on in output file ``path``: its bytes, but a
-    localisation archive without its ``time_ms`` and none of ``relocalize``'s reports (its
-    poses are; ``None``: not compared)."""
+    localisation archive without its times (``time_ms``; ``TIMING_ARRAYS`` of
+    ``task=crossmodal``'s) and none of ``relocalize``'s reports (its poses are; ``None``: not
+    compared)."""
     if stage == "relocalize" and path.suffix in TIMED:
         return None
     if path.name != "localization.npz":
         return path.read_bytes()
     with np.load(path, allow_pickle=False) as archive:
-        arrays = [(k, archive[k]) for k in sorted(archive.files) if k != "time_ms"]
+        arrays = [(k, archive[k]) for k in sorted(archive.files) if k not in TIMING_ARRAYS]
     return b"".join(f"{k}{a.dtype.str}{a.shape}".encode() + a.tobytes() for k, a in arrays)
 
 

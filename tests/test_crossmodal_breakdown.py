@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization, candidate_arrays
+from diffloc.reloc.stage_clock import STAGES
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -56,6 +57,9 @@ def test_every_query_gets_the_first_stage_that_decides_it():
         from_prior=np.zeros(q, dtype=bool),
         prior_images=np.zeros(q, dtype=np.int64),
         time_ms=np.ones(q),
+        cpu_ms=np.ones(q),
+        stage_ms=np.zeros((q, len(STAGES))),
+        stage_cpu_ms=np.zeros((q, len(STAGES))),
         **candidate_arrays([]),
     )
     # the tests each pose fails, as the replay gives them

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from diffloc.io.npz import write_npz
 from diffloc.pipeline.crossmodal_replay import (
     recorded_evidence,
     recorded_validation,
@@ -20,6 +21,7 @@ from diffloc.pipeline.crossmodal_replay import (
 )
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization, candidate_arrays
 from diffloc.reloc.rendered import RenderedCandidate, accept_pose, single_image_validation
+from diffloc.reloc.stage_clock import STAGES
 from diffloc.reloc.validation import PoseEvidence
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,7 +52,15 @@ def _localization() -> tuple[SequenceLocalization, list]:
     answers = []
     for tried, chosen, _ in QUERIES:
         candidates = tuple(_candidate(*c) for c in tried)
-        answers.append(SimpleNamespace(reference=chosen, candidates=candidates))
+        retrieved = torch.tensor([c.reference for c in candidates], dtype=torch.int64)
+        answers.append(
+            SimpleNamespace(
+                reference=chosen,
+                candidates=candidates,
+                retrieved=retrieved,
+                rerank_matches=torch.full_like(retrieved, -1),
+            )
+        )
     q = len(QUERIES)
     bests = [next((c for c in a.candidates if c.reference == a.reference), None) for a in answers]
     loc = SequenceLocalization(
@@ -68,6 +78,9 @@ def _localization() -> tuple[SequenceLocalization, list]:
         from_prior=np.zeros(q, dtype=bool),
         prior_images=np.zeros(q, dtype=np.int64),
         time_ms=np.ones(q),
+        cpu_ms=np.ones(q),
+        stage_ms=np.zeros((q, len(STAGES))),
+        stage_cpu_ms=np.zeros((q, len(STAGES))),
         **candidate_arrays(answers),
     )
     return loc, answers
@@ -171,3 +184,16 @@ def test_the_choice_takes_the_most_right_poses_without_more_wrong_ones():
     assert len(points) == np.prod([len(v) for v in script.GRID.values()])
     step = script.margin([run], best["setting"])["min_coverage"]
     assert (step["value"], step["right"], step["wrong"]) == (0.4375, 3, 0)
+
+
+def test_a_record_without_the_time_arrays_is_refused_by_name(tmp_path):
+    loc, _ = _localization()
+    arrays = {k: v for k, v in loc.__dict__.items() if k not in ("stage_ms", "cpu_ms")}
+    path = tmp_path / "localization.npz"
+    with path.open("wb") as handle:
+        write_npz(handle, arrays)
+    with pytest.raises(ValueError, match="localization.npz: no cpu_ms, stage_ms"):
+        SequenceLocalization.load(path)
+    with path.open("wb") as handle:
+        write_npz(handle, loc.__dict__)
+    assert np.array_equal(SequenceLocalization.load(path).stage_ms, loc.stage_ms)

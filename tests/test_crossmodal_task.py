@@ -14,6 +14,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from diffloc.cli import run
@@ -22,6 +23,8 @@ from diffloc.io.dataset import read_sequence
 from diffloc.io.exposure import EXPOSURE_FILE
 from diffloc.io.trajectory import read_tum
 from diffloc.pipeline import crossmodal_retrieval, crossmodal_stage
+from diffloc.pipeline.crossmodal_stage import SequenceLocalization
+from diffloc.reloc.stage_clock import STAGES
 from diffloc.sim.dataset import simulate_dataset
 from tests.conftest import TINY, scene_config
 
@@ -112,6 +115,26 @@ def test_the_task_localizes_queries_in_the_rendered_tls_database(dataset, first)
     assert json.loads((out / "results.json").read_text())["sequences"] == results["sequences"]
     floors = dataset / "crossmodal" / "poses_tls_map" / "floors"
     assert sorted(p.name for p in floors.iterdir()) == ["floor_0.png", "floor_1.png"]
+
+
+def test_the_time_of_every_stage_and_candidate_is_recorded_and_summarised(dataset, first):
+    results, out = first
+    loc = SequenceLocalization.load(
+        dataset / "crossmodal" / "tls" / "localize_query_same" / "localization.npz"
+    )
+    assert loc.stage_ms.shape == loc.stage_cpu_ms.shape == (4, len(STAGES))
+    per_query = np.bincount(loc.candidate_query, weights=loc.candidate_match_ms, minlength=4)
+    np.testing.assert_allclose(loc.stage_ms[:, STAGES.index("matching")], per_query)
+    assert (loc.stage_ms.sum(1) <= loc.time_ms).all() and (loc.cpu_ms > 0).all()
+    assert (loc.candidate_rerank_matches > 0).all() and (loc.candidate_match_cpu_ms > 0).all()
+    time = results["sequences"]["query_same"]["time"]
+    assert time["median_ms"] == results["sequences"]["query_same"]["median_ms_per_query"]
+    assert time["median_cpu_ms"] == float(np.median(loc.cpu_ms))
+    assert time["candidates"]["mean"] == len(loc.candidate_query) / 4
+    matching = time["stages"]["matching"]["mean_cpu_ms"]
+    assert matching == float(loc.stage_cpu_ms[:, STAGES.index("matching")].mean()) > 0
+    assert time["match_cpu_ms"] == float(np.median(loc.candidate_match_cpu_ms))
+    assert "| query_same | " + f"{time['median_ms']:.0f} |" in (out / "results.md").read_text()
 
 
 def test_a_second_run_reuses_every_stage(dataset, first, tmp_path, monkeypatch):

@@ -28,6 +28,7 @@ from diffloc.reloc.rendered import (
     RenderedLocalizerConfig,
 )
 from diffloc.reloc.sequence_prior import SequencePrior, localize_in_order
+from diffloc.reloc.stage_clock import STAGES
 
 F64 = torch.float64
 
@@ -119,8 +120,26 @@ class FakeLocalizer:
         T = torch.eye(4, dtype=F64)
         T[0, 3] = x
         empty = torch.zeros(0, dtype=torch.int64)
+        times = dict.fromkeys(STAGES, 0.0)
         return RenderedLocalization(
-            T, accepted, accepted, 0, empty, empty, False, (), 0, 0, 0, math.nan, accepted, 0, 0
+            T,
+            accepted,
+            accepted,
+            0,
+            empty,
+            empty,
+            False,
+            (),
+            0,
+            0,
+            0,
+            math.nan,
+            accepted,
+            0,
+            0,
+            empty,
+            times,
+            times,
         )
 
 

@@ -37,6 +37,7 @@ from diffloc.reloc.rendered import (
     lift_keypoints,
 )
 from diffloc.reloc.rerank import RerankConfig
+from diffloc.reloc.stage_clock import STAGES
 from diffloc.reloc.validation import ValidationConfig
 from diffloc.render.point_sizes import PointSizes
 
@@ -116,7 +117,9 @@ def test_point_cloud_database_localizes_a_query_rendered_from_the_cloud(scene):
 
 def test_bag_of_words_retrieval_and_top_k_fallback(scene, mesh_database):
     mesh_map, mapping = scene
-    config = RenderedLocalizerConfig(retriever="bow", top_k=3, select="first")
+    config = RenderedLocalizerConfig(
+        retriever="bow", top_k=3, select="first", min_rerank_ratio=None
+    )
     result = RenderedDatabaseLocalizer(mesh_database, config).localize(
         mesh_map.render((mapping.T_wc[3] @ se3_exp(OFFSET))[None], mapping.camera).rgb[0],
         mapping.camera,
@@ -170,7 +173,7 @@ def test_matches_without_depth_give_no_points_and_no_pose(scene, mesh_database):
     )
     T_query = mapping.T_wc[1] @ se3_exp(OFFSET)
     image = mesh_map.render(T_query[None], mapping.camera).rgb[0]
-    config = RenderedLocalizerConfig(top_k=3, select="most_inliers")
+    config = RenderedLocalizerConfig(top_k=3, select="most_inliers", min_rerank_ratio=None)
     result = RenderedDatabaseLocalizer(no_depth, config).localize(image, mapping.camera)
     assert result.num_matches > 0 and result.num_points == 0
     assert not result.success and not result.accepted and result.num_inliers == 0
@@ -235,6 +238,12 @@ def test_bad_configs_are_rejected():
     for bad in (0.0, 1.5, -0.5, math.nan):
         with pytest.raises(ValueError, match="depth_confidence must be -1"):
             RenderedLocalizerConfig(depth_confidence=bad)
+    for bad in (0.0, 1.5, math.nan):
+        with pytest.raises(ValueError, match="width_confidence must be -1"):
+            RenderedLocalizerConfig(width_confidence=bad)
+    for bad in (-0.1, 1.5, math.nan):
+        with pytest.raises(ValueError, match="min_rerank_ratio must be in"):
+            RenderedLocalizerConfig(min_rerank_ratio=bad)
     for bad in (1.5, -2.0, math.nan):
         with pytest.raises(ValueError, match="min_photometric_real must be in"):
             RenderedLocalizerConfig(min_photometric_real=bad)
@@ -309,6 +318,62 @@ def test_mutual_nn_reranking_recovers_the_right_image_the_global_retrieval_misse
     ).localize(image, mapping.camera)
     assert reranked.retrieved.tolist() == [2] and reranked.reference == 2
     assert reranked.success and _errors(reranked.T_wc, T_query)[0] < 0.05
+
+
+def test_every_stage_of_a_query_is_timed_and_the_candidates_add_up(scene, mesh_database):
+    _, mapping = scene
+    image, _ = _near_frame_2(scene)
+    config = RenderedLocalizerConfig(
+        top_k=3, stop_inliers=None, validation=None, min_rerank_ratio=None
+    )
+    result = RenderedDatabaseLocalizer(mesh_database, config).localize(image, mapping.camera)
+    assert result.success and len(result.candidates) == 3
+    assert set(result.stage_ms) == set(result.stage_cpu_ms) == set(STAGES)
+    assert all(result.stage_ms[name] > 0.0 for name in STAGES)
+    assert sum(result.stage_ms.values()) <= result.time_ms
+    assert sum(result.stage_cpu_ms.values()) <= result.cpu_ms + 1.0  # clock granularity
+    matches = [c.match_ms for c in result.candidates]
+    assert min(matches) > 0.0 and result.stage_ms["matching"] == pytest.approx(sum(matches))
+    pnp = [c.pnp_ms for c in result.candidates]
+    assert min(pnp) > 0.0 and result.stage_ms["pnp"] == pytest.approx(sum(pnp))
+    cpu = sum(c.match_cpu_ms for c in result.candidates)
+    assert result.stage_cpu_ms["matching"] == pytest.approx(cpu)
+    assert len(result.rerank_matches) == len(result.retrieved) == 3
+    assert result.rerank_matches.tolist() == sorted(result.rerank_matches.tolist(), reverse=True)
+    given = RenderedDatabaseLocalizer(mesh_database, config).localize(
+        image, mapping.camera, torch.tensor([2])
+    )
+    assert given.rerank_matches.tolist() == [-1]
+    assert given.stage_ms["retrieval"] == given.stage_ms["rerank"] == 0.0
+
+
+def test_images_far_behind_the_best_in_the_reranking_are_not_matched(scene, mesh_database):
+    """With ``min_rerank_ratio`` only the re-ranked images with at least that share of the
+    most mutual-NN matches are matched: 1.0 keeps the best (and its ties), 0 keeps all."""
+    _, mapping = scene
+    image, T_query = _near_frame_2(scene)
+    config = RenderedLocalizerConfig(
+        top_k=4, stop_inliers=None, validation=None, min_rerank_ratio=None
+    )
+    every = RenderedDatabaseLocalizer(mesh_database, config).localize(image, mapping.camera)
+    counts = every.rerank_matches.tolist()
+    assert len(every.candidates) == 4 and counts[0] > counts[-1]
+    for ratio in (0.0, 0.6, 1.0):
+        localizer = RenderedDatabaseLocalizer(
+            mesh_database, replace(config, min_rerank_ratio=ratio)
+        )
+        result = localizer.localize(image, mapping.camera)
+        kept = [c for c in counts if c >= ratio * counts[0]]
+        assert result.rerank_matches.tolist() == kept
+        tried = [c.reference for c in result.candidates]
+        assert tried == every.retrieved[: len(kept)].tolist()
+    assert result.reference == 2 and _errors(result.T_wc, T_query)[0] < 0.05
+
+
+def test_the_pruning_setting_reaches_the_matcher(mesh_database):
+    config = RenderedLocalizerConfig(width_confidence=-1.0, depth_confidence=0.9)
+    model = RenderedDatabaseLocalizer(mesh_database, config).matcher.model
+    assert (model.conf.width_confidence, model.conf.depth_confidence) == (-1.0, 0.9)
 
 
 def test_validation_accepts_the_right_pose_and_rejects_a_repeated_place(scene, mesh_database):

@@ -61,6 +61,20 @@ def test_counts_agree_with_a_pairwise_reference():
     assert min(expected) > 0
 
 
+def test_counts_without_padding_agree_with_the_pairwise_reference():
+    g = torch.Generator().manual_seed(2)
+    query = _unit(30, g)
+    database = torch.stack([_unit(40, g) for _ in range(4)])
+    expected = []
+    for d in database:
+        s = query @ d.T
+        forward, backward = s.argmax(1), s.argmax(0)
+        expected.append(int((backward[forward] == torch.arange(len(query))).sum()))
+    valid = torch.ones(4, 40, dtype=torch.bool)
+    assert mutual_nn_counts(query, database, valid, -1.0).tolist() == expected
+    assert mutual_nn_counts(query, database, valid, 2.0).tolist() == [0, 0, 0, 0]
+
+
 def test_only_the_strongest_keypoints_take_part(scene):
     """Image 4's shared descriptors are its weakest (image 0's its strongest): with 100
     keypoints per image they are left out and image 4 loses its matches; then the query's

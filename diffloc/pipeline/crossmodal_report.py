@@ -10,7 +10,10 @@ The only place the task reads the query sequences' ground-truth poses. Per seque
   0.5 m / 5 deg and ``loose_m`` / 30 deg (seed 2: 1 m indoors, 2 m outdoors);
 - retrieval rate: the top-1 retrieved render lies within the render spacing and 45 deg of
   the query (seed 2);
-- mATE of the accepted queries and the median wall time per query.
+- mATE of the accepted queries and the median wall time per query;
+- where the time goes (:func:`time_breakdown`): median wall and CPU ms per query, candidates
+  matched, mean CPU ms per stage (:data:`~diffloc.reloc.stage_clock.STAGES`) and the median
+  CPU ms of one LighterGlue match.
 
 Files in the run folder: ``results.md`` and ``results.json`` (the same figures),
 ``trajectory_<sequence>.tum`` (the accepted poses, for ``evo_ape tum``),
@@ -39,6 +42,7 @@ from diffloc.features.retrieval_eval import pairwise_pose_distances
 from diffloc.io.images import write_rgb
 from diffloc.io.sequence import SequenceData
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization, scaled_images
+from diffloc.reloc.stage_clock import STAGES
 
 __all__ = [
     "RETRIEVAL_ANGLE_DEG",
@@ -48,6 +52,8 @@ __all__ = [
     "retrieval_hits",
     "score_sequence",
     "thresholds",
+    "time_breakdown",
+    "time_table",
 ]
 
 RETRIEVAL_ANGLE_DEG = 45.0
@@ -136,7 +142,61 @@ def score_sequence(
         "retrieval_rate": float(hits.mean()),
         "mate_m": _finite(mean_ate(errors)),
         "median_ms_per_query": float(np.median(loc.time_ms)),
+        "time": time_breakdown(loc),
     }
+
+
+def time_breakdown(loc: SequenceLocalization) -> dict:
+    """Where the time of the queries went.
+
+    Returns:
+        ``median_ms`` / ``median_cpu_ms`` (wall / process CPU per query), ``mean_ms`` /
+        ``mean_cpu_ms``, ``candidates`` (median and mean references matched per query),
+        ``stages``: per stage of :data:`~diffloc.reloc.stage_clock.STAGES` the mean wall and
+        CPU ms per query (means, so that they add up to the mean per query but for
+        bookkeeping), ``match_cpu_ms`` / ``match_ms``: median CPU / wall ms of one LighterGlue
+        match, ``pnp_ms``: median wall ms of one lifting + PnP (``None`` for these three when
+        nothing was matched).
+    """
+    per_query = np.bincount(loc.candidate_query, minlength=len(loc.frames))
+    matched = len(loc.candidate_match_ms) > 0
+    return {
+        "median_ms": float(np.median(loc.time_ms)),
+        "median_cpu_ms": float(np.median(loc.cpu_ms)),
+        "mean_ms": float(np.mean(loc.time_ms)),
+        "mean_cpu_ms": float(np.mean(loc.cpu_ms)),
+        "candidates": {"median": float(np.median(per_query)), "mean": float(per_query.mean())},
+        "stages": {
+            name: {
+                "mean_ms": float(loc.stage_ms[:, i].mean()),
+                "mean_cpu_ms": float(loc.stage_cpu_ms[:, i].mean()),
+            }
+            for i, name in enumerate(STAGES)
+        },
+        "match_ms": float(np.median(loc.candidate_match_ms)) if matched else None,
+        "match_cpu_ms": float(np.median(loc.candidate_match_cpu_ms)) if matched else None,
+        "pnp_ms": float(np.median(loc.candidate_pnp_ms)) if matched else None,
+    }
+
+
+def time_table(rows: dict[str, dict]) -> str:
+    """Markdown: per sequence the :func:`time_breakdown` in ``rows[name]["time"]``."""
+    head = ["sequence", "median wall ms", "median CPU ms", "candidates (median / mean)"]
+    head += [f"{name} CPU ms" for name in STAGES] + ["CPU ms per match"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, r in rows.items():
+        t = r["time"]
+        match = t["match_cpu_ms"]
+        cells = [
+            name,
+            f"{t['median_ms']:.0f}",
+            f"{t['median_cpu_ms']:.0f}",
+            f"{t['candidates']['median']:g} / {t['candidates']['mean']:.1f}",
+            *[f"{t['stages'][stage]['mean_cpu_ms']:.0f}" for stage in STAGES],
+            "-" if match is None else f"{match:.0f}",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def markdown_table(rows: dict[str, dict], loose_m: float) -> str:

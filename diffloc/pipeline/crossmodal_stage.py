@@ -72,6 +72,7 @@ from diffloc.reloc.rendered import (
     RenderedLocalizerConfig,
 )
 from diffloc.reloc.sequence_prior import SequencePrior, localize_in_order
+from diffloc.reloc.stage_clock import STAGES
 from diffloc.render.point_render import render_points
 from diffloc.render.point_sizes import PointSizes
 
@@ -79,6 +80,7 @@ __all__ = [
     "LOCALIZATION_RECORD",
     "MAP_OUTPUTS",
     "RETRIEVAL_FILE",
+    "TIMING_ARRAYS",
     "SequenceLocalization",
     "build_rgbd_database",
     "build_rgbd_map",
@@ -99,11 +101,23 @@ MAP_OUTPUTS: dict[type, str] = {
     NerfMapConfig: "fields",
 }
 """The output of the map stage each map option renders the database from."""
+TIMING_ARRAYS = (
+    "time_ms",
+    "cpu_ms",
+    "stage_ms",
+    "stage_cpu_ms",
+    "candidate_match_ms",
+    "candidate_match_cpu_ms",
+    "candidate_pnp_ms",
+)
+"""The arrays of ``localization.npz`` that hold times: all others are the same in every run
+of the same settings."""
 RETRIEVAL_FILE = "netvlad.safetensors"
 """The output of the retrieval stage (:mod:`diffloc.pipeline.crossmodal_retrieval`)."""
-LOCALIZATION_RECORD = 2
+LOCALIZATION_RECORD = 3
 """Version of ``localization.npz``'s contents, part of the localisation stage's key: a record
-of an older version (2: the ``candidate_*`` arrays, the validation's evidence) is made again."""
+of an older version (2: the ``candidate_*`` arrays, the validation's evidence; 3: the time per
+stage and per candidate, the re-ranking's matches) is made again."""
 
 
 def crossmodal_folder(dataset: str | os.PathLike) -> Path:
@@ -454,6 +468,11 @@ class SequenceLocalization:
         prior_images: (Q,) int64 database images the pose prior put first (0: no prior).
         time_ms: (Q,) float64 wall time per query (features, retrieval, matching, PnP,
             photometric consistency).
+        cpu_ms: (Q,) float64 process CPU time per query over the same span.
+        stage_ms: (Q, S) float64 wall ms per stage, columns in the order of
+            :data:`~diffloc.reloc.stage_clock.STAGES` (matching and PnP summed over the
+            candidates).
+        stage_cpu_ms: (Q, S) float64 process CPU ms per stage.
         candidate_query: (C,) int64 the query of each of the C candidates tried over all
             queries (each query's in the order tried): the validation's evidence, so that a
             replay (``experiments/crossmodal_breakdown.py``) can score other thresholds.
@@ -466,6 +485,11 @@ class SequenceLocalization:
         candidate_coverage: (C,) float64 share of the query grid cells holding an inlier.
         candidate_rms_px: (C,) float64 RMS reprojection error of the inliers (NaN: none).
         candidate_position: (C, 3) float64 camera position of its pose (world frame).
+        candidate_rerank_matches: (C,) int64 its mutual-NN matches in the re-ranking (-1: not
+            re-ranked, e.g. a prior image or re-ranking off).
+        candidate_match_ms: (C,) float64 wall ms of its LighterGlue match.
+        candidate_match_cpu_ms: (C,) float64 process CPU ms of its LighterGlue match.
+        candidate_pnp_ms: (C,) float64 wall ms of its lifting and PnP.
     """
 
     frames: np.ndarray
@@ -482,6 +506,9 @@ class SequenceLocalization:
     from_prior: np.ndarray
     prior_images: np.ndarray
     time_ms: np.ndarray
+    cpu_ms: np.ndarray
+    stage_ms: np.ndarray
+    stage_cpu_ms: np.ndarray
     candidate_query: np.ndarray
     candidate_reference: np.ndarray
     candidate_chosen: np.ndarray
@@ -492,11 +519,26 @@ class SequenceLocalization:
     candidate_coverage: np.ndarray
     candidate_rms_px: np.ndarray
     candidate_position: np.ndarray
+    candidate_rerank_matches: np.ndarray
+    candidate_match_ms: np.ndarray
+    candidate_match_cpu_ms: np.ndarray
+    candidate_pnp_ms: np.ndarray
 
     @classmethod
     def load(cls, path: Path) -> SequenceLocalization:
-        """Read ``localization.npz`` written by :func:`localize_sequence`."""
+        """Read ``localization.npz`` written by :func:`localize_sequence`.
+
+        Raises:
+            ValueError: an archive without some of the arrays (e.g. one written before
+                :data:`LOCALIZATION_RECORD` had them); the message names the file.
+        """
         arrays = read_npz_archive(path)
+        missing = sorted(set(cls.__dataclass_fields__) - set(arrays))
+        if missing:
+            raise ValueError(
+                f"{path}: no {', '.join(missing)} (written before record version "
+                f"{LOCALIZATION_RECORD}?); run the localisation again (diffloc task=crossmodal)"
+            )
         return cls(**{name: arrays[name] for name in cls.__dataclass_fields__})
 
     def candidates(self, query: int) -> tuple[RenderedCandidate, tuple[RenderedCandidate, ...]]:
@@ -518,11 +560,20 @@ class SequenceLocalization:
                 int(self.candidate_inliers[c]),
                 float(self.candidate_coverage[c]),
                 float(self.candidate_rms_px[c]),
+                float(self.candidate_match_ms[c]),
+                float(self.candidate_match_cpu_ms[c]),
+                float(self.candidate_pnp_ms[c]),
             )
             tried.append(candidate)
             if self.candidate_chosen[c]:
                 best = candidate
         return best, tuple(tried)
+
+
+def _rerank_matches(result: RenderedLocalization, reference: int) -> int:
+    """The re-ranking's matches of ``reference`` in ``result`` (-1: it was not re-ranked)."""
+    hit = (result.retrieved == reference).nonzero()
+    return int(result.rerank_matches[hit[0, 0]]) if len(hit) else -1
 
 
 def candidate_arrays(results: list[RenderedLocalization]) -> dict[str, np.ndarray]:
@@ -544,7 +595,20 @@ def candidate_arrays(results: list[RenderedLocalization]) -> dict[str, np.ndarra
         "candidate_coverage": np.array([c.coverage for _, _, c in rows], dtype=np.float64),
         "candidate_rms_px": np.array([c.rms_px for _, _, c in rows], dtype=np.float64),
         "candidate_position": position.astype(np.float64),
+        "candidate_rerank_matches": np.array(
+            [_rerank_matches(r, c.reference) for _, r, c in rows], dtype=np.int64
+        ),
+        "candidate_match_ms": np.array([c.match_ms for _, _, c in rows], dtype=np.float64),
+        "candidate_match_cpu_ms": np.array([c.match_cpu_ms for _, _, c in rows], dtype=np.float64),
+        "candidate_pnp_ms": np.array([c.pnp_ms for _, _, c in rows], dtype=np.float64),
     }
+
+
+def _stage_table(times: list[dict[str, float]]) -> np.ndarray:
+    """(Q, S) float64 ms per query and stage (:data:`~diffloc.reloc.stage_clock.STAGES`)."""
+    return np.array([[t[name] for name in STAGES] for t in times], dtype=np.float64).reshape(
+        len(times), len(STAGES)
+    )
 
 
 def localize_sequence(
@@ -618,6 +682,9 @@ def localize_sequence(
                 "from_prior": np.array([r.from_prior for r in results]),
                 "prior_images": np.array([len(r.prior) for r in results], dtype=np.int64),
                 "time_ms": np.array([r.time_ms for r in results], dtype=np.float64),
+                "cpu_ms": np.array([r.cpu_ms for r in results], dtype=np.float64),
+                "stage_ms": _stage_table([r.stage_ms for r in results]),
+                "stage_cpu_ms": _stage_table([r.stage_cpu_ms for r in results]),
                 **candidate_arrays(results),
             }
             with atomic_open(stage.workdir() / "localization.npz", "wb") as handle:

@@ -45,6 +45,7 @@ from diffloc.pipeline.crossmodal_report import (
     plot_retrieved,
     plot_trajectory,
     score_sequence,
+    time_table,
 )
 from diffloc.pipeline.crossmodal_retrieval import tune_retrieval_stage
 from diffloc.pipeline.crossmodal_stage import (
@@ -230,6 +231,12 @@ def _markdown(results: dict) -> str:
             + ("off." if prior is None else f"on: {prior}."),
             "",
             markdown_table(results["sequences"], loose),
+            "",
+            "Time per query (the localisation stage's record; CPU: the process's, so on one "
+            "thread the work done; stages: mean CPU ms per query, matching and PnP summed over "
+            "the candidates matched):",
+            "",
+            time_table(results["sequences"]),
             "",
             f"Accepted: a pose was found and passed the validation. Precision: share of the "
             f"accepted poses within {loose:g} m / 30 deg. From prior: accepted poses whose "

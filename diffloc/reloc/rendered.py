@@ -63,7 +63,7 @@ import torch
 from diffloc.checks import check_positive_int, check_shape
 from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.features.local import Features, XFeatConfig, XFeatExtractor
-from diffloc.features.matching import LighterGlueConfig, LighterGlueMatcher
+from diffloc.features.matching import LighterGlueConfig, LighterGlueMatcher, Matches
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.reloc.hierarchical import grid_coverage
 from diffloc.reloc.photometric import PhotometricConfig, grey_image, warped_ncc
@@ -77,6 +77,7 @@ from diffloc.reloc.retrieval import (
     NetVLADConfig,
     NetVLADRetriever,
 )
+from diffloc.reloc.stage_clock import StageClock
 from diffloc.reloc.validation import PoseEvidence, PoseValidator, ValidationConfig
 
 __all__ = [
@@ -89,6 +90,7 @@ __all__ = [
     "lift_keypoints",
     "pose_evidence",
     "reference_validation",
+    "rerank_shortlist",
     "single_image_validation",
 ]
 
@@ -173,8 +175,13 @@ class RenderedLocalizerConfig:
         depth_confidence: LighterGlue's early stop: it ends after the layer where this share
             of the points is confidently matched or unmatched (-1: every layer, as seed 2;
             LightGlue's authors use 0.95). On indoor seed 0 (mesh, every 4th frame, top 20)
-            0.95 keeps the same poses (71.0 % / 36.4 %) at 5 % less time per query and 0.20
-            instead of 0.32 CPU s per match; not yet the default.
+            0.95 once kept the same poses (71.0 % / 36.4 %) at 5 % less time per query; with
+            today's code it loses 2 of 14 ``query_reverse`` poses (42.4 -> 36.4 %) for 3 %
+            less CPU per match (180 against 185 ms;
+            ``experiments/results/crossmodal_time_mesh_indoor_seed0.md``), so it stays off.
+        width_confidence: LighterGlue's point pruning: after each layer it drops the points
+            whose matchability is below ``1 - width_confidence`` (-1: no pruning; 0.95, the
+            wheel's LighterGlue setting).
         min_points: fewest lifted 3D points to attempt PnP (6).
         pnp: PnP RANSAC settings; ``min_inliers`` decides success.
         coverage_grid: cells per side of the grid over the query image whose share holding
@@ -193,6 +200,23 @@ class RenderedLocalizerConfig:
         bow: bag-of-words settings (vocabulary trained on the database's descriptors).
         rerank: re-ranking of the global retrieval's best by mutual-nearest-neighbour
             matches before ``top_k`` are matched (``None``: the global order).
+        min_rerank_ratio: with ``rerank``, an image of the ``top_k`` is matched only if it
+            has at least this share of the re-ranking's most mutual-NN matches (``None``:
+            every one of the ``top_k``; without ``rerank`` it has no effect); the images
+            skipped are the weakest, so this only shortens the list. The counts are flat (the
+            20th image of a failing query still has 75-95 % of the first's), so only a ratio
+            near 1 skips much: replayed on indoor seed 0 (mesh, every 4th frame, top 20), 0.8
+            / 0.85 / 0.9 / 0.95 keep 316 / 234 / 134 / 63 of the 346 ``query_reverse``
+            candidates, and 0.95 loses accepted poses (the right ones came from images with
+            0.93-1.0 of the best count). 0.9 run on seed 0: the same accepted poses on
+            ``query_same`` and ``query_reverse`` (80.6 / 42.4 % at 100 % precision), 1.9
+            instead of 4.1 and 4.1 instead of 10.5 candidates matched per query on average,
+            median CPU per ``query_reverse`` query 1440 -> 570 ms
+            (``experiments/results/crossmodal_time_mesh_indoor_seed0.md``); but on held-out
+            seed 1 it loses a ``query_same`` pose (71.9 -> 68.8 %) and accepts 2 wrong
+            ``query_reverse`` poses instead of 1 (fewer candidates, fewer rivals for the
+            ambiguity test; ``..._seed1.md``, ``experiments/rerank_ratio_replay.py``), so it
+            is off.
         prior: in a query sequence, the database images near the last accepted pose are
             tried before the retrieval's (:mod:`diffloc.reloc.sequence_prior`, beyond seed
             2); ``None``: every query on its own (Algorithm 1). The localiser itself only
@@ -207,6 +231,7 @@ class RenderedLocalizerConfig:
     max_keypoints: int = 1024
     min_confidence: float = 0.0
     depth_confidence: float = -1.0
+    width_confidence: float = 0.95
     min_points: int = 6
     pnp: PnPRansacConfig = field(default_factory=lambda: PnPRansacConfig(min_inliers=6))
     coverage_grid: int = 4
@@ -215,6 +240,7 @@ class RenderedLocalizerConfig:
     min_photometric_real: float | None = None
     bow: BowConfig = field(default_factory=BowConfig)
     rerank: RerankConfig | None = field(default_factory=RerankConfig)
+    min_rerank_ratio: float | None = None
     prior: PosePriorConfig | None = None
     seed: int = 0
 
@@ -234,10 +260,13 @@ class RenderedLocalizerConfig:
         real = self.min_photometric_real
         if real is not None and not (math.isfinite(real) and -1.0 <= real <= 1.0):
             raise ValueError(f"min_photometric_real must be in [-1, 1], got {real!r}")
-        if not (self.depth_confidence == -1.0 or 0.0 < self.depth_confidence <= 1.0):
-            raise ValueError(
-                f"depth_confidence must be -1 (off) or in (0, 1], got {self.depth_confidence!r}"
-            )
+        for name in ("depth_confidence", "width_confidence"):
+            value = getattr(self, name)
+            if not (value == -1.0 or 0.0 < value <= 1.0):
+                raise ValueError(f"{name} must be -1 (off) or in (0, 1], got {value!r}")
+        ratio = self.min_rerank_ratio
+        if ratio is not None and not 0.0 <= ratio <= 1.0:
+            raise ValueError(f"min_rerank_ratio must be in [0, 1], got {ratio!r}")
         if self.validation is not None and self.validation.temporal:
             raise ValueError(
                 "validation must be single-image (temporal=False): queries are independent"
@@ -257,6 +286,9 @@ class RenderedCandidate:
         num_inliers: PnP inliers (0 without a PnP attempt).
         coverage: share of the ``coverage_grid`` cells of the query image holding an inlier.
         rms_px: RMS reprojection error of the inliers in pixels (``nan`` without inliers).
+        match_ms: wall milliseconds of its LighterGlue match (0: not measured).
+        match_cpu_ms: process CPU milliseconds of its LighterGlue match.
+        pnp_ms: wall milliseconds of lifting its matches and PnP (0: no PnP attempt).
     """
 
     reference: int
@@ -267,6 +299,9 @@ class RenderedCandidate:
     num_inliers: int
     coverage: float
     rms_px: float
+    match_ms: float = 0.0
+    match_cpu_ms: float = 0.0
+    pnp_ms: float = 0.0
 
     @staticmethod
     def none(
@@ -305,6 +340,13 @@ class RenderedLocalization:
         time_ms: wall time of the query (features, retrieval, matching, PnP, photometric
             consistency), milliseconds.
         cpu_ms: CPU time of the process over the same span (all its threads), milliseconds.
+        rerank_matches: (k,) int64 mutual-nearest-neighbour matches of each ``retrieved``
+            image with the query (:class:`~diffloc.reloc.rerank.MutualNNReranker`); -1
+            without re-ranking or for given ``references``.
+        stage_ms: wall milliseconds per stage of :data:`~diffloc.reloc.stage_clock.STAGES`
+            (matching and PnP summed over the candidates; the rest of ``time_ms`` is
+            bookkeeping).
+        stage_cpu_ms: process CPU milliseconds per stage.
     """
 
     T_wc: torch.Tensor
@@ -322,6 +364,9 @@ class RenderedLocalization:
     accepted_without_photometric: bool
     time_ms: float
     cpu_ms: float
+    rerank_matches: torch.Tensor
+    stage_ms: dict[str, float]
+    stage_cpu_ms: dict[str, float]
 
 
 def pose_evidence(
@@ -458,7 +503,9 @@ class RenderedDatabaseLocalizer:
         )
         self.matcher = matcher or LighterGlueMatcher(
             LighterGlueConfig(
-                min_confidence=config.min_confidence, depth_confidence=config.depth_confidence
+                min_confidence=config.min_confidence,
+                width_confidence=config.width_confidence,
+                depth_confidence=config.depth_confidence,
             )
         )
         self.retriever = self._retriever()
@@ -514,16 +561,24 @@ class RenderedDatabaseLocalizer:
                 if bool(((given < 0) | (given >= self.database.num_images)).any()):
                     raise IndexError(f"{name} must lie in [0, {self.database.num_images})")
         start, start_cpu = time.perf_counter(), time.process_time()
-        query = self.extractor.extract(image)
-        retrieved = references if references is not None else self._retrieve(image, query)
+        clock = StageClock()
+        with clock.measure("features"):
+            query = self.extractor.extract(image)
+        if references is None:
+            retrieved, rerank_matches = self._retrieve(image, query, clock)
+        else:
+            retrieved, rerank_matches = references, torch.full_like(references, -1)
         order = torch.cat([prior, retrieved[~torch.isin(retrieved, prior)]])
         generator = torch.Generator().manual_seed(self.config.seed)
         attempts = (
-            self._try_reference(query, camera, int(reference), generator)
+            self._try_reference(query, camera, int(reference), generator, clock)
             for reference in order.tolist()
         )
         best, candidates = choose_candidate(attempts, self.config.select, self.config.stop_inliers)
-        photometric = self._photometric(image, camera, best) if best.success else math.nan
+        photometric = math.nan
+        if best.success:
+            with clock.measure("photometric"):
+                photometric = self._photometric(image, camera, best)
         validation = self.config.validation
         if best.success:
             validation = reference_validation(
@@ -548,6 +603,9 @@ class RenderedDatabaseLocalizer:
             accepted_without_photometric=accept_pose(best, candidates, geometric),
             time_ms=1000.0 * (time.perf_counter() - start),
             cpu_ms=1000.0 * (time.process_time() - start_cpu),
+            rerank_matches=rerank_matches,
+            stage_ms=clock.wall_ms,
+            stage_cpu_ms=clock.cpu_ms,
         )
 
     def _photometric(
@@ -568,15 +626,23 @@ class RenderedDatabaseLocalizer:
             self.config.photometric,
         )
 
-    def _retrieve(self, image: torch.Tensor, query: Features) -> torch.Tensor:
-        """(k,) database images to match: the global retrieval's best, re-ranked if set."""
+    def _retrieve(
+        self, image: torch.Tensor, query: Features, clock: StageClock
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(images, rerank_matches)``, both (k,) int64: the database images to match (the
+        global retrieval's best, re-ranked if set) and their mutual-NN matches (-1 without
+        re-ranking)."""
         rerank = self.config.rerank
         k = self.config.top_k if rerank is None else max(rerank.candidates, self.config.top_k)
-        with torch.no_grad():
+        with clock.measure("retrieval"), torch.no_grad():
             _, retrieved = self.retriever.search(self.retriever.describe(image, query), k)
-        if self.reranker is not None:
-            _, retrieved = self.reranker.rerank(query.descriptors, retrieved, query.scores)
-        return retrieved[: self.config.top_k]
+        if self.reranker is None:
+            retrieved = retrieved[: self.config.top_k]
+            return retrieved, torch.full_like(retrieved, -1)
+        with clock.measure("rerank"):
+            counts, retrieved = self.reranker.rerank(query.descriptors, retrieved, query.scores)
+        keep = rerank_shortlist(counts[: self.config.top_k], self.config.min_rerank_ratio)
+        return retrieved[keep], counts[keep]
 
     def _try_reference(
         self,
@@ -584,12 +650,35 @@ class RenderedDatabaseLocalizer:
         camera: PinholeCamera,
         reference: int,
         generator: torch.Generator,
+        clock: StageClock,
     ) -> RenderedCandidate:
+        """LighterGlue + lifting + PnP against one reference, each stage timed on ``clock``."""
+        db = self.database
+        with clock.measure("matching") as match:
+            matches = self.matcher.match(
+                query,
+                db.features[reference],
+                (camera.height, camera.width),
+                (db.camera.height, db.camera.width),
+            )
+        with clock.measure("pnp") as pnp:
+            candidate = self._pose(query, camera, reference, matches, generator)
+        return replace(
+            candidate, match_ms=match.wall_ms, match_cpu_ms=match.cpu_ms, pnp_ms=pnp.wall_ms
+        )
+
+    def _pose(
+        self,
+        query: Features,
+        camera: PinholeCamera,
+        reference: int,
+        matches: Matches,
+        generator: torch.Generator,
+    ) -> RenderedCandidate:
+        """The candidate of the LighterGlue ``matches`` with ``reference``: its confident
+        matches lifted by the reference depth, then PnP RANSAC + refinement."""
         db = self.database
         ref = db.features[reference]
-        matches = self.matcher.match(
-            query, ref, (camera.height, camera.width), (db.camera.height, db.camera.width)
-        )
         keep = matches.scores > self.config.min_confidence
         pairs = matches.indices[keep]
         points_ref, valid = lift_keypoints(
@@ -615,6 +704,28 @@ class RenderedDatabaseLocalizer:
             coverage=grid_coverage(query_px[inliers], camera, self.config.coverage_grid),
             rms_px=float(result.reprojection_errors[inliers].square().mean().sqrt()),
         )
+
+
+def rerank_shortlist(counts: torch.Tensor, min_ratio: float | None) -> torch.Tensor:
+    """The re-ranked images worth matching: those with at least ``min_ratio`` times the
+    most mutual-NN matches (``None``: all).
+
+    Args:
+        counts: (k,) int64 mutual-NN matches of the re-ranked images, most first.
+        min_ratio: share of ``counts[0]`` an image needs, in [0, 1].
+
+    Returns:
+        (k',) int64 indices into ``counts``: a prefix, never empty when ``counts`` is not.
+
+    Example:
+        >>> counts = torch.tensor([120, 90, 60, 59, 10])
+        >>> rerank_shortlist(counts, 0.5).tolist(), len(rerank_shortlist(counts, None))
+        ([0, 1, 2], 5)
+    """
+    index = torch.arange(len(counts))
+    if min_ratio is None or len(counts) == 0:
+        return index
+    return index[counts >= min_ratio * counts[0]]
 
 
 def choose_candidate(

@@ -100,7 +100,9 @@ def mutual_nn_counts(
     n = query.shape[0]
     if n == 0 or m == 0:
         return torch.zeros(k, dtype=torch.int64)
-    similarity = torch.matmul(database, query.T).masked_fill(~valid[:, :, None], -2.0)
+    similarity = torch.matmul(database, query.T)
+    if not bool(valid.all()):  # the fill is one more pass over the (K, m, n) products
+        similarity.masked_fill_(~valid[:, :, None], -2.0)
     best_image, to_image = similarity.max(1)  # (K, n): each query keypoint's nearest
     to_query = similarity.argmax(2)  # (K, m): each image keypoint's nearest
     back = torch.gather(to_query, 1, to_image)  # (K, n)
