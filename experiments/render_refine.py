@@ -1,16 +1,31 @@
-"""Render-and-compare refinement of localised query poses against the TLS point cloud.
+"""Render-and-compare refinement of localised query poses: TLS point cloud or trained NeRF.
 
 For every ``--every``-th frame of ``query_same`` with a localised pose (the relocaliser's
-``estimates.tum``, camera-to-world, matched by timestamp), the pose is refined through the
-soft-splatted TLS cloud coloured from the mapping images (as ``task=crossmodal map=tls``
-does: :func:`diffloc.pipeline.crossmodal_stage.colored_point_map`), and again from the true
-pose perturbed by a seeded ``--perturb-m`` / ``--perturb-deg`` (the refinement's basin).
-Writes ``experiments/results/render_refine_<label>.{json,md}``: median / p90 translation and
-rotation error before and after, the fraction accepted, CPU and wall ms per query.
+``estimates.tum``, camera-to-world, matched by timestamp), the pose is refined through a
+differentiable render of a map, and again from the true pose perturbed by each seeded
+``--perturb-m`` / ``--perturb-deg`` pair (the refinement's basin). ``--map`` picks the map:
+
+- ``cloud``: the soft-splatted TLS cloud coloured from the mapping images (as
+  ``task=crossmodal map=tls`` does: :func:`diffloc.pipeline.crossmodal_stage.colored_point_map`);
+- ``nerf``: the dataset's trained radiance-field submaps (``diffloc task=train_nerf
+  nerf.submap=<k>``, read from ``--nerf-dir``, ``<scene>/nerf`` by default). Each query is
+  served, as ``map=nerf`` serves a render pose, by the submap whose core mapping frames have
+  the largest affinity to its *localised* pose (what a user has; the perturbed starts of the
+  same query use the same field); the query's appearance code is fitted at each start pose
+  (NeRF-W test-time fit, its CPU time counted in the query's) before the refinement.
+  ``--submaps`` keeps only the queries served by those submaps, so only they need training.
+
+Writes ``experiments/results/render_refine_<label>.{json,md}``, both starting with the
+commands that made them (``--command`` for the inputs' commands, then this one): median / p90
+translation and rotation error before and after, the fraction accepted, CPU and wall ms per
+query, and the load.
 
     python3 experiments/render_refine.py --scene data/indoor_seed0 \
         --estimates outputs/seed0_indoor/query_same/estimates.tum --label indoor_seed0 \
         --every 15 --max-queries 8
+    python3 experiments/render_refine.py --map nerf --scene data/indoor_seed0 \
+        --estimates <run>/query_same/estimates.tum --label nerf_indoor_seed0 \
+        --submaps 1 2 --every 5 --max-queries 12 --perturb-m 0.1 0.3 --perturb-deg 2 5
 """
 
 from __future__ import annotations
@@ -18,6 +33,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import shlex
+import sys
 import time
 from pathlib import Path
 
@@ -26,15 +44,21 @@ import torch
 import torch.nn.functional as F
 
 from diffloc.eval.report_files import write_report
+from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import se3_exp
 from diffloc.io.dataset import read_sequence
 from diffloc.io.ply import read_point_cloud
 from diffloc.io.trajectory import read_tum
+from diffloc.maps.nerf.export import load_field
+from diffloc.maps.nerf.submaps import load_submaps, serving_submap
 from diffloc.maps.pointcloud import PointMap
 from diffloc.optim.render_refine import (
+    DifferentiableMap,
     RenderRefineConfig,
     crop_to_view,
+    fit_query_appearance,
     point_cloud_map,
+    radiance_field_map,
     refine_pose_by_rendering,
 )
 from diffloc.pipeline.crossmodal_stage import colored_point_map
@@ -59,6 +83,70 @@ def coloured_cloud(scene: Path, voxel_m: float, cache: Path) -> PointMap:
     return coloured
 
 
+class CloudMaps:
+    """The TLS cloud, cropped to each start's view (one map, served index 0)."""
+
+    def __init__(self, args: argparse.Namespace, scene: Path) -> None:
+        cloud = coloured_cloud(scene, args.voxel_m, Path(args.cache))
+        cells = np.floor(cloud.positions.numpy() / args.thin_m)
+        _, first = np.unique(cells, axis=0, return_index=True)
+        first = torch.from_numpy(np.sort(first))
+        self.points = cloud.positions[first].double()
+        self.colours = cloud.colors[first].double()
+        self.args = args
+
+    def serving(self, T_wc: torch.Tensor) -> list[int]:
+        """(B, 4, 4) poses -> the map serving each: always 0."""
+        return [0] * len(T_wc)
+
+    def model(
+        self, served: int, T0: torch.Tensor, image: torch.Tensor, camera: PinholeCamera
+    ) -> tuple[DifferentiableMap, dict]:
+        keep = crop_to_view(self.points, T0, camera, self.args.max_depth_m)
+        cloud = point_cloud_map(self.points[keep], self.colours[keep], self.args.thin_m / 2)
+        return cloud, {"points": int(len(keep))}
+
+
+class FieldMaps:
+    """The dataset's trained submap fields, each query served by one (module doc)."""
+
+    def __init__(self, args: argparse.Namespace, scene: Path) -> None:
+        self.folder = Path(args.nerf_dir) if args.nerf_dir else scene / "nerf"
+        self.submaps, self.config = load_submaps(self.folder / "submaps.json")
+        self.mapping_T_wc = read_sequence(scene, "mapping").T_wc.double()
+        self.fields: dict[int, tuple] = {}
+        self.args, self.scene = args, scene
+
+    def serving(self, T_wc: torch.Tensor) -> list[int]:
+        """(B, 4, 4) poses -> the submap serving each (largest core-frame affinity)."""
+        return serving_submap(T_wc, self.submaps, self.mapping_T_wc, self.config).tolist()
+
+    def field(self, k: int) -> tuple:
+        """Submap ``k``'s field and density grid, frozen (loaded once)."""
+        if k not in self.fields:
+            path = self.folder / f"submap_{k}" / "field"
+            if not (path / "field.json").is_file():
+                raise SystemExit(
+                    f"{path} has no trained field: run `diffloc task=train_nerf "
+                    f"dataset={self.scene} nerf.submap={k}` (with the run's nerf.* overrides)"
+                )
+            field, grid = load_field(path)
+            field.eval().requires_grad_(False)
+            self.fields[k] = (field, grid)
+        return self.fields[k]
+
+    def model(
+        self, served: int, T0: torch.Tensor, image: torch.Tensor, camera: PinholeCamera
+    ) -> tuple[DifferentiableMap, dict]:
+        field, grid = self.field(served)
+        cpu = time.process_time()
+        code = fit_query_appearance(
+            field, grid, image.float(), T0.float(), camera, steps=self.args.fit_steps
+        )
+        fit_ms = 1e3 * (time.process_time() - cpu)
+        return radiance_field_map(field, grid, code), {"submap": served, "fit_cpu_ms": fit_ms}
+
+
 def pose_errors(T: torch.Tensor, T_gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(B,) translation error (m) and rotation error (deg) of poses (B, 4, 4)."""
     dt = (T[:, :3, 3] - T_gt[:, :3, 3]).norm(dim=-1)
@@ -75,39 +163,67 @@ def perturbed(T_gt: torch.Tensor, metres: float, degrees: float, seed: int) -> t
     return T_gt @ se3_exp(torch.cat((v, w * math.radians(degrees)), -1))
 
 
+def perturbations(settings: dict) -> list[tuple[float, float]]:
+    """The (metres, degrees) pairs of the perturbed starts (one float each in older files)."""
+    metres, degrees = settings["perturb_m"], settings["perturb_deg"]
+    if not isinstance(metres, list):
+        return [(metres, degrees)]
+    return list(zip(metres, degrees, strict=True))
+
+
+def start_name(metres: float, degrees: float) -> str:
+    return f"perturbed {100 * metres:g} cm / {degrees:g} deg"
+
+
 def summary(values: np.ndarray) -> dict[str, float]:
     return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90))}
 
 
-def run(args: argparse.Namespace) -> list[dict]:
-    scene = Path(args.scene)
-    cloud = coloured_cloud(scene, args.voxel_m, Path(args.cache))
-    _, first = np.unique(np.floor(cloud.positions.numpy() / args.thin_m), axis=0, return_index=True)
-    first = torch.from_numpy(np.sort(first))
-    points, colours = cloud.positions[first].double(), cloud.colors[first].double()
-    seq = read_sequence(scene, "query_same")
-    stamps, T_est_all = read_tum(args.estimates)
+def query_frames(args: argparse.Namespace, maps, seq, stamps, T_est: torch.Tensor) -> list:
+    """(frame, estimate row, serving map) of the queries: every ``--every``-th localised frame,
+    served by one of ``--submaps`` (all when empty), at most ``--max-queries``."""
     index = {round(float(t), 6): i for i, t in enumerate(seq.timestamps)}
     frames = [(index[round(float(t), 6)], k) for k, t in enumerate(stamps)]
-    frames = [f for f in frames if f[0] % args.every == 0][: args.max_queries]
+    frames = [f for f in frames if f[0] % args.every == 0]
+    served = maps.serving(torch.stack([T_est[k] for _, k in frames]).double())
+    keep = [
+        (frame, k, s)
+        for (frame, k), s in zip(frames, served, strict=True)
+        if not args.submaps or s in args.submaps
+    ]
+    return keep[: args.max_queries]
+
+
+def run(args: argparse.Namespace) -> list[dict]:
+    scene = Path(args.scene)
+    maps = CloudMaps(args, scene) if args.map == "cloud" else FieldMaps(args, scene)
+    seq = read_sequence(scene, "query_same")
+    stamps, T_est_all = read_tum(args.estimates)
     camera = seq.camera.scaled(args.scale).to(torch.float64)
     config = RenderRefineConfig(
-        levels=tuple(args.levels), iterations=args.iterations, min_alpha=args.min_alpha
+        levels=tuple(args.levels),
+        iterations=args.iterations,
+        min_alpha=args.min_alpha,
+        min_improvement=args.min_improvement,
+        min_correlation=args.min_correlation,
+        photometric_sigma=args.photometric_sigma,
+        kernel_scale=args.kernel_scale,
     )
+    args.load_start = list(os.getloadavg())
     rows = []
-    for frame, k in frames:
+    for frame, k, served in query_frames(args, maps, seq, stamps, T_est_all):
         image = F.interpolate(
             seq.load_rgb(frame)[None].double(), (camera.height, camera.width), mode="area"
         )
         T_gt = seq.T_wc[frame][None].double()
-        starts = {
-            "localised": T_est_all[k][None].double(),
-            "perturbed": perturbed(T_gt, args.perturb_m, args.perturb_deg, args.seed + frame),
-        }
+        starts = {"localised": T_est_all[k][None].double()}
+        for metres, degrees in perturbations(vars(args)):
+            starts[start_name(metres, degrees)] = perturbed(
+                T_gt, metres, degrees, args.seed + frame
+            )
         for name, T0 in starts.items():
-            keep = crop_to_view(points, T0, camera, args.max_depth_m)
-            model = point_cloud_map(points[keep], colours[keep], args.thin_m / 2)
             cpu, wall = time.process_time(), time.perf_counter()
+            model, info = maps.model(served, T0, image, camera)
             result = refine_pose_by_rendering(model, image, T0, camera, config=config)
             cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
             before, after = pose_errors(T0, T_gt), pose_errors(result.T_wc, T_gt)
@@ -115,11 +231,12 @@ def run(args: argparse.Namespace) -> list[dict]:
                 {
                     "frame": frame,
                     "start": name,
-                    "points": int(len(keep)),
+                    **info,
                     "t_before_m": float(before[0][0]),
                     "r_before_deg": float(before[1][0]),
                     "t_after_m": float(after[0][0]),
                     "r_after_deg": float(after[1][0]),
+                    "t_refined_m": float(pose_errors(result.T_refined, T_gt)[0][0]),
                     "accepted": bool(result.accepted[0]),
                     "correlation": float(result.correlation[0]),
                     "cost_before": float(result.cost_before[0]),
@@ -129,17 +246,16 @@ def run(args: argparse.Namespace) -> list[dict]:
                 }
             )
             print(json.dumps(rows[-1]), flush=True)
+            args.load_end = list(os.getloadavg())
             write(args, rows, [camera.width, camera.height])
     return rows
 
 
 def summarise(args: argparse.Namespace, rows: list[dict], size: list[int]) -> dict:
-    """The JSON record: settings, camera size, per-start summary and all rows."""
+    """The JSON record: commands, settings, camera size, per-start summary and all rows."""
     table = {}
-    for name in ("localised", "perturbed"):
+    for name in dict.fromkeys(r["start"] for r in rows):
         sel = [r for r in rows if r["start"] == name]
-        if not sel:
-            continue
         col = lambda key, sel=sel: np.array([r[key] for r in sel])  # noqa: E731
         table[name] = {
             "queries": len(sel),
@@ -153,7 +269,14 @@ def summarise(args: argparse.Namespace, rows: list[dict], size: list[int]) -> di
             "cpu_ms_median": float(np.median(col("cpu_ms"))),
             "wall_ms_median": float(np.median(col("wall_ms"))),
         }
-    return {"settings": vars(args), "camera": size, "summary": table, "rows": rows}
+    settings = {k: v for k, v in vars(args).items() if k != "commands"}
+    return {
+        "commands": getattr(args, "commands", []),
+        "settings": settings,
+        "camera": size,
+        "summary": table,
+        "rows": rows,
+    }
 
 
 def strict_rule(rows: list[dict], improvement: float) -> dict:
@@ -178,17 +301,51 @@ def write(args: argparse.Namespace, rows: list[dict], size: list[int]) -> None:
     write_report(Path(args.out) / f"render_refine_{args.label}", markdown(result), result)
 
 
+def describe_map(s: dict) -> tuple[str, str]:
+    """The title's map name and the sentence on how the map was rendered."""
+    if s.get("map", "cloud") == "cloud":
+        return "TLS cloud, soft splats", (
+            f"cloud coloured at {s['voxel_m']} m and rendered thinned to one point per "
+            f"{s['thin_m']} m cell within {s['max_depth_m']} m"
+        )
+    served = f"submaps {s['submaps']}" if s["submaps"] else "all submaps"
+    return "trained NeRF submaps", (
+        f"fields of {s['nerf_dir'] or s['scene'] + '/nerf'} ({served}; each query served by the "
+        f"submap of its localised pose), appearance code fitted at each start pose in "
+        f"{s['fit_steps']} Adam steps (CPU time included)"
+    )
+
+
 def markdown(result: dict) -> str:
     s = result["settings"]
     w, h = result["camera"]
-    lines = [
-        f"# Render-and-compare refinement, {s['label']} query_same (TLS cloud, soft splats)",
-        "",
+    title, rendered = describe_map(s)
+    lines = [f"# Render-and-compare refinement, {s['label']} query_same ({title})", ""]
+    if result.get("commands"):
+        lines += ["Made by:", "", "```bash", *result["commands"], "```", ""]
+    starts = ", ".join(f"{100 * m:g} cm / {d:g} deg" for m, d in perturbations(s))
+    acceptance = ""
+    if "min_improvement" in s:  # older files did not record it
+        acceptance = (
+            f"; acceptance: cost drop > {100 * s['min_improvement']:g} %, correlation >= "
+            f"{s['min_correlation']:g}"
+        )
+    residual = ""
+    if "photometric_sigma" in s:  # older files did not record it
+        residual = (
+            f"; photometric sigma {s['photometric_sigma']:g}, Cauchy scale {s['kernel_scale']:g}"
+        )
+    load = ""
+    if "load_start" in s:
+        load = (
+            f" Load (1 / 5 / 15 min) at start {'/'.join(f'{x:.1f}' for x in s['load_start'])}, "
+            f"at end {'/'.join(f'{x:.1f}' for x in s['load_end'])}."
+        )
+    lines += [
         f"Every {s['every']}th localised query, {w}x{h}, levels {s['levels']}, "
-        f"{s['iterations']} LM iterations per level, cloud coloured at {s['voxel_m']} m and "
-        f"rendered thinned to one point per {s['thin_m']} m cell within {s['max_depth_m']} m; "
-        f"perturbed start: true pose + {s['perturb_m']} m / "
-        f"{s['perturb_deg']} deg (seeded). CPU ms per query; wall ms under load (2 shared cores).",
+        f"{s['iterations']} LM iterations per level, {rendered}{residual}; "
+        f"perturbed starts: true pose + {starts} (seeded, one direction per query){acceptance}. "
+        f"CPU ms per query; wall ms under load (2 shared cores).{load}",
         "",
         "| start | n | t med before | t med after | t p90 before | t p90 after | r med before | "
         "r med after | r p90 before | r p90 after | accepted | t improved | CPU ms | wall ms |",
@@ -207,7 +364,7 @@ def markdown(result: dict) -> str:
     lines += [
         "",
         "Had the run required a cost drop of more than "
-        f"{100 * s['strict_improvement']:.0f} % (the library default since; recomputed from "
+        f"{100 * s['strict_improvement']:.0f} % (recomputed from "
         "the recorded costs, no query re-run):",
         "",
         "| start | accepted | t med after | t p90 after | r med after | r p90 after |",
@@ -225,6 +382,7 @@ def markdown(result: dict) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--map", choices=("cloud", "nerf"), default="cloud")
     parser.add_argument("--scene", default="data/indoor_seed0")
     parser.add_argument("--estimates", default="outputs/seed0_indoor/query_same/estimates.tum")
     parser.add_argument("--label", default="indoor_seed0")
@@ -233,25 +391,42 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=0.125)
     parser.add_argument("--levels", type=float, nargs="+", default=[0.5, 1.0])
     parser.add_argument("--min-alpha", type=float, default=0.5)
-    parser.add_argument("--voxel-m", type=float, default=0.05)
-    parser.add_argument("--thin-m", type=float, default=0.1)
     parser.add_argument("--iterations", type=int, default=10)
-    parser.add_argument("--max-depth-m", type=float, default=8.0)
-    parser.add_argument("--perturb-m", type=float, default=0.10)
-    parser.add_argument("--perturb-deg", type=float, default=2.0)
+    parser.add_argument("--min-improvement", type=float, default=0.05)
+    parser.add_argument("--min-correlation", type=float, default=0.5)
+    parser.add_argument("--photometric-sigma", type=float, default=0.05)
+    parser.add_argument("--kernel-scale", type=float, default=2.0)
+    parser.add_argument("--voxel-m", type=float, default=0.05, help="cloud: colouring voxel")
+    parser.add_argument("--thin-m", type=float, default=0.1, help="cloud: render spacing")
+    parser.add_argument("--max-depth-m", type=float, default=8.0, help="cloud: crop depth")
+    parser.add_argument("--nerf-dir", default="", help="nerf: train_nerf's folder")
+    parser.add_argument("--submaps", type=int, nargs="*", default=[], help="nerf: served by")
+    parser.add_argument("--fit-steps", type=int, default=60, help="nerf: appearance fit steps")
+    parser.add_argument("--perturb-m", type=float, nargs="+", default=[0.10])
+    parser.add_argument("--perturb-deg", type=float, nargs="+", default=[2.0])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cache", default="/tmp/diffloc_render_refine")
     parser.add_argument("--out", default="experiments/results")
     parser.add_argument("--strict-improvement", type=float, default=0.05)
     parser.add_argument(
+        "--command", action="append", default=[], help="a command that made the inputs"
+    )
+    parser.add_argument(
         "--from-json", default="", help="re-summarise the rows of an earlier result file"
     )
     args = parser.parse_args()
+    if len(args.perturb_m) != len(args.perturb_deg):
+        parser.error("--perturb-m and --perturb-deg need the same number of values")
+    if args.map == "cloud" and args.submaps:
+        parser.error("--submaps selects radiance-field submaps (--map nerf)")
+    this = "PYTHONPATH=. OMP_NUM_THREADS=1 python3 " + shlex.join(sys.argv)
+    args.commands = [*args.command, this]
     torch.set_num_threads(1)
     if args.from_json:
         earlier = json.loads(Path(args.from_json).read_text())
         settings = earlier["settings"] | {"strict_improvement": args.strict_improvement}
         settings |= {"out": args.out, "from_json": args.from_json}
+        settings["commands"] = earlier.get("commands", [])
         write(argparse.Namespace(**settings), earlier["rows"], earlier["camera"])
     else:
         run(args)
