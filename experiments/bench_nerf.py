@@ -558,6 +558,7 @@ def main() -> None:
         "scene": args.scene,
         "contracted": nerf.train.field.contracted,
         "background": nerf.train.field.background,
+        "overrides": args.override,
         "submap": args.submap,
         "frames": len(submap.frames),
         "train_frames": len(rays.frames),
