@@ -559,6 +559,7 @@ def main() -> None:
         "contracted": nerf.train.field.contracted,
         "background": nerf.train.field.background,
         "overrides": args.override,
+        "encodings": args.encodings,
         "submap": args.submap,
         "frames": len(submap.frames),
         "train_frames": len(rays.frames),

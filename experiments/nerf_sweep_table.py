@@ -1,6 +1,7 @@
 """A Markdown table of ``bench_nerf.py`` runs (a sweep of ``--override`` settings, issue 19):
 one row per JSONL record of the full variant, with its difference to the record without
-overrides on the same dataset (the baseline; the last such record when there are several).
+overrides (tri-plane) on the same dataset (the baseline; the last such record when there
+are several).
 
 Writes ``<out>.md`` (first line: the command) and ``<out>.json`` (the rows).
 
@@ -28,6 +29,17 @@ def _at_mark(curve: list, mark_s: float) -> float | None:
     return next((p for _, cpu, _, p in curve if cpu >= mark_s), None)
 
 
+def _setting(record: dict) -> str:
+    """A record's overrides, and its encodings when not the tri-plane alone (records written
+    before these keys existed: none, tri-plane); ``"default"`` when neither."""
+    encodings = record.get("encodings", "triplane")
+    parts = [
+        *(record.get("overrides") or []),
+        *([f"--encodings {encodings}"] * (encodings != "triplane")),
+    ]
+    return " ".join(parts) or "default"
+
+
 def sweep_rows(records: list[dict]) -> list[dict]:
     """One row per record: its settings and figures, and ``delta_db`` against the baseline
     (no overrides, same ``data``; ``None`` without one).
@@ -38,13 +50,13 @@ def sweep_rows(records: list[dict]) -> list[dict]:
     for r in records:
         if "psnr_heldout_db" not in r:
             raise ValueError(f"record of {r.get('command')!r} has no full-variant run")
-    baselines = {r["data"]: r["psnr_heldout_db"] for r in records if not r.get("overrides")}
+    baselines = {r["data"]: r["psnr_heldout_db"] for r in records if _setting(r) == "default"}
     rows = []
     for r in records:
         base = baselines.get(r["data"])
         rows.append(
             {
-                "setting": " ".join(r.get("overrides") or []) or "default",
+                "setting": _setting(r),
                 "data": r["data"],
                 "psnr_heldout_db": r["psnr_heldout_db"],
                 "delta_db": None if base is None else r["psnr_heldout_db"] - base,

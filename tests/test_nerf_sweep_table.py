@@ -50,8 +50,11 @@ def test_rows_compare_with_the_default_of_the_same_dataset() -> None:
             record("data/outdoor_seed1", 22.0, []),
             record("data/outdoor_seed1", 21.5, ["nerf.train.ray_batch=2048"]),
             record("data/other", 20.0, ["nerf.train.ray_batch=2048"]),
+            record("data/outdoor_seed0", 21.0, []) | {"encodings": "hashgrid"},
         ]
     )
+    assert rows[5]["setting"] == "--encodings hashgrid"
+    assert rows[5]["delta_db"] == pytest.approx(-1.5)
     assert [r["setting"] for r in rows[:2]] == ["default", "nerf.train.ray_batch=2048"]
     assert rows[0]["delta_db"] == 0.0 and rows[2]["delta_db"] == 0.0
     assert rows[1]["delta_db"] == pytest.approx(0.5)
