@@ -558,6 +558,8 @@ def main() -> None:
         "scene": args.scene,
         "contracted": nerf.train.field.contracted,
         "background": nerf.train.field.background,
+        "overrides": args.override,
+        "encodings": args.encodings,
         "submap": args.submap,
         "frames": len(submap.frames),
         "train_frames": len(rays.frames),

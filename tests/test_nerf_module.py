@@ -167,3 +167,29 @@ def test_the_sweep_of_a_held_out_frame_is_not_trained_on(tiny_indoor_dataset: Pa
     assert used and not used & at_heldout
     assert used == set(training_sweeps(slow, train, heldout))
     assert len(used) == len(positions) - len(at_heldout)
+
+
+def test_the_learning_rate_decays_and_resumes_on_schedule(tiny_rays, tmp_path: Path) -> None:
+    cfg = _config(lr_decay_steps=4, lr_final_ratio=0.25)
+    straight = fit_submap(tiny_rays, cfg, tmp_path / "a", epochs=2, show_progress=False)
+    lrs = [group["lr"] for group in straight.optimizers().optimizer.param_groups]
+    np.testing.assert_allclose(lrs, [0.25 * cfg.lr_encoding, 0.25 * cfg.lr_network], rtol=1e-6)
+    constant = fit_submap(tiny_rays, _config(), tmp_path / "c", epochs=2, show_progress=False)
+    assert constant.losses[:2] == straight.losses[:2]  # the first update is at the full rate
+    assert constant.losses[-1] != straight.losses[-1]
+    fit_submap(tiny_rays, cfg, tmp_path / "b", epochs=1, show_progress=False)
+    resumed = fit_submap(tiny_rays, cfg, tmp_path / "b", epochs=2, resume=True, show_progress=False)
+    np.testing.assert_allclose(resumed.losses, straight.losses[3:], rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"lr_decay_steps": -1}, "lr_decay_steps"),
+        ({"lr_final_ratio": 0.0}, "lr_final_ratio"),
+        ({"lr_final_ratio": 1.5}, "lr_final_ratio"),
+    ],
+)
+def test_bad_learning_rate_schedules_are_refused(changes: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        NerfTrainConfig(**changes)

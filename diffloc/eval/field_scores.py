@@ -29,7 +29,7 @@ from diffloc.maps.nerf.rays import camera_rays
 from diffloc.maps.nerf.renderer import render_image, render_rays
 from diffloc.maps.nerf.sampler import DensityGrid
 
-__all__ = ["depth_image_normals", "heldout_field_scores", "psnr"]
+__all__ = ["depth_image_normals", "heldout_field_scores", "left_half_code", "psnr"]
 
 _CODE_STEPS, _CODE_BATCH, _CODE_LR = 20, 512, 0.05
 """Adam steps, rays per step and learning rate of the left-half appearance-code fit."""
@@ -95,6 +95,23 @@ def _render_rays_rgb(
     return torch.cat(parts)
 
 
+def left_half_code(
+    field: RadianceField,
+    grid: DensityGrid,
+    camera: PinholeCamera,
+    T_wc: torch.Tensor,
+    image: torch.Tensor,
+) -> torch.Tensor:
+    """The appearance code of the NeRF-W protocol: fitted (field frozen) on the left half of
+    ``image`` (3, H, W) seen from ``T_wc`` (4, 4) by ``camera``; returns (A,)."""
+    check_shape(image, f"3,{camera.height},{camera.width}", "image")
+    uv = camera.pixel_grid(torch.float32).reshape(-1, 2)
+    left = uv[:, 0] < camera.width / 2
+    o, d, _ = camera_rays(camera, T_wc.float(), uv[left])
+    colours = image.reshape(3, -1).T[left]
+    return fit_appearance_code(field, grid, o, d, colours, _CODE_STEPS, _CODE_BATCH, _CODE_LR)
+
+
 def heldout_field_scores(
     field: RadianceField,
     grid: DensityGrid,
@@ -138,10 +155,7 @@ def heldout_field_scores(
         T_wc = seq.T_wc[frame].float()
         image = load_image(seq, frame, camera)
         o, d, _ = camera_rays(camera, T_wc, uv)
-        colours = image.reshape(3, -1).T
-        code = fit_appearance_code(
-            field, grid, o[left], d[left], colours[left], _CODE_STEPS, _CODE_BATCH, _CODE_LR
-        )
+        code = left_half_code(field, grid, camera, T_wc, image)
         if full:
             out = render_image(field, grid, camera, T_wc, code, with_normals=True)
             right = out["rgb"][:, :, half:]

@@ -85,6 +85,9 @@ class NerfTrainConfig:
         normal_batch: of those, rays that also get the normal loss.
         lr_encoding: Adam learning rate of the grid features.
         lr_network: Adam learning rate of the MLPs and appearance codes.
+        lr_decay_steps: both learning rates fall exponentially to ``lr_final_ratio`` times
+            their value over this many steps and stay there (:meth:`lr_factor`); 0: constant.
+        lr_final_ratio: see above, in (0, 1].
         steps_per_epoch: steps between checkpoints.
         seed: seed of initialisation, batches and sample jitter.
     """
@@ -97,6 +100,8 @@ class NerfTrainConfig:
     normal_batch: int = 128
     lr_encoding: float = 2e-2
     lr_network: float = 5e-3
+    lr_decay_steps: int = 0
+    lr_final_ratio: float = 0.1
     steps_per_epoch: int = 100
     seed: int = 0
 
@@ -110,7 +115,22 @@ class NerfTrainConfig:
             )
         check_number(self.lr_encoding, "lr_encoding", 0.0, open_low=True)
         check_number(self.lr_network, "lr_network", 0.0, open_low=True)
+        check_int_at_least(self.lr_decay_steps, "lr_decay_steps", 0)
+        check_number(self.lr_final_ratio, "lr_final_ratio", 0.0, 1.0, open_low=True)
         check_int_at_least(self.seed, "seed", 0)
+
+    def lr_factor(self, step: int) -> float:
+        """Learning-rate multiplier at training step ``step``: ``lr_final_ratio **
+        min(step / lr_decay_steps, 1)`` (1 when ``lr_decay_steps`` is 0).
+
+        Example:
+            >>> cfg = NerfTrainConfig(lr_decay_steps=100, lr_final_ratio=0.01)
+            >>> cfg.lr_factor(0), round(cfg.lr_factor(50), 6), cfg.lr_factor(500)
+            (1.0, 0.1, 0.01)
+        """
+        if self.lr_decay_steps == 0:
+            return 1.0
+        return self.lr_final_ratio ** min(step / self.lr_decay_steps, 1.0)
 
 
 def _generator(seed: int, step: int, stream: int) -> torch.Generator:
@@ -268,14 +288,22 @@ class NerfModule(L.LightningModule):
         self.log("loss", loss, on_step=True)
         return loss
 
-    def configure_optimizers(self) -> torch.optim.Optimizer:
+    def configure_optimizers(self) -> dict:
+        """Adam over the grid features and the networks, their learning rates scaled per step
+        by :meth:`NerfTrainConfig.lr_factor` (a ``LambdaLR`` stepped every training step,
+        saved in the checkpoints, so a resumed run continues the same schedule)."""
         encoding = list(self.field.encoding.parameters())
         ids = {id(p) for p in encoding}
         network = [p for p in self.field.parameters() if id(p) not in ids]
-        return torch.optim.Adam(
+        optimiser = torch.optim.Adam(
             [
                 {"params": encoding, "lr": self.config.lr_encoding},
                 {"params": network, "lr": self.config.lr_network},
             ],
             eps=1e-15,
         )
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, self.config.lr_factor)
+        return {
+            "optimizer": optimiser,
+            "lr_scheduler": {"scheduler": schedule, "interval": "step"},
+        }
