@@ -7,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffloc.pipeline.crossmodal_stage import SequenceLocalization, candidate_arrays
-from diffloc.reloc.stage_clock import STAGES
+from tests.localization_records import sequence_localization
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,25 +41,14 @@ def test_every_query_gets_the_first_stage_that_decides_it():
         np.array, zip(*cases.values(), strict=True)
     )
     q = len(cases)
-    loc = SequenceLocalization(
-        frames=np.arange(q),
-        T_wc=np.tile(np.eye(4), (q, 1, 1)),
+    loc = sequence_localization(
+        q,
         success=success,
         accepted=accepted,
-        reference=np.zeros(q, dtype=np.int64),
-        top1=np.zeros(q, dtype=np.int64),
         num_matches=inliers + 100,
         num_points=inliers + 50,
         num_inliers=inliers,
-        photometric=np.full(q, 0.5),
         accepted_without_photometric=geometric,
-        from_prior=np.zeros(q, dtype=bool),
-        prior_images=np.zeros(q, dtype=np.int64),
-        time_ms=np.ones(q),
-        cpu_ms=np.ones(q),
-        stage_ms=np.zeros((q, len(STAGES))),
-        stage_cpu_ms=np.zeros((q, len(STAGES))),
-        **candidate_arrays([]),
     )
     # the tests each pose fails, as the replay gives them
     failed = [

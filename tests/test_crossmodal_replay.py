@@ -21,8 +21,8 @@ from diffloc.pipeline.crossmodal_replay import (
 )
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization, candidate_arrays
 from diffloc.reloc.rendered import RenderedCandidate, accept_pose, single_image_validation
-from diffloc.reloc.stage_clock import STAGES
 from diffloc.reloc.validation import PoseEvidence
+from tests.localization_records import sequence_localization
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -63,24 +63,14 @@ def _localization() -> tuple[SequenceLocalization, list]:
         )
     q = len(QUERIES)
     bests = [next((c for c in a.candidates if c.reference == a.reference), None) for a in answers]
-    loc = SequenceLocalization(
+    loc = sequence_localization(
+        q,
         frames=np.arange(q) * 4,
         T_wc=np.stack([np.eye(4) if b is None else b.T_wc.numpy() for b in bests]),
         success=np.array([b is not None and b.success for b in bests]),
-        accepted=np.zeros(q, dtype=bool),
         reference=np.array([a.reference for a in answers]),
-        top1=np.zeros(q, dtype=np.int64),
-        num_matches=np.zeros(q, dtype=np.int64),
-        num_points=np.zeros(q, dtype=np.int64),
         num_inliers=np.array([0 if b is None else b.num_inliers for b in bests]),
         photometric=np.array([p for _, _, p in QUERIES]),
-        accepted_without_photometric=np.zeros(q, dtype=bool),
-        from_prior=np.zeros(q, dtype=bool),
-        prior_images=np.zeros(q, dtype=np.int64),
-        time_ms=np.ones(q),
-        cpu_ms=np.ones(q),
-        stage_ms=np.zeros((q, len(STAGES))),
-        stage_cpu_ms=np.zeros((q, len(STAGES))),
         **candidate_arrays(answers),
     )
     return loc, answers
