@@ -32,9 +32,9 @@ from diffloc.config import compose_config, to_object
 from diffloc.eval.field_scores import heldout_field_scores
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.nerf.data import build_submap_rays
-from diffloc.maps.nerf.module import NerfModule
 from diffloc.maps.nerf.renderer import render_image
 from diffloc.maps.nerf.submaps import cluster_trajectory
+from diffloc.maps.nerf.train import load_checkpoint
 
 
 def main() -> None:
@@ -54,9 +54,7 @@ def main() -> None:
     seq = read_sequence(data, "mapping")
     submap = cluster_trajectory(seq.T_wc, nerf.submaps)[args.submap]
     rays = build_submap_rays(seq, submap.frames, nerf.data)
-    module = NerfModule(nerf.train, rays.box_min, rays.box_max, len(rays.frames))
-    state = torch.load(args.checkpoint, map_location="cpu", weights_only=True)
-    module.load_state_dict(state["state_dict"])
+    module, step = load_checkpoint(rays, nerf.train, args.checkpoint)
     scores = heldout_field_scores(module.field, module.grid, seq, rays.camera, rays.heldout, True)
     code = module.field.appearance.weight.detach().mean(0)
     sky = []
@@ -70,7 +68,7 @@ def main() -> None:
         "command": shlex.join(["python3", *sys.argv]),
         "data": data,
         "background": nerf.train.field.background,
-        "step": state["global_step"],
+        "step": step,
         "heldout_frames": len(rays.heldout),
         **scores,
         "sky_opacity_mean": float(sky_opacity.mean()) if len(sky_opacity) else None,

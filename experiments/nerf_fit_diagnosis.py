@@ -46,6 +46,7 @@ from diffloc.maps.nerf.data import build_submap_rays, load_image
 from diffloc.maps.nerf.module import NerfModule
 from diffloc.maps.nerf.renderer import render_image
 from diffloc.maps.nerf.submaps import cluster_trajectory
+from diffloc.maps.nerf.train import load_checkpoint
 
 _REGION_COLOURS = ("#9ecae1", "#a1d99b", "#fdae6b", "#bcbddc")
 """Colours of the regions in the PNG (sky, ground, facade, far)."""
@@ -192,9 +193,7 @@ def main() -> None:
     seq = read_sequence(data, "mapping")
     submap = cluster_trajectory(seq.T_wc, nerf.submaps)[args.submap]
     rays = build_submap_rays(seq, submap.frames, nerf.data)
-    module = NerfModule(nerf.train, rays.box_min, rays.box_max, len(rays.frames))
-    state = torch.load(args.checkpoint, map_location="cpu", weights_only=True)
-    module.load_state_dict(state["state_dict"])
+    module, step = load_checkpoint(rays, nerf.train, args.checkpoint)
     module.eval()
     train = [
         score_frame(module, seq, rays.camera, f, far_m, own=i) for i, f in enumerate(rays.frames)
@@ -205,7 +204,7 @@ def main() -> None:
         "data": data,
         "submap": args.submap,
         "checkpoint": args.checkpoint,
-        "step": state["global_step"],
+        "step": step,
         "resolution": f"{rays.camera.width}x{rays.camera.height}",
         "far_m": far_m,
         "heldout_frames": rays.heldout,

@@ -20,7 +20,7 @@ from diffloc.maps.nerf.export import export_field, load_field
 from diffloc.maps.nerf.field import FieldConfig
 from diffloc.maps.nerf.module import NerfTrainConfig
 from diffloc.maps.nerf.sampler import SamplerConfig
-from diffloc.maps.nerf.train import fit_submap
+from diffloc.maps.nerf.train import fit_submap, load_checkpoint
 
 DATA = SubmapDataConfig(image_scale=0.25, holdout_every=0, lidar_stride=8)
 
@@ -91,6 +91,22 @@ def test_export_round_trip_without_pickle(tiny_rays, tmp_path: Path) -> None:
         assert torch.equal(field.density(x), module.field.density(x))
     assert torch.equal(grid.density, module.grid.density)
     assert field.config == module.field.config
+
+
+def test_a_checkpoint_loads_back_with_its_weights_and_step(tiny_rays, tmp_path: Path) -> None:
+    cfg = _config()
+    module = fit_submap(tiny_rays, cfg, tmp_path / "run", epochs=2, show_progress=False)
+    loaded, step = load_checkpoint(tiny_rays, cfg, tmp_path / "run/checkpoints/last.ckpt")
+    assert step == 2 * cfg.steps_per_epoch
+    trained = module.state_dict()
+    assert loaded.state_dict().keys() == trained.keys()
+    assert all(torch.equal(v, trained[k]) for k, v in loaded.state_dict().items())
+    assert not torch.equal(
+        loaded.field.appearance.weight,
+        fit_submap(
+            tiny_rays, cfg, tmp_path / "other", 1, show_progress=False
+        ).field.appearance.weight,
+    )
 
 
 def test_loading_a_pickle_or_foreign_json_is_a_clear_error(tiny_rays, tmp_path: Path) -> None:

@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 import lightning as L
+import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger
 
@@ -14,7 +15,7 @@ from diffloc.maps.nerf.data import SubmapRays
 from diffloc.maps.nerf.module import NerfDataModule, NerfModule, NerfTrainConfig
 from diffloc.progress import progress_enabled
 
-__all__ = ["fit_submap"]
+__all__ = ["fit_submap", "load_checkpoint"]
 
 
 def fit_submap(
@@ -62,3 +63,23 @@ def fit_submap(
     ckpt_path = str(last) if resume and last.is_file() else None
     trainer.fit(module, NerfDataModule(rays, config), ckpt_path=ckpt_path, weights_only=True)
     return module
+
+
+def load_checkpoint(
+    rays: SubmapRays, config: NerfTrainConfig, path: str | os.PathLike
+) -> tuple[NerfModule, int]:
+    """The module of a training checkpoint (e.g. ``checkpoints/last.ckpt`` of
+    :func:`fit_submap`), read with ``weights_only`` (no pickled objects), and its step.
+
+    Args:
+        rays: the submap's training rays (they size the box and the appearance codes).
+        config: the training settings the checkpoint was made with.
+        path: the checkpoint file.
+
+    Returns:
+        ``(module, step)``: the module with the checkpoint's weights and its global step.
+    """
+    module = NerfModule(config, rays.box_min, rays.box_max, len(rays.frames))
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    module.load_state_dict(state["state_dict"])
+    return module, int(state["global_step"])
