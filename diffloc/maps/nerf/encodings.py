@@ -13,7 +13,7 @@ convention is ``align_corners=True``: coordinate ``-1`` is vertex 0, ``+1`` vert
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -263,7 +263,7 @@ class TriplaneEncoding(nn.Module):
             for k, axis in enumerate(pair):
                 pair_axes[axis, 2 * plane + k] = 1.0
         self.register_buffer("_pair_axes", pair_axes, persistent=False)
-        self._register_load_state_dict_pre_hook(self._split_stacked_planes)
+        self.register_load_state_dict_pre_hook(TriplaneEncoding._split_stacked_planes)
 
     def _split_stacked_planes(self, state_dict: dict, prefix: str, *args) -> None:
         """Load hook: a level saved as one stacked (3, C, R, R) ``planes.{l}`` (fields exported
@@ -275,10 +275,11 @@ class TriplaneEncoding(nn.Module):
             for plane in range(len(self.PAIRS)):
                 state_dict[f"{key}{len(self.PAIRS) * level + plane}"] = value[plane]
 
-    def _levels(self):
+    def _levels(self) -> Iterator[tuple[tuple[int, ...], list[nn.Parameter]]]:
         """(per-axis resolution, the level's three planes) of each level."""
+        n = len(self.PAIRS)
         for level, r in enumerate(self.resolutions):
-            yield r, [self.planes[3 * level + p] for p in range(len(self.PAIRS))]
+            yield r, [self.planes[n * level + p] for p in range(n)]
 
     def forward(self, xyz: torch.Tensor) -> torch.Tensor:
         """Features of (N, 3) points in [-1, 1]^3 -> (N, out_dim)."""
