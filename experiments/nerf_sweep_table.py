@@ -1,7 +1,9 @@
 """A Markdown table of ``bench_nerf.py`` runs (a sweep of ``--override`` settings, issue 19):
 one row per JSONL record of the full variant, with its difference to the record without
 overrides (tri-plane) on the same dataset (the baseline; the last such record when there
-are several).
+are several), and to the default of its own training seed (the record on the same dataset
+whose only override is the same ``nerf.train.seed=K``; seed 0 without one), since the
+training seed alone moves the held-out PSNR by tenths of a dB.
 
 Writes ``<out>.md`` (first line: the command) and ``<out>.json`` (the rows).
 
@@ -40,9 +42,22 @@ def _setting(record: dict) -> str:
     return " ".join(parts) or "default"
 
 
+_SEED = "nerf.train.seed="
+
+
+def _train_seed(record: dict) -> tuple[int, str]:
+    """A record's training seed (0 without a ``nerf.train.seed`` override) and its setting
+    without that override."""
+    overrides = record.get("overrides") or []
+    seeds = [int(o[len(_SEED) :]) for o in overrides if o.startswith(_SEED)]
+    rest = dict(record, overrides=[o for o in overrides if not o.startswith(_SEED)])
+    return (seeds[-1] if seeds else 0), _setting(rest)
+
+
 def sweep_rows(records: list[dict]) -> list[dict]:
-    """One row per record: its settings and figures, and ``delta_db`` against the baseline
-    (no overrides, same ``data``; ``None`` without one).
+    """One row per record: its settings and figures, ``delta_db`` against the baseline
+    (no overrides, same ``data``; ``None`` without one) and ``delta_same_seed_db`` against the
+    default of the same training seed on the same ``data`` (``None`` without one).
 
     Raises:
         ValueError: a record without the full variant's ``psnr_heldout_db``.
@@ -51,15 +66,24 @@ def sweep_rows(records: list[dict]) -> list[dict]:
         if "psnr_heldout_db" not in r:
             raise ValueError(f"record of {r.get('command')!r} has no full-variant run")
     baselines = {r["data"]: r["psnr_heldout_db"] for r in records if _setting(r) == "default"}
+    seeded = {
+        (r["data"], _train_seed(r)[0]): r["psnr_heldout_db"]
+        for r in records
+        if _train_seed(r)[1] == "default"
+    }
     rows = []
     for r in records:
         base = baselines.get(r["data"])
+        same_seed = seeded.get((r["data"], _train_seed(r)[0]))
         rows.append(
             {
                 "setting": _setting(r),
                 "data": r["data"],
                 "psnr_heldout_db": r["psnr_heldout_db"],
                 "delta_db": None if base is None else r["psnr_heldout_db"] - base,
+                "delta_same_seed_db": (
+                    None if same_seed is None else r["psnr_heldout_db"] - same_seed
+                ),
                 "surface_db": r.get("psnr_heldout_surface_db"),
                 "sky_db": r.get("psnr_heldout_sky_db"),
                 "depth_cm": 100 * r["depth_median_abs_err_m"],
@@ -84,15 +108,17 @@ def sweep_markdown(rows: list[dict], command: str) -> str:
     lines = [
         f"Made by: `{command}`",
         "",
-        "| setting | data | held-out PSNR dB | vs default dB | surface / sky dB | depth cm | "
-        f"normal deg | steps | CPU ms/step | {marks} | load start / end |",
-        "|---|---|---|---|---|---|---|---|---|" + "---|" * len(_MARKS_S) + "---|",
+        "| setting | data | held-out PSNR dB | vs default dB | vs default, same training seed "
+        f"dB | surface / sky dB | depth cm | normal deg | steps | CPU ms/step | {marks} | "
+        "load start / end |",
+        "|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(_MARKS_S) + "---|",
     ]
     for r in rows:
         at = " | ".join(_cell(r[f"psnr_at_{m:.0f}s_db"], "{:.2f}") for m in _MARKS_S)
         lines.append(
             f"| `{r['setting']}` | {Path(r['data']).name} | {r['psnr_heldout_db']:.2f} | "
-            f"{_cell(r['delta_db'], '{:+.2f}')} | {_cell(r['surface_db'], '{:.2f}')} / "
+            f"{_cell(r['delta_db'], '{:+.2f}')} | {_cell(r['delta_same_seed_db'], '{:+.2f}')} | "
+            f"{_cell(r['surface_db'], '{:.2f}')} / "
             f"{_cell(r['sky_db'], '{:.2f}')} | {r['depth_cm']:.1f} | {r['normal_deg']:.2f} | "
             f"{r['steps']} | {r['cpu_ms_per_step']:.0f} | {at} | "
             f"{r['load'][0]:.1f} / {r['load'][1]:.1f} |"

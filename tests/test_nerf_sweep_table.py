@@ -1,6 +1,6 @@
 """experiments/nerf_sweep_table.py on synthetic bench_nerf records: differences to the run
-without overrides of the same dataset, PSNR at the CPU marks, and a clear error for a record
-without the full variant."""
+without overrides of the same dataset and to the default of the same training seed, PSNR at
+the CPU marks, and a clear error for a record without the full variant."""
 
 from __future__ import annotations
 
@@ -64,7 +64,26 @@ def test_rows_compare_with_the_default_of_the_same_dataset() -> None:
     assert rows[0]["depth_cm"] == pytest.approx(6.7)
     text = script.sweep_markdown(rows, "python3 x.py")
     assert text.startswith("Made by: `python3 x.py`")
-    assert "| `nerf.train.ray_batch=2048` | outdoor_seed1 | 21.50 | -0.50 | 20.50 / 23.50 |" in text
+    row = "| `nerf.train.ray_batch=2048` | outdoor_seed1 | 21.50 | -0.50 | -0.50 | 20.50 / 23.50 |"
+    assert row in text
+
+
+def test_rows_compare_with_the_default_of_the_same_training_seed() -> None:
+    script = load_script()
+    rows = script.sweep_rows(
+        [
+            record("data/outdoor_seed0", 22.5, []),
+            record("data/outdoor_seed0", 23.0, ["nerf.train.seed=1"]),
+            record("data/outdoor_seed0", 23.4, ["nerf.train.seed=1", "nerf.train.ray_batch=8"]),
+            record("data/outdoor_seed0", 22.9, ["nerf.train.ray_batch=8", "nerf.train.seed=0"]),
+            record("data/outdoor_seed0", 21.0, ["nerf.train.seed=2", "nerf.train.ray_batch=8"]),
+        ]
+    )
+    assert rows[1]["delta_db"] == pytest.approx(0.5) and rows[1]["delta_same_seed_db"] == 0.0
+    assert rows[2]["delta_db"] == pytest.approx(0.9)
+    assert rows[2]["delta_same_seed_db"] == pytest.approx(0.4)
+    assert rows[3]["delta_same_seed_db"] == pytest.approx(0.4)
+    assert rows[4]["delta_same_seed_db"] is None
 
 
 def test_a_mark_after_the_run_is_empty() -> None:

@@ -13,13 +13,13 @@ convention is ``align_corners=True``: coordinate ``-1`` is vertex 0, ``+1`` vert
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from diffloc.checks import check_shape
+from diffloc.checks import check_number, check_shape
 
 __all__ = [
     "HashGridEncoding",
@@ -28,17 +28,21 @@ __all__ = [
     "multilinear",
     "multilinear_with_gradient",
     "trilinear_gather",
+    "triplane_axis_resolutions",
 ]
 
 # Spatial hash primes of Instant-NGP (Mueller et al. 2022), one per axis.
 _PRIMES = (1, 2654435761, 805459861)
 
 
-def _cell(coords: torch.Tensor, resolution: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _cell(
+    coords: torch.Tensor, resolution: int | torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Lower vertex index and fractional offset of each coordinate on a grid of ``resolution``
-    vertices per axis. coords: (N, D) in [-1, 1] -> (N, D) int64 and (N, D) float."""
+    vertices per axis (an int, or a tensor of vertices per axis broadcastable to ``coords``).
+    coords: (N, D) in [-1, 1] -> (N, D) int64 and (N, D) float."""
     u = (coords.clamp(-1.0, 1.0) + 1.0) * (0.5 * (resolution - 1))
-    lower = u.detach().floor().clamp(0, resolution - 2)
+    lower = torch.minimum(u.detach().floor(), torch.as_tensor(resolution - 2).to(u))
     return lower.long(), u - lower
 
 
@@ -72,7 +76,7 @@ def multilinear(rows: torch.Tensor, frac: torch.Tensor) -> torch.Tensor:
 
 
 def multilinear_with_gradient(
-    rows: torch.Tensor, frac: torch.Tensor, coords: torch.Tensor, resolution: int
+    rows: torch.Tensor, frac: torch.Tensor, coords: torch.Tensor, resolution: int | torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`multilinear` and its derivative with respect to the coordinates in [-1, 1].
 
@@ -83,7 +87,8 @@ def multilinear_with_gradient(
         rows: (2**D, ...) corner features.
         frac: (D, ...) fractional offsets in the cell.
         coords: (D, ...) the coordinates (zero derivative where they are clamped, beyond +-1).
-        resolution: vertices per axis R (a coordinate step of 2 / (R - 1) crosses one cell).
+        resolution: vertices per axis R (a coordinate step of 2 / (R - 1) crosses one cell),
+            an int or a tensor broadcastable to ``coords`` (per-axis counts).
 
     Returns:
         ``(value, gradient)``: (...) and (D, ...).
@@ -98,22 +103,33 @@ def multilinear_with_gradient(
     return rows[0], torch.stack(slopes) * scale
 
 
-def bilinear_gather(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> torch.Tensor:
-    """Bilinear interpolation of a square feature plane stored row-major.
+def bilinear_gather(
+    table: torch.Tensor, uv: torch.Tensor, resolution: int | tuple[int, int]
+) -> torch.Tensor:
+    """Bilinear interpolation of a feature plane stored row-major.
 
     Args:
-        table: (R * R, C) features, vertex ``(i, j)`` (i along the first coordinate) at row
-            ``j * R + i``.
+        table: (R_j * R_i, C) features, vertex ``(i, j)`` (i along the first coordinate) at row
+            ``j * R_i + i``.
         uv: (N, 2) coordinates in [-1, 1] (clamped).
-        resolution: R >= 2.
+        resolution: vertices ``(R_i, R_j)`` along the two coordinates, each >= 2; an int R
+            for a square plane.
 
     Returns:
         (N, C) interpolated features.
+
+    Example:
+        >>> table = torch.arange(6.0)[:, None]  # 3 x 2 vertices, value 3 j + i
+        >>> bilinear_gather(table, torch.tensor([[0.0, 0.0], [1.0, 1.0]]), (3, 2))[:, 0]
+        tensor([2.5000, 5.0000])
     """
     check_shape(uv, "N,2", "uv")
-    lower, frac = _cell(uv, resolution)
+    r_i, r_j = (resolution, resolution) if isinstance(resolution, int) else resolution
+    if len(table) != r_i * r_j:
+        raise ValueError(f"table has {len(table)} rows, a {r_i} x {r_j} plane needs {r_i * r_j}")
+    lower, frac = _cell(uv, torch.tensor([r_i, r_j], dtype=uv.dtype, device=uv.device))
     vertex = lower[:, None] + _corners(2, uv.device)
-    rows = table.index_select(0, (vertex[..., 1] * resolution + vertex[..., 0]).reshape(-1))
+    rows = table.index_select(0, (vertex[..., 1] * r_i + vertex[..., 0]).reshape(-1))
     return multilinear(rows.view(len(uv), 4, table.shape[1]).transpose(0, 1), frac.T[..., None])
 
 
@@ -165,10 +181,44 @@ def _grid_sample(
     return out.reshape(len(coords), volume.shape[1], -1).transpose(1, 2)
 
 
-def _product(planes: torch.Tensor) -> torch.Tensor:
+def _product(planes: torch.Tensor | Sequence[torch.Tensor]) -> torch.Tensor:
     """Product of the three planes' features (3, ...) -> (...), as two multiplications: the
     backward of ``prod`` tests for zeros and divides, about 8 % of a training step."""
     return planes[0] * planes[1] * planes[2]
+
+
+def triplane_axis_resolutions(
+    resolutions: Sequence[int], extent: Sequence[float], aspect: float
+) -> list[tuple[int, int, int]]:
+    """Vertices per axis of each tri-plane level for a box of ``extent``: axis ``a`` gets
+    ``R w_a / g`` vertices (rounded, at least 2) with ``w_a = extent_a ** aspect`` and ``g``
+    such that the three planes hold ``3 R^2`` vertices, as a square level of ``R`` does.
+
+    ``aspect`` 0 gives square planes (``R`` on every axis); 1 makes the vertex counts
+    proportional to the extents, so the cells are cubes in the box; values between
+    interpolate geometrically.
+
+    Args:
+        resolutions: ``R`` of each level.
+        extent: (3,) the box's side lengths (any unit; only their ratios matter).
+        aspect: exponent in [0, 1].
+
+    Returns:
+        ``(R_x, R_y, R_z)`` per level.
+
+    Raises:
+        ValueError: an extent that is not positive or an aspect outside [0, 1].
+
+    Example:
+        >>> triplane_axis_resolutions([64], [4.0, 4.0, 1.0], 1.0)
+        [(91, 91, 23)]
+    """
+    check_number(aspect, "triplane_aspect", 0.0, 1.0)
+    if len(extent) != 3 or not all(math.isfinite(e) and e > 0 for e in extent):
+        raise ValueError(f"the box extent must be three positive lengths, got {list(extent)}")
+    w = [float(e) ** aspect for e in extent]
+    g = math.sqrt((w[0] * w[1] + w[0] * w[2] + w[1] * w[2]) / 3.0)
+    return [tuple(max(2, round(r * wa / g)) for wa in w) for r in resolutions]
 
 
 class TriplaneEncoding(nn.Module):
@@ -177,19 +227,34 @@ class TriplaneEncoding(nn.Module):
     product) and the levels concatenated. Interpolation uses ``grid_sample`` (twice
     differentiable); :func:`bilinear_gather` is its slow reference.
 
+    A level is square (``R`` vertices on every axis) or has its own count per axis
+    ``(R_x, R_y, R_z)`` (:func:`triplane_axis_resolutions`); plane ``(a, b)`` then has
+    ``R_a x R_b`` vertices. Plane ``p`` of level ``l`` is the parameter ``planes.{3 l + p}``
+    of shape (channels, R_b, R_a); fields saved with a level's three planes stacked in one
+    (3, channels, R, R) parameter ``planes.{l}`` load into it unchanged.
+
     Args:
-        resolutions: plane resolution of each level, e.g. ``(64, 128, 256)``.
+        resolutions: each level's ``R`` or ``(R_x, R_y, R_z)``, e.g. ``(64, 128, 256)``.
         channels: features per plane.
         init_std: features start at ``1 + N(0, init_std)`` (the product starts near one).
     """
 
     PAIRS = ((0, 1), (0, 2), (1, 2))
 
-    def __init__(self, resolutions: Sequence[int], channels: int, init_std: float) -> None:
+    def __init__(
+        self, resolutions: Sequence[int | Sequence[int]], channels: int, init_std: float
+    ) -> None:
         super().__init__()
-        self.resolutions = tuple(int(r) for r in resolutions)
+        self.resolutions = tuple(
+            (int(r),) * 3 if isinstance(r, int) else tuple(int(v) for v in r) for r in resolutions
+        )
+        for r in self.resolutions:
+            if len(r) != 3 or min(r) < 2:
+                raise ValueError(f"a tri-plane level needs >= 2 vertices on 3 axes, got {r}")
         self.planes = nn.ParameterList(
-            nn.Parameter(1.0 + init_std * torch.randn(3, channels, r, r)) for r in self.resolutions
+            nn.Parameter(1.0 + init_std * torch.randn(channels, r[b], r[a]))
+            for r in self.resolutions
+            for a, b in self.PAIRS
         )
         self.out_dim = channels * len(self.resolutions)
         # (3, 6): axis a of the point <- coordinate k of plane p (column 2 p + k)
@@ -198,12 +263,35 @@ class TriplaneEncoding(nn.Module):
             for k, axis in enumerate(pair):
                 pair_axes[axis, 2 * plane + k] = 1.0
         self.register_buffer("_pair_axes", pair_axes, persistent=False)
+        self.register_load_state_dict_pre_hook(TriplaneEncoding._split_stacked_planes)
+
+    def _split_stacked_planes(self, state_dict: dict, prefix: str, *args) -> None:
+        """Load hook: a level saved as one stacked (3, C, R, R) ``planes.{l}`` (fields exported
+        before per-axis resolutions) becomes its three planes ``planes.{3 l + p}``."""
+        key = f"{prefix}planes."
+        stacked = [k for k, v in state_dict.items() if k.startswith(key) and v.dim() == 4]
+        levels = {int(k[len(key) :]): state_dict.pop(k) for k in stacked}  # all out, then in
+        for level, value in levels.items():
+            for plane in range(len(self.PAIRS)):
+                state_dict[f"{key}{len(self.PAIRS) * level + plane}"] = value[plane]
+
+    def _levels(self) -> Iterator[tuple[tuple[int, ...], list[nn.Parameter]]]:
+        """(per-axis resolution, the level's three planes) of each level."""
+        n = len(self.PAIRS)
+        for level, r in enumerate(self.resolutions):
+            yield r, [self.planes[n * level + p] for p in range(n)]
 
     def forward(self, xyz: torch.Tensor) -> torch.Tensor:
         """Features of (N, 3) points in [-1, 1]^3 -> (N, out_dim)."""
         check_shape(xyz, "N,3", "xyz")
-        coords = torch.stack([xyz[:, pair] for pair in self.PAIRS])
-        return torch.cat([_product(_grid_sample(p, coords)) for p in self.planes], dim=-1)
+        coords = [xyz[:, pair][None] for pair in self.PAIRS]
+        return torch.cat(
+            [
+                _product([_grid_sample(p[None], c)[0] for p, c in zip(planes, coords, strict=True)])
+                for _, planes in self._levels()
+            ],
+            dim=-1,
+        )
 
     def forward_with_jacobian(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Features (N, out_dim) of (N, 3) points in [-1, 1]^3 and their derivatives
@@ -213,16 +301,23 @@ class TriplaneEncoding(nn.Module):
         n = len(xyz)
         coords = torch.stack([xyz[:, pair] for pair in self.PAIRS])  # (3, N, 2)
         at = coords.permute(2, 0, 1)[:, :, None]  # (2, 3, 1, N): per plane axis
-        corners = _corners(2, xyz.device)[:, None, None]
+        corners = _corners(2, xyz.device)[:, None]
         features, jacobians = [], []
-        for planes, r in zip(self.planes, self.resolutions, strict=True):
-            c = planes.shape[1]
-            lower, frac = _cell(coords, r)
-            vertex = (lower + corners).to(xyz.dtype) * (2 / (r - 1)) - 1  # (4, 3, N, 2)
-            grid = vertex.transpose(0, 1).reshape(3, 4 * n, 2)
-            rows = _grid_sample(planes, grid, mode="nearest").transpose(1, 2)  # (3, C, 4 N)
-            rows = rows.reshape(3, c, 4, n).permute(2, 0, 1, 3)  # (4, 3, C, N)
-            value, slope = multilinear_with_gradient(rows, frac.permute(2, 0, 1)[:, :, None], at, r)
+        for r, planes in self._levels():
+            c = planes[0].shape[0]
+            res = torch.tensor(  # (3, 2): vertices along each plane's two coordinates
+                [[r[a], r[b]] for a, b in self.PAIRS], dtype=xyz.dtype, device=xyz.device
+            )
+            lower, frac = _cell(coords, res[:, None])
+            rows = []
+            for p, plane in enumerate(planes):
+                vertex = (lower[p] + corners).to(xyz.dtype) * (2 / (res[p] - 1)) - 1  # (4, N, 2)
+                rows.append(_grid_sample(plane[None], vertex.reshape(1, 4 * n, 2), "nearest")[0])
+            rows = torch.stack(rows).reshape(3, 4, n, c).permute(1, 0, 3, 2)  # (4, 3, C, N)
+            scale = res.T[:, :, None, None]  # (2, 3, 1, 1): vertices along each plane axis
+            value, slope = multilinear_with_gradient(
+                rows, frac.permute(2, 0, 1)[:, :, None], at, scale
+            )
             # product rule: d(v0 v1 v2) = sum_p (prod_{q != p} v_q) dv_p, dv_p on its pair
             others = torch.stack((value[1] * value[2], value[0] * value[2], value[0] * value[1]))
             terms = (others * slope).transpose(0, 1).reshape(6, -1)  # row 2 p + k
@@ -233,11 +328,11 @@ class TriplaneEncoding(nn.Module):
     def forward_reference(self, xyz: torch.Tensor) -> torch.Tensor:
         """:meth:`forward` with explicit gathers (slow reference for tests)."""
         levels = []
-        for planes, r in zip(self.planes, self.resolutions, strict=True):
+        for r, planes in self._levels():
             feature = 1.0
-            for plane, pair in zip(planes, self.PAIRS, strict=True):
-                table = plane.permute(1, 2, 0).reshape(r * r, -1)
-                feature = feature * bilinear_gather(table, xyz[:, pair], r)
+            for plane, (a, b) in zip(planes, self.PAIRS, strict=True):
+                table = plane.permute(1, 2, 0).reshape(r[a] * r[b], -1)
+                feature = feature * bilinear_gather(table, xyz[:, (a, b)], (r[a], r[b]))
             levels.append(feature)
         return torch.cat(levels, dim=-1)
 

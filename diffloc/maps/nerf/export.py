@@ -53,6 +53,20 @@ def _dataclass(cls: type, values: dict, path: Path):
     return cls(**values)
 
 
+def _box(tensors: dict[str, torch.Tensor], path: Path) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (3,) lower and upper corners of the box saved with a field's weights (the
+    tri-plane's per-axis vertex counts depend on it)."""
+    try:
+        centre, half = tensors["field.normalise.centre"], tensors["field.normalise.half_extent"]
+    except KeyError as error:
+        raise ValueError(f"{path}: no field box ({error.args[0]} missing)") from error
+    if centre.shape != (3,) or half.shape != (3,) or not bool(torch.isfinite(centre).all()):
+        raise ValueError(f"{path}: the field box is not two finite (3,) vectors")
+    if not bool((half > 0).all() & torch.isfinite(half).all()):
+        raise ValueError(f"{path}: the field box has a side that is not positive and finite")
+    return centre - half, centre + half
+
+
 def load_field(in_dir: str | os.PathLike) -> tuple[RadianceField, DensityGrid]:
     """Read :func:`export_field` output (no unpickling).
 
@@ -74,8 +88,7 @@ def load_field(in_dir: str | os.PathLike) -> tuple[RadianceField, DensityGrid]:
         raise ValueError(f"{weights}: not a safetensors file ({error})") from error
     field_cfg = _dataclass(FieldConfig, record["field"], meta)
     grid = DensityGrid(_dataclass(SamplerConfig, record["sampler"], meta))
-    box = torch.zeros(3), torch.ones(3)
-    field = RadianceField(field_cfg, *box, int(record["num_images"]))
+    field = RadianceField(field_cfg, *_box(tensors, weights), int(record["num_images"]))
     for module, prefix in ((field, "field."), (grid, "grid.")):
         state = {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
         try:

@@ -19,7 +19,11 @@ from torch import nn
 
 from diffloc.checks import check_int_at_least, check_number, check_shape
 from diffloc.maps.nerf.contraction import SceneNormalisation
-from diffloc.maps.nerf.encodings import HashGridEncoding, TriplaneEncoding
+from diffloc.maps.nerf.encodings import (
+    HashGridEncoding,
+    TriplaneEncoding,
+    triplane_axis_resolutions,
+)
 
 __all__ = [
     "BACKGROUNDS",
@@ -46,7 +50,12 @@ class FieldConfig:
 
     Attributes:
         encoding: ``"triplane"`` or ``"hashgrid"``.
-        triplane_resolutions: plane resolution per tri-plane level.
+        triplane_resolutions: plane resolution per tri-plane level (vertices per axis of a
+            square level).
+        triplane_aspect: exponent in [0, 1] of the box's extents that each level's vertices
+            per axis follow at the same number of vertices per level
+            (:func:`~diffloc.maps.nerf.encodings.triplane_axis_resolutions`): 0 square planes,
+            1 cubic cells in the box (vertices proportional to the box's side lengths).
         triplane_channels: features per plane.
         hash_levels: hash-grid levels.
         hash_channels: features per level.
@@ -66,6 +75,7 @@ class FieldConfig:
 
     encoding: str = "triplane"
     triplane_resolutions: list[int] = dataclasses.field(default_factory=lambda: [64, 128, 256])
+    triplane_aspect: float = 0.0
     triplane_channels: int = 8
     hash_levels: int = 12
     hash_channels: int = 2
@@ -104,6 +114,7 @@ class FieldConfig:
         check_int_at_least(self.geo_features, "geo_features", 0)
         check_int_at_least(self.appearance_dim, "appearance_dim", 0)
         check_number(self.init_std, "init_std", 0.0, open_low=True)
+        check_number(self.triplane_aspect, "triplane_aspect", 0.0, 1.0)
         check_number(self.density_bias, "density_bias")
 
 
@@ -116,16 +127,25 @@ class FieldOutputs:
     normal: torch.Tensor | None
 
 
-def build_encoding(config: FieldConfig) -> TriplaneEncoding | HashGridEncoding:
+def build_encoding(
+    config: FieldConfig, extent: torch.Tensor | None = None
+) -> TriplaneEncoding | HashGridEncoding:
     """The grid encoding named by ``config.encoding``.
+
+    Args:
+        config: the settings.
+        extent: (3,) side lengths of the box the cube spans (the tri-plane's per-axis vertex
+            counts with ``triplane_aspect > 0``); ``None``: a cube.
 
     Raises:
         ValueError: an unknown encoding name.
     """
     if config.encoding == "triplane":
-        return TriplaneEncoding(
-            config.triplane_resolutions, config.triplane_channels, config.init_std
+        sides = [1.0] * 3 if extent is None else [float(e) for e in extent]
+        resolutions = triplane_axis_resolutions(
+            config.triplane_resolutions, sides, config.triplane_aspect
         )
+        return TriplaneEncoding(resolutions, config.triplane_channels, config.init_std)
     if config.encoding == "hashgrid":
         return HashGridEncoding(
             config.hash_levels,
@@ -180,7 +200,7 @@ class RadianceField(nn.Module):
         super().__init__()
         self.config = config
         self.normalise = SceneNormalisation(box_min, box_max, config.contracted)
-        self.encoding = build_encoding(config)
+        self.encoding = build_encoding(config, 2 * self.normalise.half_extent)
         self.density_mlp = _mlp(self.encoding.out_dim, config.hidden, 1 + config.geo_features)
         colour_in = config.geo_features + 9 + config.appearance_dim
         self.colour_mlp = _mlp(colour_in, config.hidden, 3)
