@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from diffloc.checks import ShapeError
+from diffloc.features.local import XFeatConfig, XFeatExtractor
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, se3_log
 from diffloc.maps.nerf.field import FieldConfig, RadianceField
@@ -15,10 +16,12 @@ from diffloc.maps.nerf.rays import camera_rays
 from diffloc.maps.nerf.renderer import render_rays
 from diffloc.maps.nerf.sampler import DensityGrid, SamplerConfig
 from diffloc.optim.render_refine import (
+    MatchCheckConfig,
     RenderRefineConfig,
     compared_residuals,
     crop_to_view,
     fit_query_appearance,
+    match_alignment_check,
     point_cloud_map,
     radiance_field_map,
     refine_pose_by_rendering,
@@ -179,6 +182,38 @@ def test_photometric_residual_gradcheck_float64() -> None:
     assert torch.autograd.gradcheck(residuals, (delta,), check_forward_ad=True)
 
 
+CHECK_CAMERA = PinholeCamera.from_fov(192, 144, 1.2)
+"""The match check's camera: CAMERA's field of view at four times its size."""
+
+
+def test_the_match_check_refuses_a_move_the_held_out_evidence_does_not_confirm(cloud) -> None:
+    # Two copies of one refinement: the fitted 48x36 query is the render at T_TRUE, so the
+    # fitted cost falls to ~0 as the pose returns there. The check's 192x144 evidence is the
+    # render at T_TRUE for the first copy (it confirms the move) and at the start for the
+    # second (it says the start was right: the move must be refused though the cost fell).
+    query = colour_of(cloud.render(T_TRUE, CAMERA)).expand(2, -1, -1, -1)
+    T_start = (T_TRUE @ se3_exp(perturbation(0.05, 2.0))).expand(2, -1, -1)
+    evidence = colour_of(cloud.render(torch.cat((T_TRUE, T_start[:1])), CHECK_CAMERA))
+    verify = match_alignment_check(
+        cloud,
+        evidence.clamp(0, 1),
+        CHECK_CAMERA,
+        XFeatExtractor(XFeatConfig(max_keypoints=1024)),
+        MatchCheckConfig(width=CHECK_CAMERA.width),
+    )
+    config = RenderRefineConfig(levels=(0.5, 1.0), iterations=10)
+    result = refine_pose_by_rendering(cloud, query, T_start, CAMERA, config=config, verify=verify)
+    assert bool((result.cost_after < 0.5 * result.cost_before).all())
+    assert errors(result.T_refined[:1], T_TRUE)[0] < 0.01
+    aligned_before, aligned_after = result.evidence.inliers_before, result.evidence.inliers_after
+    assert int(aligned_after[0]) > 2 * int(aligned_before[0])  # confirmed
+    assert int(aligned_after[1]) < int(aligned_before[1])  # contradicted
+    assert result.evidence.passed.tolist() == [True, False]
+    assert result.accepted.tolist() == [True, False]
+    assert torch.equal(result.T_wc[0], result.T_refined[0])
+    assert torch.equal(result.T_wc[1], T_start[1])
+
+
 def test_a_start_at_the_true_pose_is_not_made_worse(cloud) -> None:
     query = colour_of(cloud.render(T_TRUE, CAMERA))
     result = refine_pose_by_rendering(cloud, query, T_TRUE, CAMERA, config=SHORT)
@@ -234,6 +269,20 @@ def test_crop_keeps_the_points_in_view_and_in_range() -> None:
 def test_bad_settings_are_clear_errors(kwargs: dict, name: str) -> None:
     with pytest.raises(ValueError, match=name):
         RenderRefineConfig(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"width": 16}, "width"),
+        ({"inlier_px": 0.0}, "inlier_px"),
+        ({"min_inliers": -1}, "min_inliers"),
+        ({"min_gain": float("nan")}, "min_gain"),
+    ],
+)
+def test_bad_match_check_settings_are_clear_errors(kwargs: dict, name: str) -> None:
+    with pytest.raises(ValueError, match=name):
+        MatchCheckConfig(**kwargs)
 
 
 def test_an_image_of_the_wrong_shape_is_a_clear_error() -> None:
