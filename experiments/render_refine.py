@@ -239,6 +239,7 @@ def run(args: argparse.Namespace) -> list[dict]:
             cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
             if result.evidence is not None:
                 info |= evidence_record(result.evidence)
+            if verify is not None:
                 info["check_cpu_ms"] += verify.cpu_ms
             before, after = pose_errors(T0, T_gt), pose_errors(result.T_wc, T_gt)
             refined = pose_errors(result.T_refined, T_gt)
@@ -337,9 +338,6 @@ def redecide(rows: list[dict], s: dict) -> list[dict]:
             r
             | {
                 "accepted": keep,
-                "check_passed": check_rule(
-                    r, s["check_px"], s["check_min_inliers"], s["check_min_gain"]
-                ),
                 "t_after_m": r["t_refined_m"] if keep else r["t_before_m"],
                 "r_after_deg": r["r_refined_deg"] if keep else r["r_before_deg"],
             }
@@ -355,7 +353,7 @@ def wrong(row: dict, accepted: bool) -> bool:
 def rule_grid(rows: list[dict], s: dict) -> list[dict]:
     """Accepted / wrong accepted of every perturbed start under a grid of check rules (the
     tuning table, read from the recorded rows)."""
-    sel = [r for r in rows if "aligned_after" in r and r["start"] != "localised"]
+    sel = [r for r in rows if r["start"] != "localised"]
     photo = [photometric_accepted(r, s) for r in sel]
     grid = [{"px": None, "min_inliers": None, "min_gain": None}]
     grid += [

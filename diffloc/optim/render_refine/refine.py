@@ -41,7 +41,7 @@ class RefineResult:
         correlation: (B,) colour correlation of render and query at the refined pose.
         accepted: (B,) bool, the acceptance rule of the package doc.
         evidence: the check on evidence the refinement did not fit, where one was given
-            (its ``passed`` is part of ``accepted``), else ``None``.
+            and called (its ``passed`` is part of ``accepted``), else ``None``.
     """
 
     T_wc: torch.Tensor
@@ -147,8 +147,9 @@ def refine_pose_by_rendering(
         config: settings (default :class:`RenderRefineConfig`).
         verify: a check of the refined poses on other evidence
             (:func:`~diffloc.optim.render_refine.verification.match_alignment_check`),
-            called once with the initial and refined poses of the whole batch; a refined pose
-            it does not pass is refused.
+            called once with the initial and refined poses of the whole batch when any refined
+            pose passes the cost and correlation rule (else not at all); a refined pose it
+            does not pass is refused.
 
     Returns:
         :class:`RefineResult`.
@@ -183,7 +184,7 @@ def refine_pose_by_rendering(
         )
         T = torch.where(usable[:, None, None], result.T_wc, T)
     result = _accept(render, T_init, T.detach(), camera, image, depth, cfg)
-    if verify is None:
+    if verify is None or not bool(result.accepted.any()):
         return result
     evidence = verify(T_init, result.T_refined)
     accepted = result.accepted & evidence.passed

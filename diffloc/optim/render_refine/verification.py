@@ -23,6 +23,7 @@ Usage::
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -167,14 +168,17 @@ def match_alignment_check(
     check_shape(image, f"B,3,{camera.height},{camera.width}", "image")
     check_camera = camera.scaled(cfg.width / camera.width)
     size = (check_camera.height, check_camera.width)
-    query = extractor.extract(_as_extractor_image(F.interpolate(image, size, mode="area")))
+
+    @functools.cache
+    def query() -> list[Features]:  # extracted on the first call only
+        return extractor.extract(_as_extractor_image(F.interpolate(image, size, mode="area")))
 
     def count(displacements: tuple[torch.Tensor, ...]) -> torch.Tensor:
         return torch.stack([(d <= cfg.inlier_px).sum() for d in displacements])
 
     def verify(T_init: torch.Tensor, T_refined: torch.Tensor) -> MatchEvidence:
-        before = match_displacements(model, query, T_init, check_camera, extractor)
-        after = match_displacements(model, query, T_refined, check_camera, extractor)
+        before = match_displacements(model, query(), T_init, check_camera, extractor)
+        after = match_displacements(model, query(), T_refined, check_camera, extractor)
         n_before, n_after = count(before), count(after)
         passed = (n_after >= cfg.min_inliers) & (n_after >= cfg.min_gain * n_before)
         return MatchEvidence(before, after, n_before, n_after, passed)
