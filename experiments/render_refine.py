@@ -281,6 +281,7 @@ def check_config(args: argparse.Namespace) -> MatchCheckConfig | None:
         width=args.check_width,
         inlier_px=args.check_px,
         min_inliers=args.check_min_inliers,
+        min_fraction=args.check_min_fraction,
         min_gain=args.check_min_gain,
     )
 
@@ -319,10 +320,17 @@ def photometric_accepted(row: dict, s: dict) -> bool:
     )
 
 
-def check_rule(row: dict, px: float, min_inliers: int, min_gain: float) -> bool:
-    """The match check (c) at ``px`` / ``min_inliers`` / ``min_gain`` from a row's record."""
+def check_rule(
+    row: dict, px: float, min_inliers: int, min_fraction: float, min_gain: float
+) -> bool:
+    """The match check (c) at ``px`` / ``min_inliers`` / ``min_fraction`` / ``min_gain`` from a
+    row's record."""
     after, before = row["aligned_after"][f"{px:g}"], row["aligned_before"][f"{px:g}"]
-    return after >= min_inliers and after >= min_gain * before
+    return (
+        after >= min_inliers
+        and after >= min_fraction * row["matches_after"]
+        and after >= min_gain * before
+    )
 
 
 def redecide(rows: list[dict], s: dict) -> list[dict]:
@@ -332,7 +340,11 @@ def redecide(rows: list[dict], s: dict) -> list[dict]:
     out = []
     for r in rows:
         keep = photometric_accepted(r, s) and check_rule(
-            r, s["check_px"], s["check_min_inliers"], s["check_min_gain"]
+            r,
+            s["check_px"],
+            s["check_min_inliers"],
+            s["check_min_fraction"],
+            s["check_min_gain"],
         )
         out.append(
             r
@@ -350,26 +362,25 @@ def wrong(row: dict, accepted: bool) -> bool:
     return accepted and row["t_refined_m"] > row["t_before_m"]
 
 
+RULE_KEYS = ("px", "min_inliers", "min_fraction", "min_gain")
+
+
 def rule_grid(rows: list[dict], s: dict) -> list[dict]:
     """Accepted / wrong accepted of every perturbed start under a grid of check rules (the
     tuning table, read from the recorded rows)."""
     sel = [r for r in rows if r["start"] != "localised"]
     photo = [photometric_accepted(r, s) for r in sel]
-    grid = [{"px": None, "min_inliers": None, "min_gain": None}]
+    grid = [{"px": None, "min_inliers": None, "min_fraction": None, "min_gain": None}]
     grid += [
-        {"px": px, "min_inliers": n, "min_gain": g}
-        for px in CHECK_PX
-        for n in (10, 20, 40)
-        for g in (1.0, 1.5)
+        {"px": px, "min_inliers": 20, "min_fraction": f, "min_gain": g}
+        for px in (1.0, 2.0, 3.0)
+        for f in (0.0, 0.25, 0.35, 0.45)
+        for g in (1.0, 1.5, 2.0)
     ]
     out = []
     for rule in grid:
         acc = [
-            p
-            and (
-                rule["px"] is None
-                or check_rule(r, rule["px"], rule["min_inliers"], rule["min_gain"])
-            )
+            p and (rule["px"] is None or check_rule(r, *(rule[k] for k in RULE_KEYS)))
             for r, p in zip(sel, photo, strict=True)
         ]
         good = [a and not wrong(r, a) for r, a in zip(sel, acc, strict=True)]
@@ -470,8 +481,9 @@ def markdown(result: dict) -> str:
     if s.get("check_width"):
         acceptance += (
             f", and the match check at {s['check_width']} px width: >= "
-            f"{s['check_min_inliers']} XFeat matches aligned within {s['check_px']:g} px and "
-            f">= {s['check_min_gain']:g} x those at the start"
+            f"{s['check_min_inliers']} XFeat matches and >= "
+            f"{100 * s.get('check_min_fraction', 0.0):g} % of them aligned within "
+            f"{s['check_px']:g} px, and >= {s['check_min_gain']:g} x the aligned at the start"
             + (" (rows re-decided under this rule from their record)" if s.get("redecided") else "")
         )
     residual = ""
@@ -528,16 +540,17 @@ def markdown(result: dict) -> str:
             "",
             "Perturbed starts accepted under other match-check rules (from the recorded rows; "
             "wrong = ends farther from the true position than it started; px = alignment "
-            "tolerance, n = min aligned matches, gain = min ratio to the start's):",
+            "tolerance, n = min aligned matches, fraction = min aligned fraction of the "
+            "matches, gain = min ratio to the start's aligned):",
             "",
-            "| px | n | gain | starts | accepted | right | wrong |",
-            "|---|---|---|---|---|---|---|",
+            "| px | n | fraction | gain | starts | accepted | right | wrong |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for g in result["check_rules"]:
             rule = (
-                "no check | | "
+                "no check | | | "
                 if g["px"] is None
-                else f"{g['px']:g} | {g['min_inliers']} | {g['min_gain']:g}"
+                else f"{g['px']:g} | {g['min_inliers']} | {g['min_fraction']:g} | {g['min_gain']:g}"
             )
             lines.append(
                 f"| {rule} | {g['starts']} | {g['accepted']} | {g['right_accepted']} | "
@@ -585,11 +598,13 @@ def main() -> None:
     )
     parser.add_argument("--check-px", type=float, default=2.0, help="aligned match, pixels")
     parser.add_argument("--check-min-inliers", type=int, default=20)
+    parser.add_argument("--check-min-fraction", type=float, default=0.0)
     parser.add_argument("--check-min-gain", type=float, default=1.0)
     parser.add_argument(
         "--redecide",
         action="store_true",
-        help="with --from-json: re-decide the rows under these --check-* values",
+        help="with --from-json: re-decide the rows under these --check-* and "
+        "--min-correlation values (written under --label)",
     )
     args = parser.parse_args()
     if len(args.perturb_m) != len(args.perturb_deg):
@@ -606,8 +621,9 @@ def main() -> None:
         settings["commands"] = earlier.get("commands", [])
         rows = earlier["rows"]
         if args.redecide:
-            check = {k: getattr(args, k) for k in ("check_px", "check_min_inliers")}
-            settings |= check | {"check_min_gain": args.check_min_gain, "redecided": True}
+            names = ("check_px", "check_min_inliers", "check_min_fraction", "check_min_gain")
+            settings |= {k: getattr(args, k) for k in names} | {"redecided": True}
+            settings |= {"min_correlation": args.min_correlation, "label": args.label}
             settings["commands"] = [*settings["commands"], this]
             rows = redecide(rows, settings)
         write(argparse.Namespace(**settings), rows, earlier["camera"])

@@ -277,6 +277,7 @@ def test_bad_settings_are_clear_errors(kwargs: dict, name: str) -> None:
         ({"width": 16}, "width"),
         ({"inlier_px": 0.0}, "inlier_px"),
         ({"min_inliers": -1}, "min_inliers"),
+        ({"min_fraction": 1.5}, "min_fraction"),
         ({"min_gain": float("nan")}, "min_gain"),
     ],
 )

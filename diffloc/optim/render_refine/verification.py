@@ -11,9 +11,9 @@ from gives back its own pixel, so the reprojection error of a match *is* its dis
 ``|u_query - u_render|``. A match is aligned when that displacement is at most
 ``inlier_px``; wrong matches land anywhere and are rarely aligned.
 
-The refined pose passes if its render has at least ``min_inliers`` aligned matches and at
-least ``min_gain`` times as many as the render at the initial pose: a move the matches do
-not confirm is refused.
+The refined pose passes if its render has at least ``min_inliers`` aligned matches, at least
+``min_fraction`` of all its matches aligned, and at least ``min_gain`` times as many aligned
+as the render at the initial pose: a move the matches do not confirm is refused.
 
 Usage::
 
@@ -57,6 +57,7 @@ class MatchCheckConfig:
         inlier_px: a match is aligned when its displacement is at most this many pixels at
             ``width``.
         min_inliers: the refined pose needs at least this many aligned matches ...
+        min_fraction: ... this fraction of its matches aligned ...
         min_gain: ... and at least this many times the aligned matches of the initial pose.
 
     Raises:
@@ -70,6 +71,7 @@ class MatchCheckConfig:
     width: int = 256
     inlier_px: float = 2.0
     min_inliers: int = 20
+    min_fraction: float = 0.0
     min_gain: float = 1.0
 
     def __post_init__(self) -> None:
@@ -79,6 +81,8 @@ class MatchCheckConfig:
             raise ValueError(f"inlier_px must be positive, got {self.inlier_px}")
         if self.min_inliers < 0:
             raise ValueError(f"min_inliers must be >= 0, got {self.min_inliers}")
+        if not 0.0 <= self.min_fraction <= 1.0:
+            raise ValueError(f"min_fraction must be in [0, 1], got {self.min_fraction}")
         if not (math.isfinite(self.min_gain) and self.min_gain >= 0):
             raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
 
@@ -180,7 +184,12 @@ def match_alignment_check(
         before = match_displacements(model, query(), T_init, check_camera, extractor)
         after = match_displacements(model, query(), T_refined, check_camera, extractor)
         n_before, n_after = count(before), count(after)
-        passed = (n_after >= cfg.min_inliers) & (n_after >= cfg.min_gain * n_before)
+        matches = torch.tensor([len(d) for d in after])
+        passed = (
+            (n_after >= cfg.min_inliers)
+            & (n_after >= cfg.min_fraction * matches)
+            & (n_after >= cfg.min_gain * n_before)
+        )
         return MatchEvidence(before, after, n_before, n_after, passed)
 
     return verify
