@@ -598,8 +598,8 @@ def main() -> None:
     )
     parser.add_argument("--check-px", type=float, default=2.0, help="aligned match, pixels")
     parser.add_argument("--check-min-inliers", type=int, default=20)
-    parser.add_argument("--check-min-fraction", type=float, default=0.0)
-    parser.add_argument("--check-min-gain", type=float, default=1.0)
+    parser.add_argument("--check-min-fraction", type=float, default=0.25)
+    parser.add_argument("--check-min-gain", type=float, default=1.5)
     parser.add_argument(
         "--redecide",
         action="store_true",
@@ -627,6 +627,7 @@ def main() -> None:
             settings["commands"] = [*settings["commands"], this]
             rows = redecide(rows, settings)
         write(argparse.Namespace(**settings), rows, earlier["camera"])
+        args.label = settings["label"]
     else:
         run(args)
     print((Path(args.out) / f"render_refine_{args.label}.md").read_text())
