@@ -220,7 +220,7 @@ def run(args: argparse.Namespace) -> list[dict]:
         full = seq.load_rgb(frame)[None].double()
         image = F.interpolate(full, (camera.height, camera.width), mode="area")
         T_gt = seq.T_wc[frame][None].double()
-        starts = {"localised": T_est_all[k][None].double()}
+        starts = {} if args.skip_localised else {"localised": T_est_all[k][None].double()}
         for metres, degrees in perturbations(vars(args)):
             starts[start_name(metres, degrees)] = perturbed(
                 T_gt, metres, degrees, args.seed + frame
@@ -584,6 +584,9 @@ def main() -> None:
     parser.add_argument("--perturb-m", type=float, nargs="+", default=[0.10])
     parser.add_argument("--perturb-deg", type=float, nargs="+", default=[2.0])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--skip-localised", action="store_true", help="refine the perturbed starts only"
+    )
     parser.add_argument("--cache", default="/tmp/diffloc_render_refine")
     parser.add_argument("--out", default="experiments/results")
     parser.add_argument("--strict-improvement", type=float, default=0.05)
