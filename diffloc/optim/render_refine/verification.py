@@ -163,8 +163,8 @@ def match_alignment_check(
 
     Args:
         model: the map the refinement renders.
-        image: (B, 3, H, W) query images in [0, 1] at ``camera``'s size (any size: they are
-            area-resampled to the check's width).
+        image: (B, 3, H, W) query images in [0, 1] at ``camera``'s size (area-resampled to
+            the check's width).
         camera: the query camera.
         extractor: local features (XFeat in the experiments).
         config: settings (default :class:`MatchCheckConfig`).
