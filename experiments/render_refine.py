@@ -44,6 +44,7 @@ import torch
 import torch.nn.functional as F
 
 from diffloc.eval.report_files import write_report
+from diffloc.features.local import XFeatConfig, XFeatExtractor
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import se3_exp
 from diffloc.io.dataset import read_sequence
@@ -54,9 +55,11 @@ from diffloc.maps.nerf.submaps import load_submaps, serving_submap
 from diffloc.maps.pointcloud import PointMap
 from diffloc.optim.render_refine import (
     DifferentiableMap,
+    MatchCheckConfig,
     RenderRefineConfig,
     crop_to_view,
     fit_query_appearance,
+    match_alignment_check,
     point_cloud_map,
     radiance_field_map,
     refine_pose_by_rendering,
@@ -209,14 +212,15 @@ def run(args: argparse.Namespace) -> list[dict]:
         photometric_sigma=args.photometric_sigma,
         kernel_scale=args.kernel_scale,
     )
+    check = check_config(args)
+    extractor = XFeatExtractor(XFeatConfig()) if check else None
     args.load_start = list(os.getloadavg())
     rows = []
     for frame, k, served in query_frames(args, maps, seq, stamps, T_est_all):
-        image = F.interpolate(
-            seq.load_rgb(frame)[None].double(), (camera.height, camera.width), mode="area"
-        )
+        full = seq.load_rgb(frame)[None].double()
+        image = F.interpolate(full, (camera.height, camera.width), mode="area")
         T_gt = seq.T_wc[frame][None].double()
-        starts = {"localised": T_est_all[k][None].double()}
+        starts = {} if args.skip_localised else {"localised": T_est_all[k][None].double()}
         for metres, degrees in perturbations(vars(args)):
             starts[start_name(metres, degrees)] = perturbed(
                 T_gt, metres, degrees, args.seed + frame
@@ -224,9 +228,21 @@ def run(args: argparse.Namespace) -> list[dict]:
         for name, T0 in starts.items():
             cpu, wall = time.process_time(), time.perf_counter()
             model, info = maps.model(served, T0, image, camera)
-            result = refine_pose_by_rendering(model, image, T0, camera, config=config)
+            verify = None
+            if check:
+                check_cpu = time.process_time()
+                verify = timed(match_alignment_check(model, full, seq.camera, extractor, check))
+                info["check_cpu_ms"] = 1e3 * (time.process_time() - check_cpu)
+            result = refine_pose_by_rendering(
+                model, image, T0, camera, config=config, verify=verify
+            )
             cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+            if result.evidence is not None:
+                info |= evidence_record(result.evidence)
+            if verify is not None:
+                info["check_cpu_ms"] += verify.cpu_ms
             before, after = pose_errors(T0, T_gt), pose_errors(result.T_wc, T_gt)
+            refined = pose_errors(result.T_refined, T_gt)
             rows.append(
                 {
                     "frame": frame,
@@ -236,7 +252,8 @@ def run(args: argparse.Namespace) -> list[dict]:
                     "r_before_deg": float(before[1][0]),
                     "t_after_m": float(after[0][0]),
                     "r_after_deg": float(after[1][0]),
-                    "t_refined_m": float(pose_errors(result.T_refined, T_gt)[0][0]),
+                    "t_refined_m": float(refined[0][0]),
+                    "r_refined_deg": float(refined[1][0]),
                     "accepted": bool(result.accepted[0]),
                     "correlation": float(result.correlation[0]),
                     "cost_before": float(result.cost_before[0]),
@@ -249,6 +266,134 @@ def run(args: argparse.Namespace) -> list[dict]:
             args.load_end = list(os.getloadavg())
             write(args, rows, [camera.width, camera.height])
     return rows
+
+
+CHECK_PX = (1.0, 1.5, 2.0, 3.0, 4.0)
+"""Tolerances at which each row records its aligned matches (so that a rule can be chosen
+from the recorded rows, without re-running a query)."""
+
+
+def check_config(args: argparse.Namespace) -> MatchCheckConfig | None:
+    """The match check of ``--check-*`` (None with ``--check-width 0``)."""
+    if not args.check_width:
+        return None
+    return MatchCheckConfig(
+        width=args.check_width,
+        inlier_px=args.check_px,
+        min_inliers=args.check_min_inliers,
+        min_fraction=args.check_min_fraction,
+        min_gain=args.check_min_gain,
+    )
+
+
+class timed:  # noqa: N801 (a function wrapper)
+    """A verifier that adds up the CPU time of its calls in ``cpu_ms``."""
+
+    def __init__(self, verify) -> None:
+        self.verify, self.cpu_ms = verify, 0.0
+
+    def __call__(self, T_init: torch.Tensor, T_refined: torch.Tensor):
+        cpu = time.process_time()
+        try:
+            return self.verify(T_init, T_refined)
+        finally:
+            self.cpu_ms += 1e3 * (time.process_time() - cpu)
+
+
+def evidence_record(evidence) -> dict:
+    """The row fields of one query's match evidence: matches, median displacement and aligned
+    matches at each of :data:`CHECK_PX`, before and after, and whether it passed."""
+    out = {"check_passed": bool(evidence.passed[0])}
+    for when in ("before", "after"):
+        d = getattr(evidence, f"displacement_{when}")[0]
+        out[f"matches_{when}"] = len(d)
+        out[f"median_px_{when}"] = float(d.median()) if len(d) else math.inf
+        out[f"aligned_{when}"] = {f"{px:g}": int((d <= px).sum()) for px in CHECK_PX}
+    return out
+
+
+def photometric_accepted(row: dict, s: dict) -> bool:
+    """The cost and correlation rule (package doc, (a) and (b)) from a row's record."""
+    return (
+        row["cost_after"] < (1 - s["min_improvement"]) * row["cost_before"]
+        and row["correlation"] >= s["min_correlation"]
+    )
+
+
+def check_rule(
+    row: dict, px: float, min_inliers: int, min_fraction: float, min_gain: float
+) -> bool:
+    """The match check (c) at ``px`` / ``min_inliers`` / ``min_fraction`` / ``min_gain`` from a
+    row's record."""
+    after, before = row["aligned_after"][f"{px:g}"], row["aligned_before"][f"{px:g}"]
+    return (
+        after >= min_inliers
+        and after >= min_fraction * row["matches_after"]
+        and after >= min_gain * before
+    )
+
+
+def redecide(rows: list[dict], s: dict) -> list[dict]:
+    """Rows re-decided under the settings' check rule from their record (``--from-json`` with
+    other ``--check-*`` values): accepted = (a), (b) and (c), the pose after = the refined one
+    where accepted, else the start."""
+    out = []
+    for r in rows:
+        keep = photometric_accepted(r, s) and check_rule(
+            r,
+            s["check_px"],
+            s["check_min_inliers"],
+            s["check_min_fraction"],
+            s["check_min_gain"],
+        )
+        out.append(
+            r
+            | {
+                "accepted": keep,
+                "t_after_m": r["t_refined_m"] if keep else r["t_before_m"],
+                "r_after_deg": r["r_refined_deg"] if keep else r["r_before_deg"],
+            }
+        )
+    return out
+
+
+def wrong(row: dict, accepted: bool) -> bool:
+    """A move accepted that ends farther from the true position than it started."""
+    return accepted and row["t_refined_m"] > row["t_before_m"]
+
+
+RULE_KEYS = ("px", "min_inliers", "min_fraction", "min_gain")
+
+
+def rule_grid(rows: list[dict], s: dict) -> list[dict]:
+    """Accepted / wrong accepted of every perturbed start under a grid of check rules (the
+    tuning table, read from the recorded rows)."""
+    sel = [r for r in rows if r["start"] != "localised"]
+    photo = [photometric_accepted(r, s) for r in sel]
+    grid = [{"px": None, "min_inliers": None, "min_fraction": None, "min_gain": None}]
+    grid += [
+        {"px": px, "min_inliers": 20, "min_fraction": f, "min_gain": g}
+        for px in (1.0, 2.0, 3.0)
+        for f in (0.0, 0.25, 0.35, 0.45)
+        for g in (1.0, 1.5, 2.0)
+    ]
+    out = []
+    for rule in grid:
+        acc = [
+            p and (rule["px"] is None or check_rule(r, *(rule[k] for k in RULE_KEYS)))
+            for r, p in zip(sel, photo, strict=True)
+        ]
+        good = [a and not wrong(r, a) for r, a in zip(sel, acc, strict=True)]
+        out.append(
+            rule
+            | {
+                "starts": len(sel),
+                "accepted": int(sum(acc)),
+                "wrong_accepted": int(sum(wrong(r, a) for r, a in zip(sel, acc, strict=True))),
+                "right_accepted": int(sum(good)),
+            }
+        )
+    return out
 
 
 def summarise(args: argparse.Namespace, rows: list[dict], size: list[int]) -> dict:
@@ -264,6 +409,8 @@ def summarise(args: argparse.Namespace, rows: list[dict], size: list[int]) -> di
             "r_before_deg": summary(col("r_before_deg")),
             "r_after_deg": summary(col("r_after_deg")),
             "accepted": float(col("accepted").mean()),
+            "accepted_n": int(col("accepted").sum()),
+            "wrong_accepted_n": int(sum(wrong(r, r["accepted"]) for r in sel)),
             "improved_t": float((col("t_after_m") < col("t_before_m")).mean()),
             **strict_rule(sel, args.strict_improvement),
             "cpu_ms_median": float(np.median(col("cpu_ms"))),
@@ -275,6 +422,7 @@ def summarise(args: argparse.Namespace, rows: list[dict], size: list[int]) -> di
         "settings": settings,
         "camera": size,
         "summary": table,
+        "check_rules": rule_grid(rows, settings),
         "rows": rows,
     }
 
@@ -330,6 +478,14 @@ def markdown(result: dict) -> str:
             f"; acceptance: cost drop > {100 * s['min_improvement']:g} %, correlation >= "
             f"{s['min_correlation']:g}"
         )
+    if s.get("check_width"):
+        acceptance += (
+            f", and the match check at {s['check_width']} px width: >= "
+            f"{s['check_min_inliers']} XFeat matches and >= "
+            f"{100 * s.get('check_min_fraction', 0.0):g} % of them aligned within "
+            f"{s['check_px']:g} px, and >= {s['check_min_gain']:g} x the aligned at the start"
+            + (" (rows re-decided under this rule from their record)" if s.get("redecided") else "")
+        )
     residual = ""
     if "photometric_sigma" in s:  # older files did not record it
         residual = (
@@ -348,8 +504,9 @@ def markdown(result: dict) -> str:
         f"CPU ms per query; wall ms under load (2 shared cores).{load}",
         "",
         "| start | n | t med before | t med after | t p90 before | t p90 after | r med before | "
-        "r med after | r p90 before | r p90 after | accepted | t improved | CPU ms | wall ms |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "r med after | r p90 before | r p90 after | accepted | wrong accepted | t improved | "
+        "CPU ms | wall ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, t in result["summary"].items():
         lines.append(
@@ -358,6 +515,7 @@ def markdown(result: dict) -> str:
             f"{100 * t['t_after_m']['p90']:.2f} cm | {t['r_before_deg']['median']:.3f} | "
             f"{t['r_after_deg']['median']:.3f} | {t['r_before_deg']['p90']:.3f} | "
             f"{t['r_after_deg']['p90']:.3f} | {100 * t['accepted']:.0f} % | "
+            f"{t.get('wrong_accepted_n', '-')} | "
             f"{100 * t['improved_t']:.0f} % | {t['cpu_ms_median']:.0f} | "
             f"{t['wall_ms_median']:.0f} |"
         )
@@ -377,6 +535,27 @@ def markdown(result: dict) -> str:
             f"{100 * t['strict_t_after_m']['p90']:.2f} cm | "
             f"{t['strict_r_after_deg']['median']:.3f} | {t['strict_r_after_deg']['p90']:.3f} |"
         )
+    if result.get("check_rules") and result["check_rules"][0]["starts"]:
+        lines += [
+            "",
+            "Perturbed starts accepted under other match-check rules (from the recorded rows; "
+            "wrong = ends farther from the true position than it started; px = alignment "
+            "tolerance, n = min aligned matches, fraction = min aligned fraction of the "
+            "matches, gain = min ratio to the start's aligned):",
+            "",
+            "| px | n | fraction | gain | starts | accepted | right | wrong |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for g in result["check_rules"]:
+            rule = (
+                "no check | | | "
+                if g["px"] is None
+                else f"{g['px']:g} | {g['min_inliers']} | {g['min_fraction']:g} | {g['min_gain']:g}"
+            )
+            lines.append(
+                f"| {rule} | {g['starts']} | {g['accepted']} | {g['right_accepted']} | "
+                f"{g['wrong_accepted']} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -405,6 +584,9 @@ def main() -> None:
     parser.add_argument("--perturb-m", type=float, nargs="+", default=[0.10])
     parser.add_argument("--perturb-deg", type=float, nargs="+", default=[2.0])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--skip-localised", action="store_true", help="refine the perturbed starts only"
+    )
     parser.add_argument("--cache", default="/tmp/diffloc_render_refine")
     parser.add_argument("--out", default="experiments/results")
     parser.add_argument("--strict-improvement", type=float, default=0.05)
@@ -413,6 +595,19 @@ def main() -> None:
     )
     parser.add_argument(
         "--from-json", default="", help="re-summarise the rows of an earlier result file"
+    )
+    parser.add_argument(
+        "--check-width", type=int, default=0, help="match check at this width (0: none)"
+    )
+    parser.add_argument("--check-px", type=float, default=2.0, help="aligned match, pixels")
+    parser.add_argument("--check-min-inliers", type=int, default=20)
+    parser.add_argument("--check-min-fraction", type=float, default=0.25)
+    parser.add_argument("--check-min-gain", type=float, default=1.5)
+    parser.add_argument(
+        "--redecide",
+        action="store_true",
+        help="with --from-json: re-decide the rows under these --check-* and "
+        "--min-correlation values (written under --label)",
     )
     args = parser.parse_args()
     if len(args.perturb_m) != len(args.perturb_deg):
@@ -427,7 +622,15 @@ def main() -> None:
         settings = earlier["settings"] | {"strict_improvement": args.strict_improvement}
         settings |= {"out": args.out, "from_json": args.from_json}
         settings["commands"] = earlier.get("commands", [])
-        write(argparse.Namespace(**settings), earlier["rows"], earlier["camera"])
+        rows = earlier["rows"]
+        if args.redecide:
+            names = ("check_px", "check_min_inliers", "check_min_fraction", "check_min_gain")
+            settings |= {k: getattr(args, k) for k in names} | {"redecided": True}
+            settings |= {"min_correlation": args.min_correlation, "label": args.label}
+            settings["commands"] = [*settings["commands"], this]
+            rows = redecide(rows, settings)
+        write(argparse.Namespace(**settings), rows, earlier["camera"])
+        args.label = settings["label"]
     else:
         run(args)
     print((Path(args.out) / f"render_refine_{args.label}.md").read_text())

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from diffloc.checks import ShapeError
+from diffloc.features.local import Features, LocalFeatureExtractor, XFeatConfig, XFeatExtractor
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import invert, se3_exp, se3_log
 from diffloc.maps.nerf.field import FieldConfig, RadianceField
@@ -15,15 +16,18 @@ from diffloc.maps.nerf.rays import camera_rays
 from diffloc.maps.nerf.renderer import render_rays
 from diffloc.maps.nerf.sampler import DensityGrid, SamplerConfig
 from diffloc.optim.render_refine import (
+    MatchCheckConfig,
     RenderRefineConfig,
     compared_residuals,
     crop_to_view,
     fit_query_appearance,
+    match_alignment_check,
     point_cloud_map,
     radiance_field_map,
     refine_pose_by_rendering,
 )
-from diffloc.render.soft_splat import soft_render_points
+from diffloc.optim.render_refine.linearization import DifferentiableMap
+from diffloc.render.soft_splat import SoftRender, soft_render_points
 
 CAMERA = PinholeCamera.from_fov(48, 36, 1.2)
 # A generic pose (not fronto-parallel to the wall: there the depth order of coplanar splats is
@@ -179,6 +183,94 @@ def test_photometric_residual_gradcheck_float64() -> None:
     assert torch.autograd.gradcheck(residuals, (delta,), check_forward_ad=True)
 
 
+CHECK_CAMERA = PinholeCamera.from_fov(192, 144, 1.2)
+"""The match check's camera: CAMERA's field of view at four times its size."""
+
+
+def test_the_match_check_refuses_a_move_the_held_out_evidence_does_not_confirm(cloud) -> None:
+    # Two copies of one refinement: the fitted 48x36 query is the render at T_TRUE, so the
+    # fitted cost falls to ~0 as the pose returns there. The check's 192x144 evidence is the
+    # render at T_TRUE for the first copy (it confirms the move) and at the start for the
+    # second (it says the start was right: the move must be refused though the cost fell).
+    query = colour_of(cloud.render(T_TRUE, CAMERA)).expand(2, -1, -1, -1)
+    T_start = (T_TRUE @ se3_exp(perturbation(0.05, 2.0))).expand(2, -1, -1)
+    evidence = colour_of(cloud.render(torch.cat((T_TRUE, T_start[:1])), CHECK_CAMERA))
+    verify = match_alignment_check(
+        cloud,
+        evidence.clamp(0, 1),
+        CHECK_CAMERA,
+        XFeatExtractor(XFeatConfig(max_keypoints=1024)),
+        MatchCheckConfig(width=CHECK_CAMERA.width),
+    )
+    config = RenderRefineConfig(levels=(0.5, 1.0), iterations=10)
+    result = refine_pose_by_rendering(cloud, query, T_start, CAMERA, config=config, verify=verify)
+    assert bool((result.cost_after < 0.5 * result.cost_before).all())
+    assert errors(result.T_refined[:1], T_TRUE)[0] < 0.01
+    aligned_before, aligned_after = result.evidence.inliers_before, result.evidence.inliers_after
+    assert int(aligned_after[0]) > 2 * int(aligned_before[0])  # confirmed
+    assert int(aligned_after[1]) < int(aligned_before[1])  # contradicted
+    assert result.evidence.passed.tolist() == [True, False]
+    assert result.accepted.tolist() == [True, False]
+    assert torch.equal(result.T_wc[0], result.T_refined[0])
+    assert torch.equal(result.T_wc[1], T_start[1])
+
+
+class ScriptedFeatures(LocalFeatureExtractor):
+    """Returns the query's features first, then one scripted render's features per call."""
+
+    def __init__(self, keypoints: list[torch.Tensor]) -> None:
+        self.keypoints = keypoints
+
+    def _extract_batch(self, images: torch.Tensor) -> list[Features]:
+        uv = self.keypoints.pop(0)
+        n = len(uv)
+        return [Features(uv, torch.ones(n), torch.eye(n), torch.ones(n))]
+
+
+def scripted_check(aligned_before: int, aligned_after: int, matches: int) -> bool:
+    """Whether the match check passes when ``aligned_*`` of ``matches`` matches lie 0.5 px
+    from their query keypoint at the initial / refined pose and the rest 9 px."""
+    query = torch.stack((torch.arange(matches) * 20.0, torch.full((matches,), 50.0)), 1)
+
+    def render_keypoints(aligned: int) -> torch.Tensor:
+        shift = torch.where(torch.arange(matches) < aligned, 0.5, 9.0)
+        return query + torch.stack((shift, torch.zeros(matches)), 1)
+
+    camera = PinholeCamera.from_fov(64, 48, 1.0)
+    flat = SoftRender(
+        torch.full((1, 3, 48, 64), 0.5), torch.ones(1, 1, 48, 64), torch.ones(1, 1, 48, 64)
+    )
+    model = DifferentiableMap(lambda T, cam: flat, lambda T, cam: (flat, flat))
+    extractor = ScriptedFeatures(
+        [query, render_keypoints(aligned_before), render_keypoints(aligned_after)]
+    )
+    image = torch.zeros(1, 3, 48, 64)
+    config = MatchCheckConfig(
+        width=64, inlier_px=2.0, min_inliers=20, min_fraction=0.25, min_gain=1.5
+    )
+    verify = match_alignment_check(model, image, camera, extractor, config)
+    evidence = verify(torch.eye(4)[None], torch.eye(4)[None])
+    assert evidence.inliers_before.tolist() == [aligned_before]
+    assert evidence.inliers_after.tolist() == [aligned_after]
+    return bool(evidence.passed[0])
+
+
+@pytest.mark.parametrize(
+    ("before", "after", "matches", "passes"),
+    [
+        (10, 60, 100, True),  # 60 aligned, 60 %, 6x the start's
+        (10, 19, 30, False),  # fewer than 20 aligned
+        (10, 24, 100, False),  # 24 % of the matches aligned
+        (40, 59, 100, False),  # less than 1.5x the start's
+        (40, 60, 100, True),  # exactly 1.5x
+    ],
+)
+def test_each_part_of_the_match_rule_refuses_on_its_own(
+    before: int, after: int, matches: int, passes: bool
+) -> None:
+    assert scripted_check(before, after, matches) is passes
+
+
 def test_a_start_at_the_true_pose_is_not_made_worse(cloud) -> None:
     query = colour_of(cloud.render(T_TRUE, CAMERA))
     result = refine_pose_by_rendering(cloud, query, T_TRUE, CAMERA, config=SHORT)
@@ -234,6 +326,21 @@ def test_crop_keeps_the_points_in_view_and_in_range() -> None:
 def test_bad_settings_are_clear_errors(kwargs: dict, name: str) -> None:
     with pytest.raises(ValueError, match=name):
         RenderRefineConfig(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"width": 16}, "width"),
+        ({"inlier_px": 0.0}, "inlier_px"),
+        ({"min_inliers": -1}, "min_inliers"),
+        ({"min_fraction": 1.5}, "min_fraction"),
+        ({"min_gain": float("nan")}, "min_gain"),
+    ],
+)
+def test_bad_match_check_settings_are_clear_errors(kwargs: dict, name: str) -> None:
+    with pytest.raises(ValueError, match=name):
+        MatchCheckConfig(**kwargs)
 
 
 def test_an_image_of_the_wrong_shape_is_a_clear_error() -> None:

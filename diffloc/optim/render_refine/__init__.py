@@ -46,6 +46,12 @@ Acceptance
     averaged over channels). (a) keeps a pose the optimiser cannot show to be better; (b) refuses a
     "better" fit to an image the map does not explain (another place, an occluded view),
     where the cost falls by flattening the render rather than by aligning it.
+    Neither (a) nor (b) can tell a move into a wrong local minimum of the cost from a good
+    one (both lower the cost and correlate): given a ``verify`` check
+    (:func:`match_alignment_check`), (c) the refined pose must also be confirmed by evidence
+    the refinement did not fit: feature matches between the query and a larger render at the
+    pose, of which at least ``min_inliers`` and no fewer than at the initial pose must be
+    aligned (:mod:`~diffloc.optim.render_refine.verification`).
 
 Example:
     >>> RenderRefineConfig().min_correlation
@@ -74,19 +80,31 @@ from diffloc.optim.render_refine.residuals import (
     compared_residuals,
     mean_robust_cost,
 )
+from diffloc.optim.render_refine.verification import (
+    MatchCheckConfig,
+    MatchEvidence,
+    Verifier,
+    match_alignment_check,
+    match_displacements,
+)
 
 __all__ = [
     "DifferentiableMap",
     "LinearizeFn",
+    "MatchCheckConfig",
+    "MatchEvidence",
     "RefineResult",
     "RenderFn",
     "RenderRefineConfig",
+    "Verifier",
     "affine_colour_fit",
     "colour_correlation",
     "compared_residuals",
     "crop_to_view",
     "fit_query_appearance",
     "forward_mode_linearization",
+    "match_alignment_check",
+    "match_displacements",
     "mean_robust_cost",
     "point_cloud_map",
     "radiance_field_map",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -21,6 +21,7 @@ from diffloc.optim.render_refine.residuals import (
     compared_residuals,
     mean_robust_cost,
 )
+from diffloc.optim.render_refine.verification import MatchEvidence, Verifier
 from diffloc.optim.robust import RobustKernel
 from diffloc.render.soft_splat import SoftRender
 
@@ -39,6 +40,8 @@ class RefineResult:
         cost_after: (B,) the same at the refined pose.
         correlation: (B,) colour correlation of render and query at the refined pose.
         accepted: (B,) bool, the acceptance rule of the package doc.
+        evidence: the check on evidence the refinement did not fit, where one was given
+            and called (its ``passed`` is part of ``accepted``), else ``None``.
     """
 
     T_wc: torch.Tensor
@@ -47,6 +50,7 @@ class RefineResult:
     cost_after: torch.Tensor
     correlation: torch.Tensor
     accepted: torch.Tensor
+    evidence: MatchEvidence | None = None
 
 
 @dataclass
@@ -127,6 +131,7 @@ def refine_pose_by_rendering(
     camera: PinholeCamera,
     depth: torch.Tensor | None = None,
     config: RenderRefineConfig | None = None,
+    verify: Verifier | None = None,
 ) -> RefineResult:
     """Refine ``B`` query poses by render-and-compare (package doc).
 
@@ -140,6 +145,11 @@ def refine_pose_by_rendering(
         depth: optional (B, 1, H, W) query depth in metres, 0 = none (used when
             ``config.depth_weight > 0``).
         config: settings (default :class:`RenderRefineConfig`).
+        verify: a check of the refined poses on other evidence
+            (:func:`~diffloc.optim.render_refine.verification.match_alignment_check`),
+            called once with the initial and refined poses of the whole batch when any refined
+            pose passes the cost and correlation rule (else not at all); a refined pose it
+            does not pass is refused.
 
     Returns:
         :class:`RefineResult`.
@@ -173,7 +183,13 @@ def refine_pose_by_rendering(
             config=lm,
         )
         T = torch.where(usable[:, None, None], result.T_wc, T)
-    return _accept(render, T_init, T.detach(), camera, image, depth, cfg)
+    result = _accept(render, T_init, T.detach(), camera, image, depth, cfg)
+    if verify is None or not bool(result.accepted.any()):
+        return result
+    evidence = verify(T_init, result.T_refined)
+    accepted = result.accepted & evidence.passed
+    T_out = torch.where(accepted[:, None, None], result.T_refined, T_init)
+    return replace(result, T_wc=T_out, accepted=accepted, evidence=evidence)
 
 
 def _accept(
