@@ -32,7 +32,12 @@ def _write_run(folder: Path, name: str, samples: int, views: int, accepted_wrong
             "rates": {"1m_30deg": (accepted - wrong) / 30},
             "retrieval_rate": 0.5,
             "nearest_render": {"render_near_rate": 0.9, "median_m": 0.4, "median_deg": 10.0},
-            "time": {"median_cpu_ms": 300.0, "median_ms": 600.0},
+            "time": {
+                "median_cpu_ms": 300.0,
+                "median_ms": 600.0,
+                "mean_cpu_ms": 400.0,
+                "candidates": {"median": 1.0, "mean": 2.5},
+            },
         }
     results = {
         "loose_m": 1.0,
@@ -87,6 +92,9 @@ def test_the_tuning_rule_keeps_the_default_precision_and_breaks_ties_by_size(run
     assert not scores[(1.0, 4)]["allowed"] and scores[(1.0, 4)]["right"] == 38
     assert scores[(2.0, 8)]["right"] == scores[(1.0, 8)]["right"] == 36
     assert choice["chosen"] == [2.0, 8]
+    report = {"dataset": "d", "commands": ["cmd"], "note": "", "runs": [], "choice": choice}
+    assert "(precision below default)" in script.markdown(report)
+    assert "Chosen: 2 m, 8 views." in script.markdown(report)
 
 
 def test_the_held_out_rule_needs_a_gain_and_no_loss(runs):
