@@ -169,7 +169,8 @@ class PoseSelectionConfig:
         blur_sigma_m: standard deviation of the Gaussian that smooths the corridor, metres
             (0 disables smoothing).
         min_corridor_area_m2: corridor pieces smaller than this are dropped, square metres.
-        spacing_m: distance between samples along the skeleton, metres (2 indoors, 4 outdoors).
+        spacing_m: distance between samples along the skeleton, metres (seed 2: 2 indoors, 4
+            outdoors; `task=crossmodal` uses 1 m indoors, task/scene/crossmodal_indoor.yaml).
         camera_height_m: camera centre height above the floor, metres.
         views_per_sample: horizontal views per sample, yaws evenly spaced from forward along
             the skeleton, one of :data:`VIEWS_PER_SAMPLE` (4 as in seed 2, 8 = every 45 deg;
