@@ -5,8 +5,8 @@ For each point map (``map/tls_map.ply``, ``map/lidar_map.ply``):
 1. colour the points from the ``mapping`` images (:meth:`PointMap.colorize`); the occlusion
    test uses depth rendered from the cloud itself at the mapping poses (no simulator depth);
 2. select render poses on the free-path corridor (:func:`select_render_poses`, indoor
-   defaults: 2 m spacing, 4 views, camera 1.5 m above the floor); ``--yaw-views 8`` (a
-   multiple of 4) adds each view turned by 45 deg about the vertical (``360 / views`` apart);
+   defaults: 2 m spacing, 4 views, camera 1.5 m above the floor); ``--yaw-views 8``
+   (``PoseSelectionConfig.views_per_sample``) adds the four diagonals (views 45 deg apart);
 3. render the RGB-D database, single-pass Eq. 2 (every point its own rounded size) and the
    multi-pass merge (a few fixed sizes), and build local features + NetVLAD;
 4. localise every frame of the query sequences (:class:`RenderedDatabaseLocalizer`) and score
@@ -50,7 +50,11 @@ import numpy as np
 import torch
 
 from diffloc.crossmodal.database import DatabaseConfig, RenderedDatabase, render_database
-from diffloc.crossmodal.pose_selection import PoseSelectionConfig, select_render_poses
+from diffloc.crossmodal.pose_selection import (
+    VIEWS_PER_SAMPLE,
+    PoseSelectionConfig,
+    select_render_poses,
+)
 from diffloc.crossmodal.synthesize import PointCloudMap
 from diffloc.eval.metrics import PoseErrors, pose_errors, precision, recall
 from diffloc.eval.report_files import write_report
@@ -58,7 +62,6 @@ from diffloc.features.local import XFeatConfig, XFeatExtractor
 from diffloc.features.matching import LighterGlueConfig, LighterGlueMatcher
 from diffloc.features.retrieval_eval import pairwise_pose_distances
 from diffloc.geometry.camera import PinholeCamera
-from diffloc.geometry.se3 import so3_exp
 from diffloc.io.dataset import read_sequence
 from diffloc.io.ply import read_point_cloud
 from diffloc.io.sequence import SequenceData
@@ -98,7 +101,7 @@ def _parse() -> argparse.Namespace:
     parser.add_argument("--levels", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--every", type=int, default=1, help="localise every n-th query frame")
     parser.add_argument(
-        "--yaw-views", type=int, default=4, help="views per render position (multiple of 4)"
+        "--yaw-views", type=int, choices=VIEWS_PER_SAMPLE, default=4, help="views per position"
     )
     defaults = RenderedLocalizerConfig()
     parser.add_argument("--top-k", type=int, default=defaults.top_k)
@@ -130,18 +133,6 @@ def _sizes(mode: str, args: argparse.Namespace) -> PointSizes:
     if mode == "single":
         return PointSizes.inverse_depth(args.rho_min, args.rho_max)
     return PointSizes.multi_pass(args.rho_min, args.rho_max, tuple(args.levels))
-
-
-def _yaw_views(T_wc: torch.Tensor, views: int) -> torch.Tensor:
-    """The (M, 4, 4) render poses (4 views per position) and each turned about the camera's
-    y axis (world vertical) by ``k 360 / views`` deg, ``k = 1 .. views / 4 - 1``:
-    (views / 4 M, 4, 4), the given poses first."""
-    if views % 4 or views < 4:
-        sys.exit(f"--yaw-views must be a positive multiple of 4, got {views}")
-    angles = torch.arange(views // 4, dtype=torch.float64) * 2 * math.pi / views
-    turns = torch.eye(4, dtype=torch.float64).repeat(len(angles), 1, 1)
-    turns[:, :3, :3] = so3_exp(torch.stack([0 * angles, angles, 0 * angles], dim=1))
-    return torch.cat([T_wc @ turn for turn in turns])
 
 
 def _colored_map(
@@ -361,13 +352,13 @@ def main() -> None:
     step = args.every
     extractor = XFeatExtractor(XFeatConfig(max_keypoints=1024))
     matcher = LighterGlueMatcher(LighterGlueConfig(min_confidence=0.0))
-    pose_config = PoseSelectionConfig()
+    pose_config = PoseSelectionConfig(views_per_sample=args.yaw_views)
     rows = []
     for map_name in args.maps:
         point_map = _colored_map(map_name, args, mapping, camera)
         cloud = read_point_cloud(args.dataset / "map" / f"{map_name}.ply")
         selection = select_render_poses(cloud.points, cloud.normals, pose_config)
-        T_render = _yaw_views(selection.T_wc, args.yaw_views)
+        T_render = selection.T_wc
         for mode in args.modes:
             views = "" if args.yaw_views == 4 else f"_v{args.yaw_views}"
             path = args.work / f"db_{map_name}_{mode}_x{args.scale:g}{views}"

@@ -104,7 +104,7 @@ def test_map_and_reloc_settings_follow_the_scene_kind(scene, theta_dist_m, voxel
 
 @pytest.mark.parametrize(
     ("scene", "cell_size_m", "spacing_m", "loose_m"),
-    [("indoor", 0.05, 2.0, 1.0), ("outdoor", 0.2, 4.0, 2.0)],
+    [("indoor", 0.05, 1.0, 1.0), ("outdoor", 0.2, 4.0, 2.0)],
 )
 def test_crossmodal_render_poses_follow_the_scene_kind(scene, cell_size_m, spacing_m, loose_m):
     task = to_object(compose_config([f"scene={scene}", "task=crossmodal", "map=tls"])).task

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from diffloc.cli import run
 from diffloc.config import compose_config, to_object
@@ -107,6 +108,9 @@ def test_the_task_localizes_queries_in_the_rendered_tls_database(dataset, first)
     assert entry["rates"]["1m_30deg"] == entry["accepted"] / entry["queries"]
     assert results["database_images"] == results["stages"]["poses"]["poses"] > 0
     assert 0.0 < results["hole_share"] < 1.0
+    database = results["stages"]["database"]
+    assert database["images"] == results["database_images"]
+    assert database["seconds"] > 0.0 and database["cpu_seconds"] > 0.0
     times, poses = read_tum(out / "trajectory_query_same.tum")
     assert len(times) == entry["accepted"] and poses.shape == (entry["accepted"], 4, 4)
     for name in ("results.md", "retrieved_query_same.png", "trajectory_query_same.png"):
@@ -197,6 +201,36 @@ def test_a_map_option_the_task_cannot_use_is_refused_before_any_work(task, optio
         "takes map=tls, map=cloud, map=mesh, map=images, map=nerf or map=hybrid; "
         "every other task takes map=surfel",
     ):
+        run(cfg)
+    assert not (tmp_path / "none").exists()
+
+
+def test_views_per_sample_is_part_of_the_render_pose_key(dataset, tmp_path):
+    root = tmp_path / dataset.name
+    shutil.copytree(dataset / "map", root / "map")  # the point maps only: no cached stage
+
+    def poses(*overrides: str) -> tuple[torch.Tensor, dict]:
+        config = to_object(compose_config([*SCENE, *TASK, *overrides])).task.poses_for("tls_map")
+        T_wc, outcome = crossmodal_stage.render_pose_stage(root, "tls_map", config, "tls")
+        record = root / "crossmodal" / "poses_tls_map" / "render_poses.json"
+        return T_wc, json.loads(record.read_text())
+
+    four, record_four = poses()
+    eight, record_eight = poses("task.poses.views_per_sample=8")
+    assert record_four["stage"]["key"]["config"]["poses"]["views_per_sample"] == 4
+    assert record_eight["stage"]["key"]["config"]["poses"]["views_per_sample"] == 8
+    assert record_eight["samples"] == record_four["samples"] > 0
+    assert record_eight["poses"] == 2 * record_four["poses"] == len(eight)
+    assert record_eight["stage"]["outputs"] != record_four["stage"]["outputs"]
+    assert torch.equal(eight.reshape(-1, 8, 4, 4)[:, :4].reshape(-1, 4, 4), four)
+    again, record_again = poses()  # back to 4 views: made again, not the 8-view result
+    assert torch.equal(again, four) and record_again["stage"] == record_four["stage"]
+
+
+def test_a_views_per_sample_other_than_4_or_8_is_refused_before_any_work(tmp_path):
+    overrides = ["task=crossmodal", "map=tls", f"dataset={tmp_path / 'none'}"]
+    cfg = compose_config([*overrides, "task.poses.views_per_sample=6"])
+    with pytest.raises(ValueError, match=r"task.poses.views_per_sample must be one of \(4, 8\)"):
         run(cfg)
     assert not (tmp_path / "none").exists()
 

@@ -177,7 +177,13 @@ def test_four_orthogonal_horizontal_views_per_sample(selection):
     n_samples = sum(len(plan.samples_xy) for plan in selection.floors)
     assert len(selection) == 4 * n_samples == len(selection.view_index)
     assert torch.equal(selection.sample_index, torch.arange(n_samples).repeat_interleave(4))
-    assert torch.equal(selection.view_index, torch.arange(len(VIEW_NAMES)).repeat(n_samples))
+    assert torch.equal(selection.view_index, torch.arange(4).repeat(n_samples))
+    assert selection.views_per_sample == 4 and VIEW_NAMES[:4] == (
+        "forward",
+        "back",
+        "left",
+        "right",
+    )
     R = T_wc[:, :3, :3]
     eye = torch.eye(3, dtype=torch.float64).expand_as(R)
     torch.testing.assert_close(R.transpose(1, 2) @ R, eye, atol=1e-12, rtol=0)
@@ -211,6 +217,75 @@ def test_view_poses_known_answer():
     assert view.tolist() == [0, 1, 2, 3]
     with pytest.raises(ValueError, match="zero-length"):
         view_poses(np.zeros((1, 3)), np.zeros((1, 2)))
+
+
+def test_eight_views_known_answer_yaws_in_a_straight_corridor():
+    """An 8 x 2 m floor along x: the skeleton runs along x from its end at x ~ 0.4 m (the
+    root), so the inner samples look forward along +x and their 8 views have the yaws of
+    VIEW_NAMES, counter-clockwise from +x seen from above."""
+    xy = np.mgrid[0:8:RES, 0:2:RES].reshape(2, -1).T
+    points = np.c_[xy, np.zeros(len(xy))]
+    normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    config = replace(CONFIG, views_per_sample=8)
+    selection = select_render_poses(points, normals, config)
+    samples = len(selection.floors[0].samples_xy)
+    assert len(selection) == 8 * samples and selection.views_per_sample == 8
+    assert torch.equal(selection.view_index, torch.arange(8).repeat(samples))
+    assert torch.equal(selection.sample_index, torch.arange(samples).repeat_interleave(8))
+    looks = selection.T_wc[:, :3, 2].reshape(samples, 8, 3)
+    yaw = torch.rad2deg(torch.atan2(looks[..., 1], looks[..., 0])) % 360.0
+    expected = torch.tensor([0.0, 180.0, 90.0, 270.0, 45.0, 225.0, 135.0, 315.0])
+    inner = (selection.floors[0].forward_xy == [1.0, 0.0]).all(axis=1)
+    assert inner.sum() >= 2  # the samples between the two ends
+    torch.testing.assert_close(
+        yaw[torch.from_numpy(inner)],
+        expected.double().expand(int(inner.sum()), 8),
+        atol=1e-9,
+        rtol=0,
+    )
+    # Every sample: the yaws relative to its forward view, whatever its forward direction.
+    relative = (yaw - yaw[:, :1]) % 360.0
+    relative = torch.where(relative > 360.0 - 1e-9, relative - 360.0, relative)
+    torch.testing.assert_close(relative, expected.double().expand(samples, 8), atol=1e-9, rtol=0)
+    R = selection.T_wc[:, :3, :3]
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(len(R), dtype=torch.float64))
+    torch.testing.assert_close(looks[..., 2], torch.zeros(samples, 8, dtype=torch.float64))
+
+
+def test_eight_views_add_the_diagonals_to_the_four(building, selection, tmp_path):
+    """The 8-view poses are the 4-view ones (same samples, same first four views, bit for bit)
+    plus four views 45 deg between them; the figures draw all eight."""
+    config = replace(CONFIG, views_per_sample=8)
+    eight = select_render_poses(building["points"], building["normals"], config)
+    n = len(selection) // 4
+    assert len(eight) == 8 * n
+    by_sample = eight.T_wc.reshape(n, 8, 4, 4)
+    assert torch.equal(by_sample[:, :4].reshape(-1, 4, 4), selection.T_wc)
+    assert torch.equal(eight.floor_index.reshape(n, 8)[:, 0], selection.floor_index[::4])
+    looks = by_sample[:, :, :3, 2]
+    cosines = (looks[:, 4:, None] * looks[:, None, :4]).sum(-1)  # diagonals x axis views
+    half = math.sqrt(0.5)
+    # forward-left, back-right, back-left, forward-right against forward, back, left, right
+    expected = half * torch.tensor(
+        [
+            [1.0, -1.0, 1.0, -1.0],
+            [-1.0, 1.0, -1.0, 1.0],
+            [-1.0, 1.0, 1.0, -1.0],
+            [1.0, -1.0, -1.0, 1.0],
+        ],
+        dtype=torch.float64,
+    )
+    torch.testing.assert_close(cosines, expected.expand_as(cosines), atol=1e-12, rtol=0)
+    paths = write_floor_plan_figures(eight, tmp_path / "figures")
+    assert len(paths) == 2 and all(p.stat().st_size > 20_000 for p in paths)
+
+
+@pytest.mark.parametrize("views", [0, 3, 6, 16, -4, 4.0, True, "8", None])
+def test_a_views_per_sample_other_than_4_or_8_is_refused(views):
+    with pytest.raises(ValueError, match=r"views_per_sample must be one of \(4, 8\)"):
+        PoseSelectionConfig(views_per_sample=views)
+    with pytest.raises(ValueError, match=r"views_per_sample must be one of \(4, 8\)"):
+        view_poses(np.zeros((1, 3)), np.array([[1.0, 0.0]]), views)
 
 
 def test_forward_follows_the_corridor(selection):

@@ -33,9 +33,12 @@ choose camera poses from which database images are rendered:
    then by distance from the root, unless an accepted sample lies within ``spacing_m / 2``
    along the skeleton. So consecutive samples along a path are about ``spacing_m`` apart and
    branch ends are covered.
-5. **Views.** Each sample gets four horizontal cameras ``camera_height_m`` above its floor:
-   forward along the local skeleton direction (principal axis of the skeleton pixels within
-   ``spacing_m / 2`` along the skeleton, oriented away from the root), back, left and right.
+5. **Views.** Each sample gets ``views_per_sample`` horizontal cameras ``camera_height_m``
+   above its floor, their yaws evenly spaced from "forward" along the local skeleton direction
+   (principal axis of the skeleton pixels within ``spacing_m / 2`` along the skeleton,
+   oriented away from the root): 4 views (seed 2) look forward, back, left and right, 8 views
+   add the four diagonals (every 45 deg). The order is :data:`VIEW_NAMES` (the first 4 are
+   seed 2's, so the 4-view poses are the 8-view ones without the diagonals).
 
 Sample positions are skeleton cell centres, so their clearance to the nearest obstacle cell
 centre is at least ``min_clearance_m``; to the obstacle points themselves it is at least
@@ -82,7 +85,9 @@ from diffloc.checks import ArrayLike, check_finite, check_shape
 from diffloc.io.atomic import atomic_write_bytes
 
 __all__ = [
+    "VIEWS_PER_SAMPLE",
     "VIEW_NAMES",
+    "check_views_per_sample",
     "FloorPlan",
     "PoseSelectionConfig",
     "RenderPoses",
@@ -90,12 +95,46 @@ __all__ = [
     "floor_plan",
     "plot_floor_plan",
     "select_render_poses",
+    "view_directions",
     "view_poses",
     "write_floor_plan_figures",
 ]
 
-VIEW_NAMES = ("forward", "back", "left", "right")
-"""Order of the four views of every sample (``RenderPoses.view_index``)."""
+VIEW_NAMES = (
+    "forward",
+    "back",
+    "left",
+    "right",
+    "forward-left",
+    "back-right",
+    "back-left",
+    "forward-right",
+)
+"""Order of the views of every sample (``RenderPoses.view_index``): a sample with ``k`` views
+(``PoseSelectionConfig.views_per_sample``) has the first ``k``; yaws counter-clockwise from
+forward seen from above: 0, 180, 90, 270, 45, 225, 135, 315 deg."""
+VIEWS_PER_SAMPLE = (4, 8)
+"""The allowed ``views_per_sample``: seed 2's four views 90 deg apart, or eight 45 deg apart."""
+
+
+def check_views_per_sample(views: object) -> None:
+    """Raise a ValueError unless ``views`` is an int in :data:`VIEWS_PER_SAMPLE`.
+
+    Example:
+        >>> check_views_per_sample(6)
+        Traceback (most recent call last):
+        ...
+        ValueError: views_per_sample must be one of (4, 8) (yaws every 90 or 45 deg), got 6
+    """
+    if (
+        isinstance(views, bool)
+        or not isinstance(views, int | np.integer)
+        or (views not in VIEWS_PER_SAMPLE)
+    ):
+        raise ValueError(
+            f"views_per_sample must be one of {VIEWS_PER_SAMPLE} (yaws every 90 or 45 deg), "
+            f"got {views!r}"
+        )
 
 
 @dataclass(frozen=True)
@@ -130,8 +169,12 @@ class PoseSelectionConfig:
         blur_sigma_m: standard deviation of the Gaussian that smooths the corridor, metres
             (0 disables smoothing).
         min_corridor_area_m2: corridor pieces smaller than this are dropped, square metres.
-        spacing_m: distance between samples along the skeleton, metres (2 indoors, 4 outdoors).
+        spacing_m: distance between samples along the skeleton, metres (seed 2: 2 indoors, 4
+            outdoors; `task=crossmodal` uses 1 m indoors, task/scene/crossmodal_indoor.yaml).
         camera_height_m: camera centre height above the floor, metres.
+        views_per_sample: horizontal views per sample, yaws evenly spaced from forward along
+            the skeleton, one of :data:`VIEWS_PER_SAMPLE` (4 as in seed 2, 8 = every 45 deg;
+            order :data:`VIEW_NAMES`).
     """
 
     floor_max_normal_angle_rad: float = math.radians(20.0)
@@ -150,8 +193,10 @@ class PoseSelectionConfig:
     min_corridor_area_m2: float = 1.0
     spacing_m: float = 2.0
     camera_height_m: float = 1.5
+    views_per_sample: int = 4
 
     def __post_init__(self) -> None:
+        check_views_per_sample(self.views_per_sample)
         for name in (
             "floor_bin_m",
             "min_floor_gap_m",
@@ -247,10 +292,14 @@ class FloorPlan:
 
 @dataclass(frozen=True, eq=False)
 class RenderPoses:
-    """Selected render poses: four views per sample, samples on every floor.
+    """Selected render poses: ``k = views_per_sample`` views per sample, samples on every floor.
+
+    Rows are sample-major: the views of sample ``s`` are rows ``k s .. k s + k - 1`` in the
+    order of :data:`VIEW_NAMES` (forward, back, left, right, then with 8 views forward-left,
+    back-right, back-left, forward-right; forward is along the skeleton, away from its root).
 
     Attributes:
-        T_wc: (M, 4, 4) float64 camera-to-world poses, OpenCV camera frame, M = 4 * samples.
+        T_wc: (M, 4, 4) float64 camera-to-world poses, OpenCV camera frame, M = k * samples.
         floor_index: (M,) int64 floor of each view (index into ``floors``).
         sample_index: (M,) int64 sample of each view (0 .. S-1 over all floors).
         view_index: (M,) int64 view of each sample, an index into :data:`VIEW_NAMES`.
@@ -265,6 +314,11 @@ class RenderPoses:
 
     def __len__(self) -> int:
         return int(self.T_wc.shape[0])
+
+    @property
+    def views_per_sample(self) -> int:
+        """Views of every sample (``k``; :data:`VIEWS_PER_SAMPLE`)."""
+        return int(self.view_index.max()) + 1  # every sample has views 0 .. k - 1
 
 
 def _as_numpy(x: ArrayLike, name: str) -> np.ndarray:
@@ -550,10 +604,45 @@ def _forward(offsets: np.ndarray, ahead: np.ndarray) -> np.ndarray:
     return direction
 
 
+def view_directions(forward_xy: torch.Tensor, views_per_sample: int = 4) -> torch.Tensor:
+    """The horizontal view directions of each sample, in the order of :data:`VIEW_NAMES`.
+
+    Forward, back, left (forward turned 90 deg counter-clockwise seen from above) and right
+    are exact sign flips and swaps of ``forward_xy``; the diagonals (8 views) are the unit
+    bisectors of forward and left, back and right, back and left, forward and right.
+
+    Args:
+        forward_xy: (S, 2) unit forward directions in the world xy plane.
+        views_per_sample: 4 or 8 (:data:`VIEWS_PER_SAMPLE`).
+
+    Returns:
+        (S, views_per_sample, 2) unit directions, same dtype as ``forward_xy``.
+
+    Raises:
+        ValueError: ``views_per_sample`` not in :data:`VIEWS_PER_SAMPLE`.
+
+    Example:
+        >>> view_directions(torch.tensor([[1.0, 0.0]]), 8)[0, 4:]  # the diagonals
+        tensor([[ 0.7071,  0.7071],
+                [-0.7071, -0.7071],
+                [-0.7071,  0.7071],
+                [ 0.7071, -0.7071]])
+    """
+    check_views_per_sample(views_per_sample)
+    f = forward_xy
+    left = torch.stack([-f[:, 1], f[:, 0]], dim=1)
+    looks = [f, -f, left, -left]
+    if views_per_sample == 8:
+        half = math.sqrt(0.5)
+        looks += [half * (f + left), -half * (f + left), half * (left - f), half * (f - left)]
+    return torch.stack(looks, dim=1)
+
+
 def view_poses(
-    positions_world: ArrayLike, forward_xy: ArrayLike
+    positions_world: ArrayLike, forward_xy: ArrayLike, views_per_sample: int = 4
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Four horizontal OpenCV cameras per position: forward, back, left, right.
+    """Horizontal OpenCV cameras per position, yaws evenly spaced from forward
+    (:func:`view_directions`: forward, back, left, right, and with 8 views the diagonals).
 
     Camera z (optical axis) is the view direction, camera y is world -z (down), camera x is
     ``y x z`` (to the right), so every rotation is proper.
@@ -561,19 +650,24 @@ def view_poses(
     Args:
         positions_world: (S, 3) camera centres, world frame.
         forward_xy: (S, 2) forward directions in the world xy plane (normalised here).
+        views_per_sample: k, 4 or 8 (:data:`VIEWS_PER_SAMPLE`).
 
     Returns:
-        ``(T_wc, view_index)``: (4 S, 4, 4) float64 poses, sample-major (views of sample ``s``
-        at rows ``4 s .. 4 s + 3``), and (4 S,) int64 indices into :data:`VIEW_NAMES`.
+        ``(T_wc, view_index)``: (k S, 4, 4) float64 poses, sample-major (views of sample ``s``
+        at rows ``k s .. k s + k - 1``), and (k S,) int64 indices into :data:`VIEW_NAMES`.
 
     Raises:
         ShapeError: wrong shapes.
-        ValueError: NaN/inf values or zero forward directions.
+        ValueError: NaN/inf values, zero forward directions or a ``views_per_sample`` not in
+            :data:`VIEWS_PER_SAMPLE`.
 
     Example:
         >>> T_wc, view = view_poses(np.zeros((1, 3)), np.array([[1.0, 0.0]]))
         >>> T_wc[0, :3, 2]  # camera 0 looks along world +x
         tensor([1., 0., 0.], dtype=torch.float64)
+        >>> T_wc, view = view_poses(np.zeros((1, 3)), np.array([[1.0, 0.0]]), 8)
+        >>> [VIEW_NAMES[i] for i in view[4:6]], T_wc[4, :3, 2]  # 45 deg to the left
+        (['forward-left', 'back-right'], tensor([0.7071, 0.7071, 0.0000], dtype=torch.float64))
     """
     positions = torch.as_tensor(positions_world, dtype=torch.float64)
     forward = torch.as_tensor(forward_xy, dtype=torch.float64)
@@ -584,17 +678,15 @@ def view_poses(
     length = torch.linalg.vector_norm(forward, dim=1, keepdim=True)
     if not bool((length > 1e-9).all()):
         raise ValueError("forward_xy contains zero-length directions")
-    f = forward / length
-    left = torch.stack([-f[:, 1], f[:, 0]], dim=1)
-    looks = torch.stack([f, -f, left, -left], dim=1).reshape(-1, 2)  # (4S, 2), VIEW_NAMES order
+    looks = view_directions(forward / length, views_per_sample).reshape(-1, 2)  # (k S, 2)
     zeros = torch.zeros_like(looks[:, 0])
     z_cam = torch.stack([looks[:, 0], looks[:, 1], zeros], dim=1)
     y_cam = torch.stack([zeros, zeros, zeros - 1.0], dim=1)
     x_cam = torch.linalg.cross(y_cam, z_cam)
     T_wc = torch.eye(4, dtype=torch.float64).repeat(looks.shape[0], 1, 1)
     T_wc[:, :3, :3] = torch.stack([x_cam, y_cam, z_cam], dim=2)
-    T_wc[:, :3, 3] = positions.repeat_interleave(4, dim=0)
-    view_index = torch.arange(4, dtype=torch.int64).repeat(positions.shape[0])
+    T_wc[:, :3, 3] = positions.repeat_interleave(views_per_sample, dim=0)
+    view_index = torch.arange(views_per_sample, dtype=torch.int64).repeat(positions.shape[0])
     return T_wc, view_index
 
 
@@ -609,7 +701,8 @@ def select_render_poses(
         config: the settings (default :class:`PoseSelectionConfig`).
 
     Returns:
-        The :class:`RenderPoses`: 4 views per sample, floors lowest first.
+        The :class:`RenderPoses`: ``config.views_per_sample`` views per sample, floors lowest
+        first.
 
     Raises:
         ShapeError: ``points`` or ``normals`` not (N, 3).
@@ -637,24 +730,29 @@ def select_render_poses(
     )
     positions[:, 2] += config.camera_height_m
     forward = np.concatenate([plan.forward_xy for plan in floors])
-    T_wc, view_index = view_poses(positions, forward)
+    views = config.views_per_sample
+    T_wc, view_index = view_poses(positions, forward, views)
     floor_of_sample = torch.from_numpy(np.repeat(np.arange(len(floors)), counts))
     return RenderPoses(
         T_wc=T_wc,
-        floor_index=floor_of_sample.repeat_interleave(4),
-        sample_index=torch.arange(len(positions)).repeat_interleave(4),
+        floor_index=floor_of_sample.repeat_interleave(views),
+        sample_index=torch.arange(len(positions)).repeat_interleave(views),
         view_index=view_index,
         floors=floors,
     )
 
 
 def plot_floor_plan(
-    plan: FloorPlan, path: str | os.PathLike, arrow_m: float | None = None, dpi: int = 100
+    plan: FloorPlan,
+    path: str | os.PathLike,
+    arrow_m: float | None = None,
+    dpi: int = 100,
+    views_per_sample: int = 4,
 ) -> Path:
     """Write a PNG of every step of one floor (like seed 2's Fig. 3).
 
     Panels: occupancy (floor, obstacles), normalised distance transform, corridor, skeleton,
-    and the samples with their four view directions (forward in red) over the occupancy.
+    and the samples with their view directions (forward in red) over the occupancy.
 
     Args:
         plan: the floor.
@@ -662,6 +760,7 @@ def plot_floor_plan(
         arrow_m: length of the view arrows in metres (default: 0.4 times the median distance
             from a sample to its nearest other sample, or 0.5 m with fewer than two samples).
         dpi: resolution; the figure is 15 x 9 inches.
+        views_per_sample: the views drawn per sample (:func:`view_directions`).
 
     Returns:
         ``path`` as a :class:`~pathlib.Path`.
@@ -675,7 +774,7 @@ def plot_floor_plan(
         ("normalised distance transform", plan.clearance_normalized, "viridis"),
         ("free-path corridor", plan.corridor, "gray"),
         ("skeleton", skeleton_view, "magma"),
-        (f"{len(plan.samples_xy)} samples, 4 views each", occupancy, "gray"),
+        (f"{len(plan.samples_xy)} samples, {views_per_sample} views each", occupancy, "gray"),
     )
     fig = Figure(figsize=(15.0, 9.0), dpi=dpi)
     FigureCanvasAgg(fig)
@@ -686,7 +785,7 @@ def plot_floor_plan(
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
     axes[-1].set_axis_off()
-    _draw_views(axes[-2], plan, arrow_m)
+    _draw_views(axes[-2], plan, arrow_m, views_per_sample)
     fig.suptitle(f"floor {plan.index}, z = {round(plan.height_m, 2) + 0.0:.2f} m")  # no "-0.00"
     fig.tight_layout()
     buffer = io.BytesIO()
@@ -695,21 +794,22 @@ def plot_floor_plan(
     return Path(path)
 
 
-def _draw_views(ax: Axes, plan: FloorPlan, arrow_m: float | None) -> None:
-    xy, f = plan.samples_xy, plan.forward_xy
+def _draw_views(ax: Axes, plan: FloorPlan, arrow_m: float | None, views_per_sample: int) -> None:
+    xy = plan.samples_xy
     if arrow_m is None:
         arrow_m = 0.5
         if len(xy) > 1:
             gaps, _ = cKDTree(xy).query(xy, k=2)
             arrow_m = 0.4 * float(np.median(gaps[:, 1]))
-    left = np.stack([-f[:, 1], f[:, 0]], axis=1)
-    for direction, color in ((f, "red"), (-f, "tab:blue"), (left, "tab:blue"), (-left, "tab:blue")):
+    directions = view_directions(torch.from_numpy(plan.forward_xy), views_per_sample).numpy()
+    for view in range(views_per_sample):
+        direction = directions[:, view]
         ax.quiver(
             xy[:, 0],
             xy[:, 1],
             arrow_m * direction[:, 0],
             arrow_m * direction[:, 1],
-            color=color,
+            color="red" if view == 0 else "tab:blue",
             angles="xy",
             scale_units="xy",
             scale=1.0,
@@ -731,4 +831,8 @@ def write_floor_plan_figures(selection: RenderPoses, out_dir: str | os.PathLike)
     Example: see the module docstring.
     """
     out = Path(out_dir)
-    return [plot_floor_plan(plan, out / f"floor_{plan.index}.png") for plan in selection.floors]
+    views = selection.views_per_sample
+    return [
+        plot_floor_plan(plan, out / f"floor_{plan.index}.png", views_per_sample=views)
+        for plan in selection.floors
+    ]

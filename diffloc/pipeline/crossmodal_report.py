@@ -10,6 +10,10 @@ The only place the task reads the query sequences' ground-truth poses. Per seque
   0.5 m / 5 deg and ``loose_m`` / 30 deg (seed 2: 1 m indoors, 2 m outdoors);
 - retrieval rate: the top-1 retrieved render lies within the render spacing and 45 deg of
   the query (seed 2);
+- how near the database comes to the queries whatever its spacing (:func:`nearest_renders`):
+  the share of queries with a render within the loose bound (``loose_m`` / 30 deg, so a
+  render that is itself a right answer), the median distance to the nearest render and the
+  median angle to the best-aligned render within ``loose_m``;
 - mATE of the accepted queries and the median wall time per query;
 - where the time goes (:func:`time_breakdown`): median wall and CPU ms per query, candidates
   matched, mean CPU ms per stage (:data:`~diffloc.reloc.stage_clock.STAGES`) and the median
@@ -48,6 +52,7 @@ __all__ = [
     "RETRIEVAL_ANGLE_DEG",
     "localization_rates",
     "markdown_table",
+    "nearest_renders",
     "plot_retrieved",
     "retrieval_hits",
     "score_sequence",
@@ -103,6 +108,39 @@ def retrieval_hits(
     )
 
 
+def nearest_renders(T_query: torch.Tensor, T_render: torch.Tensor, loose_m: float) -> dict:
+    """How near the database's renders come to the queries (module docstring).
+
+    Args:
+        T_query: (Q, 4, 4) true query poses.
+        T_render: (M, 4, 4) render poses of the database.
+        loose_m: the loose bound in metres (with 30 deg).
+
+    Returns:
+        ``render_near_rate``: share of queries with a render within ``loose_m`` and 30 deg;
+        ``median_m``: median over the queries of the distance to the nearest render centre;
+        ``median_deg``: median over the queries of the smallest rotation angle to a render
+        within ``loose_m`` (180 where there is none).
+
+    Example:
+        >>> T_render = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+        >>> T_render[1, 0, 3] = 3.0
+        >>> T_query = torch.eye(4, dtype=torch.float64)[None].clone()
+        >>> T_query[0, 0, 3] = 2.5
+        >>> nearest_renders(T_query, T_render, 1.0)
+        {'render_near_rate': 1.0, 'median_m': 0.5, 'median_deg': 0.0}
+    """
+    distance, angle = pairwise_pose_distances(T_query, T_render)
+    degrees = torch.rad2deg(angle)
+    within = distance <= loose_m
+    best = torch.where(within, degrees, torch.full_like(degrees, 180.0)).amin(dim=1)
+    return {
+        "render_near_rate": float((within & (degrees <= 30.0)).any(dim=1).double().mean()),
+        "median_m": float(np.median(distance.amin(dim=1).numpy())),
+        "median_deg": float(np.median(best.numpy())),
+    }
+
+
 def _finite(x: float) -> float | None:
     return None if math.isnan(x) else x
 
@@ -140,6 +178,7 @@ def score_sequence(
         "wrong_from_prior": int((from_prior & ~correct).sum()),
         "rates": localization_rates(errors.translation_m, errors.rotation_deg, accepted, loose_m),
         "retrieval_rate": float(hits.mean()),
+        "nearest_render": nearest_renders(T_gt, T_render, loose_m),
         "mate_m": _finite(mean_ate(errors)),
         "median_ms_per_query": float(np.median(loc.time_ms)),
         "time": time_breakdown(loc),

@@ -25,6 +25,7 @@ never read here; scoring is :mod:`diffloc.pipeline.crossmodal_report`'s.
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -179,11 +180,14 @@ class TexturedMeshSummary(StageSummary):
 
 @dataclass(frozen=True)
 class RgbdDatabaseSummary(StageSummary):
-    """The ``rgbd_database`` summary: rendered ``images`` and their share of pixels without
-    depth (``hole_share``)."""
+    """The ``rgbd_database`` summary: rendered ``images``, their share of pixels without
+    depth (``hole_share``), and the wall ``seconds`` and process ``cpu_seconds`` of rendering
+    them with their features and NetVLAD."""
 
     images: int
     hole_share: float
+    seconds: float
+    cpu_seconds: float
 
 
 @dataclass(frozen=True)
@@ -431,11 +435,17 @@ def build_rgbd_database(
         summary = stage.reusable(key, RgbdDatabaseSummary)
         if summary is None:
             source = f"{option} ({config.passes})" if sizes else option
+            start, start_cpu = time.perf_counter(), time.process_time()
             db = render_database(
                 renderer, T_wc, camera, database, source, show_progress=show_progress
             )
+            summary = RgbdDatabaseSummary(
+                images=db.num_images,
+                hole_share=float(db.holes.mean()),
+                seconds=round(time.perf_counter() - start, 2),
+                cpu_seconds=round(time.process_time() - start_cpu, 2),
+            )
             db.save(stage.workdir() / "rgbd")
-            summary = RgbdDatabaseSummary(images=db.num_images, hole_share=float(db.holes.mean()))
             summary = stage.commit(key, summary, ["rgbd"])
         outcome = stage.outcome(summary)
         return RenderedDatabase.load(folder / "rgbd"), outcome
