@@ -58,7 +58,7 @@ import torch
 
 from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.eval.metrics import is_correct, pose_errors
-from diffloc.eval.report_files import write_report
+from diffloc.eval.report_files import made_by_lines, write_report
 from diffloc.features.retrieval_eval import pairwise_pose_distances
 from diffloc.io.dataset import read_sequence
 from diffloc.pipeline.crossmodal_replay import (
@@ -296,10 +296,7 @@ def markdown(report: dict) -> str:
     lines = [
         f"# Where the localisation rate is lost: {sequences} of {report['dataset']}",
         "",
-        "Made by:",
-        "",
-        f"```bash\n{report['command']}\n```",
-        "",
+        *made_by_lines(report["command"]),
         f"Each query (frames {_frames(maps[0]['rows'])}) gets the outcome of the first stage "
         "that decides it (experiments/crossmodal_breakdown.py docstring). Bound "
         f"{report['loose_m']:g} m / 30 deg; a reference is near the query within "

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from diffloc.eval.metrics import PoseErrors, is_correct, mean_ate, pose_errors
-from diffloc.eval.report_files import write_report
+from diffloc.eval.report_files import made_by_lines, write_report
 from diffloc.eval.tables import Column, markdown_table
 from diffloc.io.dataset import read_sequence
 from diffloc.io.trajectory import read_tum
@@ -166,10 +166,7 @@ def main() -> None:
         [
             f"# {args.title}: `{args.sequence}` of {first['dataset']}, every {every}-th frame",
             "",
-            "Made by:",
-            "",
-            f"```bash\n{args.command}\n```",
-            "",
+            *made_by_lines(args.command),
             table,
             "",
             f"Queries: every {every}-th frame of `{args.sequence}` (frames 0, {every}, ...). "

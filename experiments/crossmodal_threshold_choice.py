@@ -33,7 +33,7 @@ import numpy as np
 
 from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.eval.metrics import is_correct
-from diffloc.eval.report_files import write_report
+from diffloc.eval.report_files import made_by_lines, write_report
 from diffloc.pipeline.crossmodal_replay import (
     recorded_errors,
     recorded_evidence,
@@ -183,10 +183,7 @@ def markdown(report: dict) -> str:
         f"# Validation thresholds of map={report['map']} chosen on {report['tune']}, "
         f"applied to {report['heldout']}",
         "",
-        "Made by:",
-        "",
-        f"```bash\n{report['command']}\n```",
-        "",
+        *made_by_lines(report["command"]),
         "Rule (on the tuning dataset ONLY, experiments/crossmodal_threshold_choice.py): the most "
         "right accepted poses over the sequences with no more wrong accepted poses than the "
         "run's own thresholds; among equals the fewest thresholds changed, then the fewest grid "

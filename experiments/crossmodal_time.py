@@ -22,7 +22,7 @@ import argparse
 import json
 from pathlib import Path
 
-from diffloc.eval.report_files import write_report
+from diffloc.eval.report_files import made_by_lines, write_report
 from diffloc.reloc.stage_clock import STAGES
 
 
@@ -66,12 +66,7 @@ def markdown(report: dict) -> str:
     lines = [
         f"# Time per query of the rendered-database localiser: {report['title']}",
         "",
-        "Made by:",
-        "",
-        "```bash",
-        *report["commands"],
-        "```",
-        "",
+        *made_by_lines(report["commands"]),
         "Rate: accepted within the loose bound / 30 deg over all queries; precision: of the "
         "accepted poses. Times: the localisation stage's record (wall and process CPU per "
         "query; one thread, so CPU is the work done, wall also holds the waits of a shared "

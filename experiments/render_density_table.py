@@ -33,7 +33,7 @@ import json
 import re
 from pathlib import Path
 
-from diffloc.eval.report_files import write_report
+from diffloc.eval.report_files import made_by_lines, write_report
 
 DEFAULT = (2.0, 4)
 """The reference render spacing (m) and views per sample: seed 2's, the indoor default when
@@ -173,12 +173,7 @@ def markdown(report: dict) -> str:
     lines = [
         f"# Render density: spacing x views per sample ({report['dataset']})",
         "",
-        "Made by:",
-        "",
-        "```bash",
-        *report["commands"],
-        "```",
-        "",
+        *made_by_lines(report["commands"]),
         "Every 4th frame of each sequence, task.localizer.top_k=20, one thread per run "
         "(OMP_NUM_THREADS=1) on a shared 2-core machine. Render: the database stage (render, "
         "XFeat, NetVLAD), wall / process CPU s. Rate: accepted within 1 m / 30 deg over all "

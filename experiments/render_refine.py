@@ -43,7 +43,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffloc.eval.report_files import write_report
+from diffloc.eval.report_files import made_by_lines, write_report
 from diffloc.features.local import XFeatConfig, XFeatExtractor
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import se3_exp
@@ -470,7 +470,7 @@ def markdown(result: dict) -> str:
     title, rendered = describe_map(s)
     lines = [f"# Render-and-compare refinement, {s['label']} query_same ({title})", ""]
     if result.get("commands"):
-        lines += ["Made by:", "", "```bash", *result["commands"], "```", ""]
+        lines += made_by_lines(result["commands"])
     starts = ", ".join(f"{100 * m:g} cm / {d:g} deg" for m, d in perturbations(s))
     acceptance = ""
     if "min_improvement" in s:  # older files did not record it

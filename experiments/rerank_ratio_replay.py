@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from diffloc.eval.metrics import is_correct
-from diffloc.eval.report_files import write_report
+from diffloc.eval.report_files import made_by_lines, write_report
 from diffloc.io.dataset import read_sequence
 from diffloc.pipeline.crossmodal_replay import recorded_errors, recorded_validation
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization, crossmodal_folder
@@ -96,12 +96,7 @@ def markdown(report: dict) -> str:
     lines = [
         f"# Replayed `min_rerank_ratio`: {report['dataset']}, map={report['map']}",
         "",
-        "Made by:",
-        "",
-        "```bash",
-        *report["commands"],
-        "```",
-        "",
+        *made_by_lines(report["commands"]),
         "Ratio `-`: the run itself (ratio off). Changed: frames whose answer becomes another "
         "candidate (its photometric score unknown; scored by the other tests and its "
         "position, module docstring).",

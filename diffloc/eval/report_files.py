@@ -12,7 +12,19 @@ from pathlib import Path
 
 from diffloc.io.atomic import atomic_write_text
 
-__all__ = ["write_benchmark", "write_report"]
+__all__ = ["made_by_lines", "write_benchmark", "write_report"]
+
+
+def made_by_lines(commands: list[str] | str) -> list[str]:
+    """The lines that open a report: "Made by:" and the commands in a bash block, then a blank.
+
+    Example:
+
+        >>> made_by_lines(["diffloc task=main", "python3 experiments/tables.py runs/x"])[2:]
+        ['```bash', 'diffloc task=main', 'python3 experiments/tables.py runs/x', '```', '']
+    """
+    commands = [commands] if isinstance(commands, str) else list(commands)
+    return ["Made by:", "", "```bash", *commands, "```", ""]
 
 
 def write_report(out: Path, markdown: str, data: object) -> tuple[Path, Path]:
