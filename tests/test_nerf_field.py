@@ -14,10 +14,7 @@ from diffloc.maps.nerf.encodings import (
 )
 from diffloc.maps.nerf.field import FieldConfig, RadianceField, build_encoding
 from diffloc.testing import assert_close, gradcheck
-
-
-def _points(n: int, seed: int = 0) -> torch.Tensor:
-    return torch.rand(n, 3, generator=torch.Generator().manual_seed(seed)) * 2.2 - 1.1
+from tests.encoding_checks import assert_matches_reference, encoding_points
 
 
 def test_bilinear_gather_hits_vertices_and_interpolates_linearly() -> None:
@@ -41,14 +38,8 @@ def test_fast_encoding_matches_gather_reference_values_and_gradients(kind: str) 
         if kind == "triplane"
         else HashGridEncoding(4, 2, 8, 3, 16, 0.5)
     ).double()
-    x = _points(40).double().requires_grad_(True)
-    fast, ref = enc(x), enc.forward_reference(x)
-    assert_close(fast, ref)
-    w = torch.randn_like(fast)
-    g_fast = torch.autograd.grad((fast * w).sum(), [x, *enc.parameters()])
-    g_ref = torch.autograd.grad((ref * w).sum(), [x, *enc.parameters()])
-    for a, b in zip(g_fast, g_ref, strict=True):
-        assert_close(a, b)
+    x = encoding_points(40).double().requires_grad_(True)
+    assert_matches_reference(enc, x)
 
 
 @pytest.mark.parametrize("kind", ["triplane", "hashgrid"])
@@ -126,7 +117,7 @@ def _field(kind: str, contracted: bool = False) -> RadianceField:
 @pytest.mark.parametrize("contracted", [False, True])
 def test_normals_are_the_normalised_negative_density_gradient(kind: str, contracted: bool) -> None:
     field = _field(kind, contracted)
-    x = _points(8, 3).double() * 0.8
+    x = encoding_points(8, 3).double() * 0.8
     d = torch.nn.functional.normalize(torch.randn(8, 3, dtype=torch.float64), dim=-1)
     out = field(x, d, torch.zeros(8, 2, dtype=torch.float64), with_normals=True)
     eps = 1e-6
@@ -143,7 +134,7 @@ def test_normals_are_the_normalised_negative_density_gradient(kind: str, contrac
 def test_field_gradcheck_float64_through_the_normals() -> None:
     """The normal loss back-propagates through the density gradient (double backward)."""
     field = _field("triplane")
-    x = _points(5, 4).double() * 0.8
+    x = encoding_points(5, 4).double() * 0.8
     d = torch.nn.functional.normalize(torch.randn(5, 3, dtype=torch.float64), dim=-1)
     codes = torch.zeros(5, 2, dtype=torch.float64)
 
@@ -158,7 +149,7 @@ def test_appearance_code_changes_colour_not_density() -> None:
     field = _field("triplane")
     with torch.no_grad():
         field.colour_mlp[0].weight.normal_()
-    x, d = _points(4).double() * 0.5, torch.tensor([[0.0, 0, 1.0]] * 4, dtype=torch.float64)
+    x, d = encoding_points(4).double() * 0.5, torch.tensor([[0.0, 0, 1.0]] * 4, dtype=torch.float64)
     a = field(x, d, torch.zeros(4, 2, dtype=torch.float64))
     b = field(x, d, torch.ones(4, 2, dtype=torch.float64))
     assert_close(a.density, b.density)

@@ -22,12 +22,9 @@ from diffloc.maps.nerf.export import export_field, load_field
 from diffloc.maps.nerf.field import FieldConfig, RadianceField
 from diffloc.maps.nerf.sampler import DensityGrid, SamplerConfig
 from diffloc.testing import assert_close, gradcheck
+from tests.encoding_checks import assert_matches_reference, encoding_points
 
 AXES = (5, 3, 4)  # vertices along x, y, z: every plane is non-square
-
-
-def _points(n: int, seed: int = 0) -> torch.Tensor:
-    return torch.rand(n, 3, generator=torch.Generator().manual_seed(seed)) * 2.2 - 1.1
 
 
 def test_bilinear_gather_on_a_non_square_plane_hits_vertices_and_interpolates() -> None:
@@ -50,7 +47,7 @@ def test_non_square_level_reproduces_affine_planes_exactly() -> None:
             u = torch.linspace(-1, 1, AXES[a], dtype=torch.float64)
             v = torch.linspace(-1, 1, AXES[b], dtype=torch.float64)
             plane.copy_((1 + 0.1 * u[None, :] + 0.2 * v[:, None])[None])
-    x = _points(50, 2).double().clamp(-1, 1)
+    x = encoding_points(50, 2).double().clamp(-1, 1)
     expected = 1.0
     for a, b in enc.PAIRS:
         expected = expected * (1 + 0.1 * x[:, a] + 0.2 * x[:, b])
@@ -62,20 +59,14 @@ def test_non_square_level_reproduces_affine_planes_exactly() -> None:
 def test_non_square_levels_match_the_gather_reference_values_and_gradients() -> None:
     torch.manual_seed(0)
     enc = TriplaneEncoding([AXES, (9, 6, 2)], 3, 0.3).double()
-    x = _points(40).double().requires_grad_(True)
-    fast, ref = enc(x), enc.forward_reference(x)
-    assert_close(fast, ref)
-    w = torch.randn_like(fast)
-    g_fast = torch.autograd.grad((fast * w).sum(), [x, *enc.parameters()])
-    g_ref = torch.autograd.grad((ref * w).sum(), [x, *enc.parameters()])
-    for a, b in zip(g_fast, g_ref, strict=True):
-        assert_close(a, b)
+    x = encoding_points(40).double().requires_grad_(True)
+    assert_matches_reference(enc, x)
 
 
 def test_jacobian_of_a_non_square_level_is_the_autograd_derivative() -> None:
     torch.manual_seed(3)
     enc = TriplaneEncoding([AXES, (7, 2, 3)], 2, 0.3).double()
-    x = (_points(12, 4) * 0.85).double().requires_grad_(True)
+    x = (encoding_points(12, 4) * 0.85).double().requires_grad_(True)
     features, jacobian = enc.forward_with_jacobian(x)
     assert_close(features, enc(x))
     rows = [torch.autograd.grad(enc(x)[:, k].sum(), x)[0] for k in range(enc.out_dim)]
@@ -137,7 +128,7 @@ def _field(aspect: float, contracted: bool = True) -> tuple[RadianceField, Densi
 
 
 def _outputs(field: RadianceField) -> tuple[torch.Tensor, ...]:
-    x = _points(30, 5) * torch.tensor([6.0, 6.0, 1.0]) + torch.tensor([1.0, 5.0, 0.5])
+    x = encoding_points(30, 5) * torch.tensor([6.0, 6.0, 1.0]) + torch.tensor([1.0, 5.0, 0.5])
     d = torch.nn.functional.normalize(torch.randn(30, 3, generator=torch.Generator()), dim=-1)
     with torch.no_grad():
         out = field(x, d, torch.zeros(30, 2))
