@@ -27,7 +27,8 @@ the wrong accepted poses whose reference came from it.
 The verdicts are replayed from the recorded evidence
 (:func:`~diffloc.pipeline.crossmodal_replay.replay_validation`) with the thresholds the run
 used (read from its ``localize.json``), or with ``--theta-in``, ``--min-coverage``,
-``--ambiguity-ratio``, ``--min-inlier-ratio`` and ``--min-photometric`` in their place
+``--ambiguity-ratio``, ``--min-inlier-ratio``, ``--min-photometric`` and ``--max-plane-share``
+in their place
 (``none`` turns a test off): other thresholds are scored without relocalising.
 Without any of them the replay must give the run's own verdicts (it stops otherwise).
 
@@ -268,12 +269,19 @@ def _cell(value: object) -> str:
     return str(value)
 
 
-THRESHOLDS = ("theta_in", "min_inlier_ratio", "min_coverage", "ambiguity_ratio", "min_photometric")
+THRESHOLDS = (
+    "theta_in",
+    "min_inlier_ratio",
+    "min_coverage",
+    "ambiguity_ratio",
+    "min_photometric",
+    "max_plane_share",
+)
 """The single-image thresholds a replay can change (``theta_dist_m`` stays the run's)."""
 
 
 def _thresholds(validation: dict) -> dict:
-    return {name: validation[name] for name in THRESHOLDS}
+    return {name: validation.get(name) for name in THRESHOLDS}  # older runs: no plane test
 
 
 def _settings(values: dict) -> str:

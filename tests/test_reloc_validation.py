@@ -230,6 +230,39 @@ def test_evidence_reads_the_recorded_position_sigma():
     assert PoseEvidence.from_record(record).position_sigma is None
 
 
+def test_evidence_on_one_plane_is_rejected_when_the_test_is_on():
+    cfg = replace(STRICT, max_plane_share=0.9)
+    spread, flat = candidate(0.1, 60), candidate(0.1, 60)
+    spread.plane_share, flat.plane_share = 0.55, 1.0
+    for plane_candidate, expected in ((spread, True), (flat, False)):
+        v = PoseValidator(cfg)
+        first = candidate(0.0, 60)
+        first.plane_share = 0.5
+        v.validate_result(result_of(first), 0.0)
+        assert v.validate_result(result_of(plane_candidate), 1.0) is expected
+    assert PoseValidator(cfg).failed_tests(PoseEvidence.from_result(result_of(flat))) == ("planar",)
+    seed1 = PoseValidator(cfg.seed1_rule())  # seed 1's rule does not ask
+    seed1.validate_result(result_of(candidate(0.0, 60)), 0.0)
+    assert seed1.validate_result(result_of(flat), 1.0)
+
+
+def test_the_plane_test_needs_the_measurement_and_a_share():
+    v = PoseValidator(replace(STRICT, max_plane_share=0.9))
+    with pytest.raises(ValueError, match="max_plane_share"):
+        v.validate_result(result_of(candidate(0.0, 60)), 0.0)  # NaN: not measured
+    for bad in (1.5, -0.1, math.nan):
+        with pytest.raises(ValueError, match="max_plane_share"):
+            ValidationConfig(max_plane_share=bad)
+
+
+def test_evidence_reads_the_recorded_plane_share():
+    entry = {"inliers": 40, "matches": 60, "coverage": 0.8, "distance_to_chosen_m": 0}
+    record = {"found": True, "position_m": [0.0, 0.0, 0.0], "candidates": [entry]}
+    assert PoseEvidence.from_record(record).plane_share is None  # an older run
+    entry["plane_share"] = 0.97
+    assert PoseEvidence.from_record(record).plane_share == 0.97
+
+
 def test_single_image_mode_checks_inliers_only():
     v = PoseValidator(ValidationConfig(theta_in=15, temporal=False))
     assert v.validate(pose_at(0.0), 15, 0.0)

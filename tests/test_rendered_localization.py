@@ -497,6 +497,17 @@ def test_validation_rules_on_constructed_candidates(best, others, accepted):
     assert accept_pose(best, (best, *others), CHECK) is accepted
 
 
+def test_plane_test_reads_the_chosen_candidates_plane_share():
+    check = replace(CHECK, max_plane_share=0.9)
+    spread = replace(GOOD, plane_share=0.6)
+    flat = replace(GOOD, plane_share=0.97)
+    assert accept_pose(spread, (spread,), check)
+    assert not accept_pose(flat, (flat,), check)
+    assert accept_pose(flat, (flat,), CHECK)  # the test is off
+    with pytest.raises(ValueError, match="max_plane_share"):
+        accept_pose(GOOD, (GOOD,), check)  # not measured
+
+
 def test_without_validation_every_found_pose_is_accepted():
     weak = RenderedCandidate(0, T_EYE, True, 120, 100, 6, 0.0625, 3.0)
     assert accept_pose(weak, (weak,), None)

@@ -115,10 +115,11 @@ TIMING_ARRAYS = (
 of the same settings."""
 RETRIEVAL_FILE = "netvlad.safetensors"
 """The output of the retrieval stage (:mod:`diffloc.pipeline.crossmodal_retrieval`)."""
-LOCALIZATION_RECORD = 3
+LOCALIZATION_RECORD = 4
 """Version of ``localization.npz``'s contents, part of the localisation stage's key: a record
 of an older version (2: the ``candidate_*`` arrays, the validation's evidence; 3: the time per
-stage and per candidate, the re-ranking's matches) is made again."""
+stage and per candidate, the re-ranking's matches; 4: each candidate's plane share) is made
+again."""
 
 
 def crossmodal_folder(dataset: str | os.PathLike) -> Path:
@@ -500,6 +501,8 @@ class SequenceLocalization:
         candidate_match_ms: (C,) float64 wall ms of its LighterGlue match.
         candidate_match_cpu_ms: (C,) float64 process CPU ms of its LighterGlue match.
         candidate_pnp_ms: (C,) float64 wall ms of its lifting and PnP.
+        candidate_plane_share: (C,) float64 share of its inliers on their dominant plane (NaN:
+            no pose).
     """
 
     frames: np.ndarray
@@ -533,6 +536,7 @@ class SequenceLocalization:
     candidate_match_ms: np.ndarray
     candidate_match_cpu_ms: np.ndarray
     candidate_pnp_ms: np.ndarray
+    candidate_plane_share: np.ndarray
 
     @classmethod
     def load(cls, path: Path) -> SequenceLocalization:
@@ -573,6 +577,7 @@ class SequenceLocalization:
                 float(self.candidate_match_ms[c]),
                 float(self.candidate_match_cpu_ms[c]),
                 float(self.candidate_pnp_ms[c]),
+                float(self.candidate_plane_share[c]),
             )
             tried.append(candidate)
             if self.candidate_chosen[c]:
@@ -611,6 +616,7 @@ def candidate_arrays(results: list[RenderedLocalization]) -> dict[str, np.ndarra
         "candidate_match_ms": np.array([c.match_ms for _, _, c in rows], dtype=np.float64),
         "candidate_match_cpu_ms": np.array([c.match_cpu_ms for _, _, c in rows], dtype=np.float64),
         "candidate_pnp_ms": np.array([c.pnp_ms for _, _, c in rows], dtype=np.float64),
+        "candidate_plane_share": np.array([c.plane_share for _, _, c in rows], dtype=np.float64),
     }
 
 

@@ -391,6 +391,7 @@ def _candidate_entry(candidate: Candidate, T_wc_best: torch.Tensor) -> dict:
         "coverage": round(candidate.coverage, 4),
         "distance_to_chosen_m": round(float(distance), 4),
         "position_sigma_m": finite_or_none(round(candidate.position_sigma_m, 5)),
+        "plane_share": finite_or_none(round(candidate.plane_share, 4)),
     }
 
 

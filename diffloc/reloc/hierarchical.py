@@ -48,6 +48,7 @@ from diffloc.features.local import Features
 from diffloc.features.matching import match_descriptors, match_guided
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.essential_ransac import EssentialCheckConfig, essential_check
+from diffloc.geometry.plane_share import dominant_plane_share
 from diffloc.geometry.se3 import invert, transform_points
 from diffloc.optim.motion_cost import MotionRefineConfig, refine_pose
 from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
@@ -191,6 +192,9 @@ class Candidate:
         position_sigma_m: standard deviation of the camera position along its worst
             direction, from the inliers (:func:`~diffloc.reloc.pose_uncertainty.position_sigma_m`;
             ``inf``: they do not fix it, NaN: not measured).
+        plane_share: share of the inliers' 3D points on their dominant plane
+            (:func:`~diffloc.geometry.plane_share.dominant_plane_share`, in the camera
+            frame; NaN: not measured).
     """
 
     T_wc: torch.Tensor
@@ -200,6 +204,7 @@ class Candidate:
     canonical: int
     inlier_matches: torch.Tensor | None = None
     position_sigma_m: float = math.nan
+    plane_share: float = math.nan
 
 
 class _Timer:
@@ -472,6 +477,7 @@ class HierarchicalRelocalizer:
         inliers = refined.inliers  # masked matches have chi2 = inf, so never inliers
         T_wc = refined.T_wc.detach()
         sigma_m = position_sigma_m(camera, T_wc, X[inliers], uv[inliers], sigmas[inliers])
+        plane = dominant_plane_share(transform_points(invert(T_wc), X[inliers]))
         timer.lap("refine")
         return Candidate(
             T_wc=T_wc,
@@ -481,6 +487,7 @@ class HierarchicalRelocalizer:
             canonical=canonical,
             inlier_matches=None if points_world is not None else matches[inliers],
             position_sigma_m=sigma_m,
+            plane_share=plane,
         )
 
     def _projection_search(

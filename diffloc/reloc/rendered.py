@@ -65,6 +65,7 @@ from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.features.local import Features, XFeatConfig, XFeatExtractor
 from diffloc.features.matching import LighterGlueConfig, LighterGlueMatcher, Matches
 from diffloc.geometry.camera import PinholeCamera
+from diffloc.geometry.plane_share import dominant_plane_share
 from diffloc.reloc.hierarchical import grid_coverage
 from diffloc.reloc.photometric import PhotometricConfig, grey_image, warped_ncc
 from diffloc.reloc.pnp import PnPRansacConfig, solve_pnp_ransac
@@ -289,6 +290,8 @@ class RenderedCandidate:
         match_ms: wall milliseconds of its LighterGlue match (0: not measured).
         match_cpu_ms: process CPU milliseconds of its LighterGlue match.
         pnp_ms: wall milliseconds of lifting its matches and PnP (0: no PnP attempt).
+        plane_share: share of its inliers' lifted points on their dominant plane
+            (:func:`~diffloc.geometry.plane_share.dominant_plane_share`; NaN: no pose).
     """
 
     reference: int
@@ -302,6 +305,7 @@ class RenderedCandidate:
     match_ms: float = 0.0
     match_cpu_ms: float = 0.0
     pnp_ms: float = 0.0
+    plane_share: float = math.nan
 
     @staticmethod
     def none(
@@ -385,7 +389,13 @@ def pose_evidence(
         if c.success
     )
     return PoseEvidence(
-        position, best.num_inliers, best.num_points, best.coverage, rivals, photometric
+        position,
+        best.num_inliers,
+        best.num_points,
+        best.coverage,
+        rivals,
+        photometric,
+        plane_share=None if math.isnan(best.plane_share) else best.plane_share,
     )
 
 
@@ -703,6 +713,7 @@ class RenderedDatabaseLocalizer:
             num_inliers=result.num_inliers,
             coverage=grid_coverage(query_px[inliers], camera, self.config.coverage_grid),
             rms_px=float(result.reprojection_errors[inliers].square().mean().sqrt()),
+            plane_share=dominant_plane_share(points_ref[inliers]),
         )
 
 

@@ -68,7 +68,11 @@ make an *inlier pose* also need
 - a precise position: the first-order standard deviation of the camera position along its
   worst direction, from the inliers' geometry and residuals, at most ``max_position_sigma_m``
   (:mod:`diffloc.reloc.pose_uncertainty`): inliers that all lie far away or along one
-  direction leave the camera free to slide, and such a pose is not one to trust.
+  direction leave the camera free to slide, and such a pose is not one to trust;
+- 3D evidence beyond one plane: at most ``max_plane_share`` of its inliers' map points on
+  their dominant plane (:mod:`diffloc.geometry.plane_share`). A pose resting on one textured
+  plane is a homography of it: where that texture repeats (a tiled wall), a copy on another
+  wall, turned or shifted, gives as many consistent inliers.
 
 :meth:`ValidationConfig.seed1_rule` switches them off, giving seed 1's rule.
 
@@ -105,6 +109,7 @@ PLAUSIBILITY_TESTS = (
     "repeated",
     "uniqueness",
     "position sigma",
+    "planar",
     "inlier ratio",
     "coverage",
     "rival",
@@ -144,6 +149,8 @@ class ValidationConfig:
         max_position_sigma_m: largest standard deviation (metres) of an inlier pose's camera
             position along its worst direction (:mod:`diffloc.reloc.pose_uncertainty`;
             ``None`` disables the test).
+        max_plane_share: largest share of an inlier pose's inlier map points on one plane
+            (:mod:`diffloc.geometry.plane_share`; ``None`` disables the test).
         max_accel_mps2: the motion test's largest change of speed (m/s^2) of a track with a
             velocity: the pose must lie within ``theta_dist_m + max_accel_mps2 dt^2 / 2`` of
             the position the turned velocity predicts (module docstring; ``None``: no motion
@@ -167,6 +174,7 @@ class ValidationConfig:
     conflict_keeps_reference: bool = False
     max_accel_mps2: float | None = None
     max_position_sigma_m: float | None = None
+    max_plane_share: float | None = None
     min_track_poses: int = 2
 
     def __post_init__(self) -> None:
@@ -200,9 +208,10 @@ class ValidationConfig:
         ncc = self.min_photometric
         if ncc is not None and not (math.isfinite(ncc) and -1.0 <= ncc <= 1.0):
             raise ValueError(f"validation.min_photometric must be in [-1, 1] or null, got {ncc}")
-        repeated = self.max_repeated
-        if repeated is not None and not (math.isfinite(repeated) and 0.0 <= repeated <= 1.0):
-            raise ValueError(f"validation.max_repeated must be in [0, 1] or null, got {repeated}")
+        for name in ("max_repeated", "max_plane_share"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and 0.0 <= value <= 1.0):
+                raise ValueError(f"validation.{name} must be in [0, 1] or null, got {value}")
         unique = self.uniqueness_ratio
         if unique is not None and not (math.isfinite(unique) and unique > 0):
             raise ValueError(
@@ -211,7 +220,8 @@ class ValidationConfig:
 
     def seed1_rule(self) -> ValidationConfig:
         """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity,
-        photometric consistency, repetition, uniqueness, position precision, the reference
+        photometric consistency, repetition, uniqueness, position precision, planarity, the
+        reference
         age, the kept reference, the motion test, the track length) off; the speed allowance
         of sparse query streams stays."""
         return replace(
@@ -226,6 +236,7 @@ class ValidationConfig:
             conflict_keeps_reference=False,
             max_accel_mps2=None,
             max_position_sigma_m=None,
+            max_plane_share=None,
             min_track_poses=2,
         )
 
@@ -254,6 +265,8 @@ class PoseEvidence:
             of an older run, which did not keep it); the motion test needs it.
         position_sigma: the best candidate's position standard deviation in metres
             (``inf``: its inliers do not fix it), or ``None`` when it was not measured.
+        plane_share: share of the best candidate's inliers on their dominant plane, or
+            ``None`` when it was not measured.
     """
 
     position: torch.Tensor
@@ -266,6 +279,7 @@ class PoseEvidence:
     uniqueness: float | None = None
     rotation: torch.Tensor | None = None
     position_sigma: float | None = None
+    plane_share: float | None = None
 
     @classmethod
     def from_result(
@@ -297,6 +311,7 @@ class PoseEvidence:
             uniqueness,
             best.T_wc[:3, :3].to(torch.float64),
             None if math.isnan(best.position_sigma_m) else best.position_sigma_m,
+            None if math.isnan(best.plane_share) else best.plane_share,
         )
 
     @classmethod
@@ -307,8 +322,8 @@ class PoseEvidence:
         null for no overlap, ``repetition`` with its ``support`` and ``uniqueness`` with its
         ``own``, ``own_visible``, ``rival`` and ``rival_visible`` counts where they were
         measured, ``rotation_wc`` (3 x 3, row-major) and the best candidate's
-        ``position_sigma_m`` (null: unbounded) where they were recorded); ``None`` when it
-        found nothing.
+        ``position_sigma_m`` (null: unbounded) and ``plane_share`` where they were recorded);
+        ``None`` when it found nothing.
 
         Raises:
             ValueError: a found query without a position or candidates.
@@ -353,6 +368,7 @@ class PoseEvidence:
             uniqueness,
             None if rotation is None else torch.tensor(rotation, dtype=torch.float64),
             sigma,
+            best.get("plane_share"),
         )
 
 
@@ -380,7 +396,8 @@ class PoseValidator:
 
     def plausible(self, evidence: PoseEvidence) -> bool:
         """The tests beyond seed 1's: inlier ratio, coverage, photometric consistency, no
-        repeated structure, uniqueness, position precision and no well-supported rival
+        repeated structure, uniqueness, position precision, evidence beyond one plane and no
+        well-supported rival
         (:meth:`failed_tests` finds none).
 
         Raises:
@@ -393,9 +410,9 @@ class PoseValidator:
         that order (empty: plausible); a disabled test never fails.
 
         Raises:
-            ValueError: ``min_photometric``, ``max_repeated``, ``uniqueness_ratio`` or
-                ``max_position_sigma_m`` is set but the evidence lacks that measurement (a run
-                that did not measure it).
+            ValueError: ``min_photometric``, ``max_repeated``, ``uniqueness_ratio``,
+                ``max_position_sigma_m`` or ``max_plane_share`` is set but the evidence lacks
+                that measurement (a run that did not measure it).
 
         Example (coverage 0.25 and a rival with 80 % of the 100 inliers 5 m away):
             >>> check = PoseValidator(ValidationConfig(theta_in=20, theta_dist_m=1.0,
@@ -443,6 +460,15 @@ class PoseValidator:
                 )
             if not evidence.position_sigma <= cfg.max_position_sigma_m:
                 failed.append("position sigma")
+        if cfg.max_plane_share is not None:
+            if evidence.plane_share is None:
+                raise ValueError(
+                    "validation.max_plane_share is set but this answer's plane share was not "
+                    "measured (a run of an older diffloc: run it again, or set "
+                    "validation.max_plane_share=null)"
+                )
+            if evidence.plane_share > cfg.max_plane_share:
+                failed.append("planar")
         if evidence.num_inliers < cfg.min_inlier_ratio * max(evidence.num_matches, 1):
             failed.append("inlier ratio")
         if evidence.coverage < cfg.min_coverage:
