@@ -263,9 +263,17 @@ def test_the_mesh_map_stage_never_reads_the_ground_truth(dataset, tmp_path, monk
     assert crossmodal_stage.build_rgbd_map(root, config, 1.0)[1] == outcome
 
 
-def test_a_photometric_threshold_of_an_unknown_map_is_refused():
-    cfg = compose_config(["task=crossmodal", "map=tls", "+task.min_photometric.lidar=0.5"])
-    with pytest.raises(ValueError, match="task.min_photometric.lidar: not a map option"):
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("+task.min_photometric.lidar=0.5", r"task.min_photometric.lidar: not a map option"),
+        ("+task.max_plane_share.lidar=0.9", r"task.max_plane_share.lidar: not a map option"),
+        ("task.max_plane_share.mesh=1.5", r"task.max_plane_share.mesh must be in \[0, 1\]"),
+    ],
+)
+def test_a_per_map_threshold_of_an_unknown_map_or_out_of_range_is_refused(override, message):
+    cfg = compose_config(["scene=indoor", "task=crossmodal", "map=tls", override])
+    with pytest.raises(ValueError, match=message):
         run(cfg)
 
 

@@ -252,6 +252,10 @@ class CrossmodalTaskConfig:
             accepted pose (``localizer.validation.min_photometric`` for that map; an option
             not listed keeps the localizer's own, by default off). Set per scene kind
             (``task/scene/crossmodal_<scene>.yaml``), see :meth:`localizer_for`.
+        max_plane_share: per ``map`` option, the largest share of an accepted pose's inliers
+            on one plane (``localizer.validation.max_plane_share`` for that map; an option
+            not listed keeps the localizer's own, by default off). Set per scene kind like
+            :attr:`min_photometric`.
         loose_m: position bound of the loose localisation criterion (with 30 deg): 1 m
             indoors, 2 m outdoors (seed 2).
         plot_queries: queries shown beside their retrieved render per sequence.
@@ -272,6 +276,7 @@ class CrossmodalTaskConfig:
     prior_growth_mps: float = 1.0
     floor_closing_m: dict[str, float] = field(default_factory=dict)
     min_photometric: dict[str, float] = field(default_factory=dict)
+    max_plane_share: dict[str, float] = field(default_factory=dict)
     loose_m: float = 1.0
     plot_queries: int = 4
 
@@ -292,13 +297,14 @@ class CrossmodalTaskConfig:
                     f"{tuple(POINT_MAP_OPTIONS)})"
                 )
             self.poses_for(point_map)  # the pose selection checks the radius
-        for option, value in self.min_photometric.items():
-            if option not in MAP_OPTIONS:
-                raise ValueError(
-                    f"task.min_photometric.{option}: not a map option (one of {MAP_OPTIONS})"
-                )
-            if not (math.isfinite(value) and -1.0 <= value <= 1.0):
-                raise ValueError(f"task.min_photometric.{option} must be in [-1, 1], got {value}")
+        for name, low in (("min_photometric", -1.0), ("max_plane_share", 0.0)):
+            for option, value in getattr(self, name).items():
+                if option not in MAP_OPTIONS:
+                    raise ValueError(
+                        f"task.{name}.{option}: not a map option (one of {MAP_OPTIONS})"
+                    )
+                if not (math.isfinite(value) and low <= value <= 1.0):
+                    raise ValueError(f"task.{name}.{option} must be in [{low:g}, 1], got {value}")
 
     def poses_for(self, point_map: str) -> PoseSelectionConfig:
         """The render-pose settings of ``point_map``: :attr:`poses` with
@@ -324,8 +330,9 @@ class CrossmodalTaskConfig:
 
     def localizer_for(self, option: str) -> RenderedLocalizerConfig:
         """The localiser settings of the ``map`` option ``option``: ``localizer`` with the
-        validation's ``min_photometric`` from :attr:`min_photometric` where it lists the
-        option (a localiser without validation stays without); ``map=hybrid`` holds its
+        validation's ``min_photometric`` and ``max_plane_share`` from :attr:`min_photometric`
+        and :attr:`max_plane_share` where they list the option (a localiser without
+        validation stays without); ``map=hybrid`` holds its
         real images to the ``images`` threshold (``min_photometric_real``) where it is listed;
         a pose prior without its own ``growth_mps`` takes :attr:`prior_growth_mps`.
 
@@ -344,15 +351,24 @@ class CrossmodalTaskConfig:
             >>> task = CrossmodalTaskConfig(localizer=prior, prior_growth_mps=6.0)
             >>> task.localizer_for("mesh").prior.growth_mps
             6.0
+            >>> task = CrossmodalTaskConfig(max_plane_share={"mesh": 0.95})
+            >>> task.localizer_for("mesh").validation.max_plane_share
+            0.95
+            >>> task.localizer_for("images").validation.max_plane_share is None
+            True
         """
         localizer = self.localizer
         if localizer.prior is not None and localizer.prior.growth_mps is None:
             prior = replace(localizer.prior, growth_mps=self.prior_growth_mps)
             localizer = replace(localizer, prior=prior)
         validation = localizer.validation
-        if option not in self.min_photometric or validation is None:
+        if validation is None:
             return localizer
-        threshold = self.min_photometric[option]
-        if option == "hybrid" and "images" in self.min_photometric:
-            localizer = replace(localizer, min_photometric_real=self.min_photometric["images"])
-        return replace(localizer, validation=replace(validation, min_photometric=threshold))
+        if option in self.max_plane_share:
+            validation = replace(validation, max_plane_share=self.max_plane_share[option])
+        if option in self.min_photometric:
+            validation = replace(validation, min_photometric=self.min_photometric[option])
+            if option == "hybrid" and "images" in self.min_photometric:
+                real = self.min_photometric["images"]
+                localizer = replace(localizer, min_photometric_real=real)
+        return replace(localizer, validation=validation)
