@@ -17,6 +17,9 @@ and measures, in this process, what those runs do not record. Keys:
 - ``render_db_s`` / ``render_db_cpu_s``: wall / CPU seconds to render the cloud (lidar map)
   database at its render poses here (``render_db_images`` renders, features not included);
   ``render_ms_per_image``;
+- ``mesh_render_ms``: median wall ms of one RGB-D render of the textured mesh (the mesh stage's
+  OBJ, open3d ray casting + texture lookup) at the mapping camera's full size
+  (``mesh_render_size``), over ``--mesh-renders`` render poses spread over the lidar map's;
 - ``mesh_build_s``: wall seconds of the mesh stage (reconstruction, UV atlas, Eq. 3-4
   texturing; each in ``mesh_build_parts_s``) as its record holds them (the load they ran
   under was not recorded);
@@ -41,9 +44,10 @@ from pathlib import Path
 import torch
 
 from diffloc.crossmodal.database import RenderedDatabase
-from diffloc.crossmodal.synthesize import PointCloudMap, render_views
+from diffloc.crossmodal.synthesize import MeshMap, PointCloudMap, render_views
 from diffloc.eval.report_files import write_benchmark
 from diffloc.io.dataset import read_sequence
+from diffloc.io.mesh_obj import read_textured_mesh_obj
 from diffloc.io.npz import read_npz_archive
 from diffloc.maps.pointcloud import PointMap
 from diffloc.pipeline.crossmodal_config import PointMapConfig
@@ -64,6 +68,7 @@ def _parse() -> argparse.Namespace:
     parser.add_argument("--dataset", type=Path, default=Path("data/indoor_seed0"))
     parser.add_argument("--runs", type=Path, default=Path("experiments/runs"))
     parser.add_argument("--cpu-queries", type=int, default=8)
+    parser.add_argument("--mesh-renders", type=int, default=20)
     parser.add_argument(
         "--out", type=Path, default=Path("experiments/results/bench_crossmodal.json")
     )
@@ -103,6 +108,21 @@ def _render_cloud_db(dataset: Path, scale: float) -> tuple[float, float, int]:
     return time.perf_counter() - wall, time.process_time() - cpu, len(T_wc)
 
 
+def _render_mesh_frames(dataset: Path, count: int) -> tuple[float, str]:
+    """Median wall ms of single-frame textured-mesh renders at the full camera size, and
+    the size, over ``count`` of the lidar map's render poses spread evenly."""
+    folder = crossmodal_folder(dataset)
+    mesh = MeshMap(read_textured_mesh_obj(folder / "mesh" / "map" / "mesh" / "mesh.obj"))
+    T_wc = torch.from_numpy(read_npz_archive(folder / "poses_lidar_map" / "poses.npz")["T_wc"])
+    camera = read_sequence(dataset, "mapping").camera
+    times = []
+    for i in torch.linspace(0, len(T_wc) - 1, count).round().long().tolist():
+        start = time.perf_counter()
+        mesh.render(T_wc[i : i + 1], camera)
+        times.append(1e3 * (time.perf_counter() - start))
+    return statistics.median(times), f"{camera.width}x{camera.height}"
+
+
 def main() -> None:
     args = _parse()
     torch.set_num_threads(1)  # as the task's runs (OMP_NUM_THREADS=1)
@@ -134,6 +154,10 @@ def main() -> None:
     report["render_db_cpu_s"] = round(cpu_s, 2)
     report["render_db_images"] = images
     report["render_ms_per_image"] = round(1e3 * wall_s / images, 1)
+    report["mesh_render_ms"], report["mesh_render_size"] = _render_mesh_frames(
+        args.dataset, args.mesh_renders
+    )
+    report["mesh_render_ms"] = round(report["mesh_render_ms"], 1)
     seconds = results["mesh"]["stages"]["map"]["seconds"]
     report["mesh_build_s"] = round(sum(seconds.values()), 1)
     report["mesh_build_parts_s"] = {k: round(v, 1) for k, v in seconds.items()}

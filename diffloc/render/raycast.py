@@ -206,8 +206,9 @@ class MeshRenderer:
         cos_incidence = (hits.normals * flat_dirs).sum(-1).abs().clamp_min(0.05)
         focal = float(camera.fx) if camera.fx.ndim == 0 else float(camera.fx.reshape(-1)[0])
         footprint = self._texels_per_metre[tri] * distance / focal / cos_incidence.sqrt()
-        albedo = self.textures.sample(self._material_ids[tri], uv, footprint)
-        albedo = torch.where(hit[:, None], albedo, torch.zeros_like(albedo))
+        seen = hit.nonzero().squeeze(1)  # textures are sampled where a ray hit only
+        sampled = self.textures.sample(self._material_ids[tri[seen]], uv[seen], footprint[seen])
+        albedo = sampled.new_zeros(len(hit), 3).index_copy_(0, seen, sampled)
         z_axis = T_wc[:, :3, 2].to(torch.float32)
         cos_axis = (directions * z_axis[:, None, :]).sum(-1).reshape(-1)
         depth = distance * cos_axis

@@ -92,9 +92,15 @@ class MipmapTextures:
         check_shape(footprint_texels, f"{uv.shape[0]}", "footprint_texels")
         level = torch.log2(footprint_texels.clamp_min(1.0)).clamp(max=self.num_levels - 1)
         lower = torch.floor(level).long().clamp(max=self.num_levels - 1)
-        upper = (lower + 1).clamp(max=self.num_levels - 1)
-        blend = (level - lower.to(level.dtype))[:, None]
+        blend = level - lower.to(level.dtype)
         uv = uv.to(torch.float32)
-        return (1 - blend) * self._bilinear(material, uv, lower) + blend * self._bilinear(
-            material, uv, upper
-        )
+        colour = self._bilinear(material, uv, lower)
+        # The next level only where it is blended in (magnified or clamped samples sit on a
+        # whole level: blend 0), the same value with fewer lookups.
+        mixed = (blend > 0).nonzero().squeeze(1)
+        if len(mixed):
+            w = blend[mixed, None].to(colour.dtype)
+            upper = (lower[mixed] + 1).clamp(max=self.num_levels - 1)
+            above = self._bilinear(material[mixed], uv[mixed], upper)
+            colour[mixed] = (1 - w) * colour[mixed] + w * above
+        return colour
