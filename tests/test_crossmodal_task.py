@@ -227,6 +227,36 @@ def test_views_per_sample_is_part_of_the_render_pose_key(dataset, tmp_path):
     assert torch.equal(again, four) and record_again["stage"] == record_four["stage"]
 
 
+def test_the_mapping_trajectory_is_an_input_of_the_render_poses_when_used(dataset, tmp_path):
+    root = tmp_path / dataset.name
+    shutil.copytree(dataset / "map", root / "map")
+    shutil.copytree(dataset / "mapping", root / "mapping")
+    shutil.copy(dataset / "dataset.json", root / "dataset.json")
+    record = root / "crossmodal" / "poses_tls_map" / "render_poses.json"
+
+    def poses(*overrides: str) -> tuple[torch.Tensor, dict]:  # the tiny lidar map has no corridor
+        task = to_object(compose_config([*SCENE, *TASK, *overrides])).task
+        T_wc, _ = crossmodal_stage.render_pose_stage(
+            root, "tls_map", task.poses_for("tls_map"), "tls"
+        )
+        return T_wc, json.loads(record.read_text())
+
+    skeleton, plain = poses()
+    walked, with_walk = poses("+task.trajectory_gap_m.tls_map=0.5")
+    assert "mapping/poses.txt" not in plain["stage"]["key"]["inputs"]
+    assert "mapping/poses.txt" in with_walk["stage"]["key"]["inputs"]
+    assert plain["trajectory_samples"] == 0 < with_walk["trajectory_samples"]
+    assert len(walked) == len(skeleton) + 4 * with_walk["trajectory_samples"]
+    assert torch.equal(walked[: len(skeleton)], skeleton)
+    mapping = read_sequence(root, "mapping").T_wc
+    new = walked[len(skeleton) :: 4, :3, 3]
+    assert bool((torch.cdist(new, mapping[:, :3, 3]).amin(1) == 0).all())  # mapping cameras
+    poses_file = root / "mapping" / "poses.txt"
+    poses_file.write_text(poses_file.read_text() + "\n")  # a changed input: made again
+    _, again = poses("+task.trajectory_gap_m.tls_map=0.5")
+    assert again["stage"]["key"]["inputs"] != with_walk["stage"]["key"]["inputs"]
+
+
 def test_a_views_per_sample_other_than_4_or_8_is_refused_before_any_work(tmp_path):
     overrides = ["task=crossmodal", "map=tls", f"dataset={tmp_path / 'none'}"]
     cfg = compose_config([*overrides, "task.poses.views_per_sample=6"])
@@ -284,6 +314,11 @@ def test_a_per_map_threshold_of_an_unknown_map_or_out_of_range_is_refused(overri
         (
             "task.floor_closing_m.lidar_map=-0.3",
             r"task.floor_closing_m.lidar_map: floor_closing_radius_m must be a finite number",
+        ),
+        ("+task.trajectory_gap_m.mesh=1.0", r"task.trajectory_gap_m.mesh: not a point map"),
+        (
+            "+task.trajectory_gap_m.lidar_map=0",
+            r"task.trajectory_gap_m.lidar_map: trajectory_gap_m must be a positive",
         ),
     ],
 )

@@ -26,6 +26,7 @@ from diffloc.crossmodal.pose_selection import (
     view_poses,
     write_floor_plan_figures,
 )
+from diffloc.crossmodal.trajectory_samples import trajectory_samples
 
 RES = 0.05  # point spacing of the constructed clouds, metres
 STOREY_Z = (0.0, 3.0)
@@ -353,8 +354,72 @@ def test_empty_corridor_raises(building):
         {"max_floor_hole_m2": -1.0},
         {"floor_closing_radius_m": -0.3},
         {"camera_height_m": True},
+        {"trajectory_gap_m": 0.0},
+        {"trajectory_gap_m": math.inf},
     ],
 )
 def test_bad_config_raises(field):
     with pytest.raises(ValueError, match=next(iter(field))):
         PoseSelectionConfig(**field)
+
+
+def _mid_storey_walk() -> torch.Tensor:
+    """(13, 4, 4) cameras walking the lower corridor along +x at z = 3 m, between the two
+    storeys' render cameras (1.5 and 4.5 m): a stair the floors' skeletons do not cover."""
+    T = torch.eye(4, dtype=torch.float64).repeat(13, 1, 1)
+    T[:, :3, :3] = torch.tensor([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=torch.float64)
+    T[:, 0, 3] = torch.arange(13, dtype=torch.float64)  # x = 0 .. 12 m
+    T[:, 1, 3] = 1.0
+    T[:, 2, 3] = 3.0
+    return T
+
+
+def test_trajectory_samples_cover_what_the_skeleton_leaves(building, selection):
+    walk = _mid_storey_walk()
+    config = replace(CONFIG, trajectory_gap_m=1.0)
+    extended = select_render_poses(building["points"], building["normals"], config, walk)
+    k = len(selection)
+    assert torch.equal(extended.T_wc[:k], selection.T_wc)  # the skeleton's come first, unchanged
+    assert bool((extended.floor_index[:k] >= 0).all())
+    new = extended.floor_index < 0
+    assert int(new.sum()) >= 4 * 4  # at least one sample every 3 m of the 12 m walk
+    centres = extended.T_wc[new][::4, :3, 3]
+    assert torch.isin(centres[:, 0], walk[:, 0, 3]).all() and bool((centres[:, 2] == 3.0).all())
+    assert float(torch.pdist(centres).min()) > 1.0  # spaced by more than the gap
+    every = extended.T_wc[::4, :3, 3]
+    assert float(torch.cdist(walk[:, :3, 3], every).amin(1).max()) <= 1.0  # the walk is covered
+    assert bool((extended.T_wc[new][::4, :3, 2] == torch.tensor([1.0, 0, 0]).double()).all())
+
+
+def test_trajectory_near_the_skeleton_adds_nothing(building, selection):
+    config = replace(CONFIG, trajectory_gap_m=2.0)  # every camera within 1.8 m of a sample
+    extended = select_render_poses(
+        building["points"], building["normals"], config, _mid_storey_walk()
+    )
+    assert torch.equal(extended.T_wc, selection.T_wc)
+
+
+def test_a_trajectory_gap_without_a_trajectory_is_refused(building):
+    config = replace(CONFIG, trajectory_gap_m=1.0)
+    with pytest.raises(ValueError, match="no trajectory"):
+        select_render_poses(building["points"], building["normals"], config)
+
+
+def test_trajectory_cameras_looking_straight_down_are_skipped():
+    T = _mid_storey_walk()[:3]
+    T[1, :3, :3] = torch.tensor([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]], dtype=torch.float64)
+    positions, forward = trajectory_samples(T, torch.zeros(0, 3), gap_m=0.5)
+    assert positions[:, 0].tolist() == [0.0, 2.0] and forward.tolist() == [[1.0, 0.0]] * 2
+
+
+@pytest.mark.parametrize(
+    ("poses", "taken", "gap", "error", "match"),
+    [
+        (torch.eye(4)[None].repeat(2, 1, 1), torch.zeros(0, 3), 0.0, ValueError, "gap_m"),
+        (torch.eye(4)[None].repeat(2, 1, 1), torch.zeros(0, 2), 1.0, ShapeError, "taken"),
+        (torch.full((2, 4, 4), math.nan), torch.zeros(0, 3), 1.0, ValueError, "T_wc"),
+    ],
+)
+def test_bad_trajectory_input_raises(poses, taken, gap, error, match):
+    with pytest.raises(error, match=match):
+        trajectory_samples(poses, taken, gap)

@@ -82,6 +82,7 @@ from scipy.spatial import cKDTree
 from skimage.morphology import disk, skeletonize
 
 from diffloc.checks import ArrayLike, check_finite, check_shape
+from diffloc.crossmodal.trajectory_samples import trajectory_samples
 from diffloc.io.atomic import atomic_write_bytes
 
 __all__ = [
@@ -175,6 +176,9 @@ class PoseSelectionConfig:
         views_per_sample: horizontal views per sample, yaws evenly spaced from forward along
             the skeleton, one of :data:`VIEWS_PER_SAMPLE` (4 as in seed 2, 8 = every 45 deg;
             order :data:`VIEW_NAMES`).
+        trajectory_gap_m: with the map's trajectory given, its cameras farther than this from
+            every sample become samples too (:mod:`diffloc.crossmodal.trajectory_samples`,
+            beyond seed 2); ``None``: the skeleton's samples only, as seed 2.
     """
 
     floor_max_normal_angle_rad: float = math.radians(20.0)
@@ -194,9 +198,15 @@ class PoseSelectionConfig:
     spacing_m: float = 2.0
     camera_height_m: float = 1.5
     views_per_sample: int = 4
+    trajectory_gap_m: float | None = None
 
     def __post_init__(self) -> None:
         check_views_per_sample(self.views_per_sample)
+        gap = self.trajectory_gap_m
+        if gap is not None and not (_is_number(gap) and 0 < gap < math.inf):
+            raise ValueError(
+                f"trajectory_gap_m must be a positive finite number or null, got {gap!r}"
+            )
         for name in (
             "floor_bin_m",
             "min_floor_gap_m",
@@ -300,7 +310,8 @@ class RenderPoses:
 
     Attributes:
         T_wc: (M, 4, 4) float64 camera-to-world poses, OpenCV camera frame, M = k * samples.
-        floor_index: (M,) int64 floor of each view (index into ``floors``).
+        floor_index: (M,) int64 floor of each view (index into ``floors``; -1 for a sample on
+            the map's trajectory, which belongs to no floor's skeleton).
         sample_index: (M,) int64 sample of each view (0 .. S-1 over all floors).
         view_index: (M,) int64 view of each sample, an index into :data:`VIEW_NAMES`.
         floors: one :class:`FloorPlan` per floor, lowest first.
@@ -691,14 +702,22 @@ def view_poses(
 
 
 def select_render_poses(
-    points: ArrayLike, normals: ArrayLike, config: PoseSelectionConfig | None = None
+    points: ArrayLike,
+    normals: ArrayLike,
+    config: PoseSelectionConfig | None = None,
+    trajectory: torch.Tensor | None = None,
 ) -> RenderPoses:
-    """Render poses on the free-path corridors of every floor (module docstring, steps 1-5).
+    """Render poses on the free-path corridors of every floor (module docstring, steps 1-5),
+    and with ``config.trajectory_gap_m`` set, on the map's trajectory where the corridors
+    leave it uncovered (:func:`~diffloc.crossmodal.trajectory_samples.trajectory_samples`;
+    these samples come last, floor -1).
 
     Args:
         points: (N, 3) map points (numpy or torch, floating), world frame (z up), metres.
         normals: (N, 3) normals oriented towards the scanner (floors face up); normalised here.
         config: the settings (default :class:`PoseSelectionConfig`).
+        trajectory: (T, 4, 4) camera-to-world poses of the run that made the map, in time
+            order; needed when ``config.trajectory_gap_m`` is set, ignored otherwise.
 
     Returns:
         The :class:`RenderPoses`: ``config.views_per_sample`` views per sample, floors lowest
@@ -708,7 +727,8 @@ def select_render_poses(
         ShapeError: ``points`` or ``normals`` not (N, 3).
         TypeError: non-floating arrays.
         ValueError: NaN/inf values, empty input, zero normals, no upward normal
-            ("no floor found"), or a floor with an empty corridor.
+            ("no floor found"), a floor with an empty corridor, or ``trajectory_gap_m`` set
+            without a trajectory.
 
     Example:
         >>> import numpy as np
@@ -730,9 +750,20 @@ def select_render_poses(
     )
     positions[:, 2] += config.camera_height_m
     forward = np.concatenate([plan.forward_xy for plan in floors])
+    floor_of_sample = torch.from_numpy(np.repeat(np.arange(len(floors)), counts))
+    if config.trajectory_gap_m is not None:
+        if trajectory is None:
+            raise ValueError(
+                "trajectory_gap_m is set but no trajectory was given (the map's run poses)"
+            )
+        extra, ahead = trajectory_samples(
+            trajectory, torch.from_numpy(positions), config.trajectory_gap_m
+        )
+        positions = np.concatenate([positions, extra.numpy()])
+        forward = np.concatenate([forward, ahead.numpy()])
+        floor_of_sample = torch.cat([floor_of_sample, torch.full((len(extra),), -1)])
     views = config.views_per_sample
     T_wc, view_index = view_poses(positions, forward, views)
-    floor_of_sample = torch.from_numpy(np.repeat(np.arange(len(floors)), counts))
     return RenderPoses(
         T_wc=T_wc,
         floor_index=floor_of_sample.repeat_interleave(views),

@@ -214,6 +214,13 @@ def map_option(config: object) -> str:
     raise TypeError(f"not a map config: {type(config).__name__}")
 
 
+POSE_SETTINGS = {
+    "floor_closing_m": "floor_closing_radius_m",
+    "trajectory_gap_m": "trajectory_gap_m",
+}
+"""Per-point-map task settings -> the :class:`PoseSelectionConfig` field each sets."""
+
+
 @dataclass
 class CrossmodalTaskConfig:
     """``task=crossmodal``: seed 2's localisation in a database rendered from the ``map``.
@@ -236,6 +243,11 @@ class CrossmodalTaskConfig:
             rings leave floor gaps that 0.3 m closes, while the dense TLS map keeps 0.1 m
             (see :meth:`poses_for`). Keyed on the point map, not the ``map`` option, because
             the render poses are: ``map=cloud``, ``mesh`` and ``nerf`` share the lidar map's.
+        trajectory_gap_m: per point map, the ``poses.trajectory_gap_m`` its render poses are
+            selected with: the map's trajectory (the ``mapping`` run's camera poses) adds
+            samples where the skeleton leaves it farther than this uncovered (a point map not
+            listed keeps ``poses``'s own, by default none). Only a map made along that run,
+            the lidar map, has its trajectory; the TLS map has scan stations, not a path.
         database: features and NetVLAD of the rendered database.
         tune_retrieval: fine-tune the rendered database's NetVLAD on the mapping images
             against the renders before localising (a cached stage,
@@ -275,6 +287,7 @@ class CrossmodalTaskConfig:
     localizer: RenderedLocalizerConfig = field(default_factory=RenderedLocalizerConfig)
     prior_growth_mps: float = 1.0
     floor_closing_m: dict[str, float] = field(default_factory=dict)
+    trajectory_gap_m: dict[str, float] = field(default_factory=dict)
     min_photometric: dict[str, float] = field(default_factory=dict)
     max_plane_share: dict[str, float] = field(default_factory=dict)
     loose_m: float = 1.0
@@ -290,13 +303,14 @@ class CrossmodalTaskConfig:
         if not 0.0 < self.loose_m < math.inf:
             raise ValueError(f"loose_m must be a positive finite number, got {self.loose_m!r}")
         check_number(self.prior_growth_mps, "task.prior_growth_mps", 0.0)
-        for point_map in self.floor_closing_m:
-            if point_map not in POINT_MAP_OPTIONS:
-                raise ValueError(
-                    f"task.floor_closing_m.{point_map}: not a point map (one of "
-                    f"{tuple(POINT_MAP_OPTIONS)})"
-                )
-            self.poses_for(point_map)  # the pose selection checks the radius
+        for name in POSE_SETTINGS:
+            for point_map in getattr(self, name):
+                if point_map not in POINT_MAP_OPTIONS:
+                    raise ValueError(
+                        f"task.{name}.{point_map}: not a point map (one of "
+                        f"{tuple(POINT_MAP_OPTIONS)})"
+                    )
+                self.poses_for(point_map)  # the pose selection checks the values
         for name, low in (("min_photometric", -1.0), ("max_plane_share", 0.0)):
             for option, value in getattr(self, name).items():
                 if option not in MAP_OPTIONS:
@@ -308,25 +322,29 @@ class CrossmodalTaskConfig:
 
     def poses_for(self, point_map: str) -> PoseSelectionConfig:
         """The render-pose settings of ``point_map``: :attr:`poses` with
-        ``floor_closing_radius_m`` from :attr:`floor_closing_m` where it lists the point map.
+        ``floor_closing_radius_m`` from :attr:`floor_closing_m` and ``trajectory_gap_m`` from
+        :attr:`trajectory_gap_m` where they list the point map.
 
         Raises:
-            ValueError: a listed radius the pose selection refuses (named by its key).
+            ValueError: a listed value the pose selection refuses (named by its key).
 
         Example:
-            >>> task = CrossmodalTaskConfig(floor_closing_m={"lidar_map": 0.3})
-            >>> task.poses_for("lidar_map").floor_closing_radius_m
-            0.3
+            >>> task = CrossmodalTaskConfig(floor_closing_m={"lidar_map": 0.3},
+            ...                             trajectory_gap_m={"lidar_map": 1.0})
+            >>> lidar = task.poses_for("lidar_map")
+            >>> lidar.floor_closing_radius_m, lidar.trajectory_gap_m
+            (0.3, 1.0)
             >>> task.poses_for("tls_map").floor_closing_radius_m
             0.1
         """
-        if point_map not in self.floor_closing_m:
-            return self.poses
-        radius = self.floor_closing_m[point_map]
-        try:
-            return replace(self.poses, floor_closing_radius_m=radius)
-        except ValueError as exc:
-            raise ValueError(f"task.floor_closing_m.{point_map}: {exc}") from exc
+        poses = self.poses
+        for name, setting in POSE_SETTINGS.items():
+            if point_map in getattr(self, name):
+                try:
+                    poses = replace(poses, **{setting: getattr(self, name)[point_map]})
+                except ValueError as exc:
+                    raise ValueError(f"task.{name}.{point_map}: {exc}") from exc
+        return poses
 
     def localizer_for(self, option: str) -> RenderedLocalizerConfig:
         """The localiser settings of the ``map`` option ``option``: ``localizer`` with the

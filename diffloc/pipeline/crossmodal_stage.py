@@ -148,13 +148,15 @@ def scaled_images(seq: SequenceData, camera: PinholeCamera, indices: list[int]) 
 
 @dataclass(frozen=True)
 class RenderPosesSummary(StageSummary):
-    """The ``render_poses`` summary: ``poses`` render poses at ``samples`` skeleton samples on
-    ``floors`` floors of ``point_map``."""
+    """The ``render_poses`` summary: ``poses`` render poses at ``samples`` samples on
+    ``floors`` floors of ``point_map``, ``trajectory_samples`` of them on the map's trajectory
+    (``task.poses.trajectory_gap_m``)."""
 
     point_map: str
     poses: int
     samples: int
     floors: int
+    trajectory_samples: int = 0
 
 
 @dataclass(frozen=True)
@@ -228,13 +230,18 @@ def render_pose_stage(
     """
     path = dataset / MAP_FILES[point_map]
     folder = crossmodal_folder(dataset) / f"poses_{point_map}"
-    key = stage_key({"poses": asdict(config)}, {"point_map": identity(_checked(path))})
+    inputs = {"point_map": identity(_checked(path))}
+    with_trajectory = config.trajectory_gap_m is not None
+    if with_trajectory:  # the mapping run's camera poses: the map's trajectory
+        inputs[f"{MAPPING}/poses.txt"] = identity(_checked(dataset / MAPPING / "poses.txt"))
+    key = stage_key({"poses": asdict(config)}, inputs)
     with open_stage(folder, "render_poses", _command(dataset, option), LockLevel.MAP) as stage:
         summary = stage.reusable(key, RenderPosesSummary)
         if summary is None:
             cloud = _read_cloud(path)
+            trajectory = read_sequence(dataset, MAPPING).T_wc if with_trajectory else None
             try:
-                selection = select_render_poses(cloud.points, cloud.normals, config)
+                selection = select_render_poses(cloud.points, cloud.normals, config, trajectory)
             except ValueError as exc:
                 raise ValueError(f"{path}: {exc} (settings: task.poses.*)") from exc
             work = stage.workdir()
@@ -252,6 +259,8 @@ def render_pose_stage(
                 poses=len(selection),
                 samples=int(selection.sample_index.max()) + 1,
                 floors=len(selection.floors),
+                trajectory_samples=int((selection.floor_index < 0).sum())
+                // selection.views_per_sample,
             )
             summary = stage.commit(key, summary, ["poses.npz", "floors"])
         outcome = stage.outcome(summary)
