@@ -317,7 +317,7 @@ def test_a_per_map_threshold_of_an_unknown_map_or_out_of_range_is_refused(overri
         ),
         ("+task.trajectory_gap_m.mesh=1.0", r"task.trajectory_gap_m.mesh: not a point map"),
         (
-            "+task.trajectory_gap_m.lidar_map=0",
+            "task.trajectory_gap_m.lidar_map=0",
             r"task.trajectory_gap_m.lidar_map: trajectory_gap_m must be a positive",
         ),
     ],

@@ -10,10 +10,12 @@ import trimesh
 
 from diffloc.crossmodal import mesh_map
 from diffloc.crossmodal.mesh_map import TexturedMeshConfig, textured_mesh_from_dataset
+from diffloc.geometry.camera import PinholeCamera
 from diffloc.io import mesh_obj
 from diffloc.io.dataset import read_sequence
 from diffloc.io.exposure import EXPOSURE_FILE
 from diffloc.io.ply import read_point_cloud, write_point_cloud
+from diffloc.io.textured_mesh import TexturedMesh
 from diffloc.maps.mesh import MeshReconstructionConfig
 from diffloc.render.raycast import MeshRenderer
 from tests.conftest import copy_dataset
@@ -110,3 +112,19 @@ def test_views_that_see_no_surface_are_refused(built, tiny_indoor_dataset):
     geometry = trimesh.Trimesh(built.mesh.vertices, built.mesh.triangles, process=False)
     with pytest.raises(ValueError, match="no mapping image sees the mesh"):
         mesh_map.texture_mesh(geometry, images, away, seq.camera, CFG, "none")
+
+
+def test_rays_that_miss_the_mesh_have_no_colour_and_no_depth():
+    quad = TexturedMesh(  # a 2 x 2 m grey square 5 m ahead: the middle of a 90 deg view
+        vertices=np.array([[-1, -1, 5], [1, -1, 5], [1, 1, 5], [-1, 1, 5]], np.float32),
+        triangles=np.array([[0, 2, 1], [0, 3, 2]], dtype=np.int32),
+        corner_uvs=np.zeros((2, 3, 2), dtype=np.float32),
+        material_ids=np.zeros(2, dtype=np.int32),
+        object_ids=np.zeros(2, dtype=np.int32),
+        textures=[np.full((4, 4, 3), 0.5, dtype=np.float32)],
+        material_names=["grey"],
+    )
+    out = MeshRenderer(quad).render(torch.eye(4)[None], PinholeCamera.from_fov(40, 40, math.pi / 2))
+    hit = out.depth[0, 0] > 0
+    assert 0.0 < float(hit.float().mean()) < 0.2  # the square covers the centre only
+    assert bool((out.albedo[0][:, hit] == 0.5).all()) and bool((out.albedo[0][:, ~hit] == 0).all())

@@ -38,3 +38,23 @@ def test_large_footprint_returns_the_texture_mean():
 def test_non_power_of_two_textures_are_resized():
     mip = MipmapTextures([np.ones((5, 7, 3), np.float32), np.zeros((16, 16, 3), np.float32)])
     assert mip.size == 16
+
+
+def test_trilinear_sampling_blends_the_next_level_only_where_needed():
+    g = torch.Generator().manual_seed(0)
+    textures = [torch.rand(16, 16, 3, generator=g).numpy() for _ in range(2)]
+    mip = MipmapTextures(textures)
+    n = 500
+    material = torch.randint(0, 2, (n,), generator=g)
+    uv = torch.rand(n, 2, generator=g) * 3 - 1  # wrapping coordinates
+    footprint = torch.rand(n, generator=g) * 40  # magnified (< 1 texel), between levels, clamped
+    got = mip.sample(material, uv, footprint)
+    level = torch.log2(footprint.clamp_min(1.0)).clamp(max=mip.num_levels - 1)
+    lower = torch.floor(level).long()
+    upper = (lower + 1).clamp(max=mip.num_levels - 1)
+    blend = (level - lower)[:, None]
+    expected = (1 - blend) * mip._bilinear(material, uv, lower) + blend * mip._bilinear(
+        material, uv, upper
+    )  # every sample at both levels, as the definition reads
+    assert bool((footprint < 1).any()) and bool((blend > 0).any())
+    assert torch.equal(got, expected)
