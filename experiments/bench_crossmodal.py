@@ -13,7 +13,7 @@ and measures, in this process, what those runs do not record. Keys:
   retrieval, re-ranking, matching, PnP) as the run recorded it, under its load
   (``query_ms_load``); ``query_ms_<map>`` likewise; ``query_cpu_ms``: median process CPU ms per
   query of ``--cpu-queries`` ``query_same`` frames localised here in the TLS database (one
-  thread, so less inflated by the load);
+  thread, after one warm-up query, so less inflated by the load);
 - ``query_wall_ms_mesh``: median wall ms per query of every ``queries_every``-th
   ``query_same`` frame localised here in the mesh database (features included, after one
   warm-up query) with ``--wall-threads`` torch threads (``query_wall_threads``): the figure for
@@ -43,6 +43,7 @@ import os
 import platform
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -84,30 +85,24 @@ def _loose_rate(entry: dict, loose_m: float) -> float:
     return entry["rates"][f"{loose_m:g}m_30deg"]
 
 
-def _query_cpu_ms(dataset: Path, count: int) -> float:
-    """Median CPU ms of ``count`` query_same frames (spread over the run) in the TLS database."""
-    db = RenderedDatabase.load(crossmodal_folder(dataset) / "tls" / "database" / "rgbd")
-    localizer = RenderedDatabaseLocalizer(db, RenderedLocalizerConfig())
-    seq = read_sequence(dataset, "query_same")
-    camera = seq.camera.scaled(db.camera.width / seq.camera.width)
-    frames = list(range(0, len(seq), max(1, len(seq) // count)))[:count]
-    times = []
-    for i in frames:
-        image = scaled_images(seq, camera, [i])[0]
-        start = time.process_time()
-        localizer.localize(image, camera)
-        times.append(1e3 * (time.process_time() - start))
-    return statistics.median(times)
-
-
-def _query_wall_ms(dataset: Path, option: str, every: int, threads: int) -> float:
-    """Median wall ms per ``query_same`` query (every ``every``-th frame) in the database of
-    ``option`` with ``threads`` torch threads, after one warm-up query."""
+def _query_ms(
+    dataset: Path,
+    option: str,
+    clock: Callable[[], float],
+    every: int | None = None,
+    count: int | None = None,
+    threads: int = 1,
+) -> float:
+    """Median ms by ``clock`` (``time.process_time``: CPU, ``time.perf_counter``: wall) per
+    ``query_same`` query in the database of ``option`` with ``threads`` torch threads, after
+    one warm-up query: every ``every``-th frame (``None``: ``count`` frames spread over the
+    sequence), at most ``count``."""
     db = RenderedDatabase.load(crossmodal_folder(dataset) / option / "database" / "rgbd")
     localizer = RenderedDatabaseLocalizer(db, RenderedLocalizerConfig())
     seq = read_sequence(dataset, "query_same")
     camera = seq.camera.scaled(db.camera.width / seq.camera.width)
-    frames = list(range(0, len(seq), every))
+    step = every if every is not None else max(1, len(seq) // count)
+    frames = list(range(0, len(seq), step))[:count]
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
@@ -115,9 +110,9 @@ def _query_wall_ms(dataset: Path, option: str, every: int, threads: int) -> floa
         times = []
         for i in frames:
             image = scaled_images(seq, camera, [i])[0]
-            start = time.perf_counter()
+            start = clock()
             localizer.localize(image, camera)
-            times.append(1e3 * (time.perf_counter() - start))
+            times.append(1e3 * (clock() - start))
     finally:
         torch.set_num_threads(previous)
     return statistics.median(times)
@@ -174,10 +169,12 @@ def main() -> None:
         report[f"query_ms_{key}"] = results[option]["sequences"]["query_same"][
             "median_ms_per_query"
         ]
-    report["query_cpu_ms"] = round(_query_cpu_ms(args.dataset, args.cpu_queries), 1)
-    report["query_wall_ms_mesh"] = round(
-        _query_wall_ms(args.dataset, "mesh", tls["every"], args.wall_threads), 1
+    cpu_ms = _query_ms(args.dataset, "tls", time.process_time, count=args.cpu_queries)
+    report["query_cpu_ms"] = round(cpu_ms, 1)
+    wall_ms = _query_ms(
+        args.dataset, "mesh", time.perf_counter, every=tls["every"], threads=args.wall_threads
     )
+    report["query_wall_ms_mesh"] = round(wall_ms, 1)
     report["query_wall_threads"] = args.wall_threads
     width = int(tls["image_size"].split("x")[0])
     scale = width / read_sequence(args.dataset, "mapping").camera.width
