@@ -60,9 +60,9 @@ def trajectory_samples(
     length = torch.linalg.vector_norm(axis, dim=1)
     horizontal = length > 1e-6
     # Distance of every camera to its nearest sample, lowered as samples are added.
-    nearest = torch.cdist(centres, taken.to(torch.float64)).amin(1) if len(taken) else None
-    if nearest is None:
-        nearest = torch.full((len(centres),), math.inf, dtype=torch.float64)
+    nearest = torch.full((len(centres),), math.inf, dtype=torch.float64)
+    if len(taken):
+        nearest = torch.cdist(centres, taken.to(torch.float64)).amin(1)
     chosen = []
     for i in range(len(centres)):  # greedy in time order: one step per trajectory camera
         if nearest[i] <= gap_m or not horizontal[i]:
