@@ -35,7 +35,8 @@ Without any of them the replay must give the run's own verdicts (it stops otherw
 Per map and sequence the report also gives which tests reject the poses found (every test a
 rejected pose fails, and the poses it alone rejects, right and wrong poses apart), the
 photometric test's effect: accepted poses, wrong accepted poses, precision and localisation
-rate without it and with it, and per map the threshold rule of ``task.min_photometric``: the
+rate without it and with it, and per map the threshold rule of
+``task.validation.<map>.min_photometric``: the
 1st percentile of the scores of the right poses the other tests accept, over the given
 sequences, rounded down to 0.1.
 

@@ -139,6 +139,35 @@ def test_the_floor_closing_of_the_render_poses_follows_the_point_map(scene, opti
 
 
 @pytest.mark.parametrize(
+    ("option", "theta_in", "min_photometric", "max_plane_share"),
+    [
+        ("tls", 150, 0.4, 0.95),
+        ("cloud", 150, 0.4, 0.95),
+        ("mesh", 150, 0.4, 0.95),
+        ("images", 150, 0.7, None),
+        ("nerf", 150, None, None),
+    ],
+)
+def test_the_validation_thresholds_follow_the_map_indoors(
+    option, theta_in, min_photometric, max_plane_share
+):
+    task = to_object(compose_config(["scene=indoor", "task=crossmodal", f"map={option}"])).task
+    validation = task.localizer_for(option).validation
+    assert (validation.theta_in, validation.min_photometric, validation.max_plane_share) == (
+        theta_in,
+        min_photometric,
+        max_plane_share,
+    )
+    override = f"++task.validation.{option}.theta_in=60" if option in task.validation else None
+    if override:
+        changed = to_object(
+            compose_config(["scene=indoor", "task=crossmodal", f"map={option}", override])
+        ).task
+        assert changed.localizer_for(option).validation.theta_in == 60
+        assert changed.localizer.validation.theta_in == 150
+
+
+@pytest.mark.parametrize(
     ("scene", "contracted", "max_range_m", "box_range_m", "overlap_m"),
     [("indoor", False, 10.0, 0.0, 1.0), ("outdoor", True, 80.0, 15.0, 4.0)],
 )

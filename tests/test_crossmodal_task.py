@@ -43,7 +43,7 @@ TASK = [
     "task.sequences=[query_same]",
     "task.every=2",
     "task.localizer.validation.theta_in=30",
-    "task.min_photometric.tls=0.2",
+    "task.validation.tls.min_photometric=0.2",
 ]
 MESH = [
     "map.texture.reconstruction.poisson_depth=7",
@@ -296,12 +296,14 @@ def test_the_mesh_map_stage_never_reads_the_ground_truth(dataset, tmp_path, monk
 @pytest.mark.parametrize(
     ("override", "message"),
     [
-        ("+task.min_photometric.lidar=0.5", r"task.min_photometric.lidar: not a map option"),
-        ("+task.max_plane_share.lidar=0.9", r"task.max_plane_share.lidar: not a map option"),
-        ("task.max_plane_share.mesh=1.5", r"task.max_plane_share.mesh must be in \[0, 1\]"),
+        ("+task.validation.lidar.theta_in=50", r"task.validation.lidar: not a map option"),
+        ("+task.validation.mesh.theta=50", r"task.validation.mesh.theta: not a validation setting"),
+        ("task.validation.mesh.max_plane_share=1.5", r"task.validation.mesh: .*max_plane_share"),
     ],
 )
-def test_a_per_map_threshold_of_an_unknown_map_or_out_of_range_is_refused(override, message):
+def test_a_per_map_threshold_of_an_unknown_map_or_setting_or_out_of_range_is_refused(
+    override, message
+):
     cfg = compose_config(["scene=indoor", "task=crossmodal", "map=tls", override])
     with pytest.raises(ValueError, match=message):
         run(cfg)

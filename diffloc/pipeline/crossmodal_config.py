@@ -30,7 +30,8 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
 
 from diffloc.checks import check_number, check_positive_int
 from diffloc.crossmodal.database import DatabaseConfig as RGBDDatabaseConfig
@@ -40,6 +41,7 @@ from diffloc.crossmodal.pose_selection import PoseSelectionConfig
 from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.reloc.rendered import RenderedLocalizerConfig
+from diffloc.reloc.validation import ValidationConfig
 from diffloc.render.point_sizes import PointSizes
 
 __all__ = [
@@ -260,14 +262,13 @@ class CrossmodalTaskConfig:
             (the platform's top speed: 1 m/s indoors, 6 m/s outdoors; set in
             ``task/scene/crossmodal_<scene>.yaml``), used where ``localizer.prior.growth_mps``
             is unset (see :meth:`localizer_for`).
-        min_photometric: per ``map`` option, the lowest photometric consistency of an
-            accepted pose (``localizer.validation.min_photometric`` for that map; an option
-            not listed keeps the localizer's own, by default off). Set per scene kind
+        validation: per ``map`` option, fields of ``localizer.validation`` that map uses
+            instead (e.g. ``{"mesh": {"theta_in": 80, "min_photometric": 0.3}}``; any
+            :class:`~diffloc.reloc.validation.ValidationConfig` field, ``None`` turns a test
+            off; an option not listed keeps the localizer's own). The rendered maps differ in
+            how many inliers, how much coverage and what photometric consistency a right pose
+            reaches, so the thresholds are set per map and scene kind
             (``task/scene/crossmodal_<scene>.yaml``), see :meth:`localizer_for`.
-        max_plane_share: per ``map`` option, the largest share of an accepted pose's inliers
-            on one plane (``localizer.validation.max_plane_share`` for that map; an option
-            not listed keeps the localizer's own, by default off). Set per scene kind like
-            :attr:`min_photometric`.
         loose_m: position bound of the loose localisation criterion (with 30 deg): 1 m
             indoors, 2 m outdoors (seed 2).
         plot_queries: queries shown beside their retrieved render per sequence.
@@ -288,8 +289,7 @@ class CrossmodalTaskConfig:
     prior_growth_mps: float = 1.0
     floor_closing_m: dict[str, float] = field(default_factory=dict)
     trajectory_gap_m: dict[str, float] = field(default_factory=dict)
-    min_photometric: dict[str, float] = field(default_factory=dict)
-    max_plane_share: dict[str, float] = field(default_factory=dict)
+    validation: dict[str, dict[str, Any]] = field(default_factory=dict)
     loose_m: float = 1.0
     plot_queries: int = 4
 
@@ -311,14 +311,12 @@ class CrossmodalTaskConfig:
                         f"{tuple(POINT_MAP_OPTIONS)})"
                     )
                 self.poses_for(point_map)  # the pose selection checks the values
-        for name, low in (("min_photometric", -1.0), ("max_plane_share", 0.0)):
-            for option, value in getattr(self, name).items():
-                if option not in MAP_OPTIONS:
-                    raise ValueError(
-                        f"task.{name}.{option}: not a map option (one of {MAP_OPTIONS})"
-                    )
-                if not (math.isfinite(value) and low <= value <= 1.0):
-                    raise ValueError(f"task.{name}.{option} must be in [{low:g}, 1], got {value}")
+        for option in self.validation:
+            if option not in MAP_OPTIONS:
+                raise ValueError(
+                    f"task.validation.{option}: not a map option (one of {MAP_OPTIONS})"
+                )
+            self.localizer_for(option)  # the validation checks the names and values
 
     def poses_for(self, point_map: str) -> PoseSelectionConfig:
         """The render-pose settings of ``point_map``: :attr:`poses` with
@@ -348,19 +346,23 @@ class CrossmodalTaskConfig:
 
     def localizer_for(self, option: str) -> RenderedLocalizerConfig:
         """The localiser settings of the ``map`` option ``option``: ``localizer`` with the
-        validation's ``min_photometric`` and ``max_plane_share`` from :attr:`min_photometric`
-        and :attr:`max_plane_share` where they list the option (a localiser without
-        validation stays without); ``map=hybrid`` holds its
-        real images to the ``images`` threshold (``min_photometric_real``) where it is listed;
-        a pose prior without its own ``growth_mps`` takes :attr:`prior_growth_mps`.
+        validation fields :attr:`validation` lists for the option (a localiser without
+        validation stays without); ``map=hybrid`` holds its real images to the ``images``
+        entry's ``min_photometric`` (``min_photometric_real``) where it is listed; a pose prior
+        without its own ``growth_mps`` takes :attr:`prior_growth_mps`.
+
+        Raises:
+            ValueError: a listed field that is no validation setting, or a value the
+                validation refuses (named by its key, ``task.validation.<option>.<field>``).
 
         Example:
-            >>> task = CrossmodalTaskConfig(min_photometric={"images": 0.7})
+            >>> task = CrossmodalTaskConfig(validation={"images": {"min_photometric": 0.7}})
             >>> task.localizer_for("images").validation.min_photometric
             0.7
             >>> task.localizer_for("tls").validation.min_photometric is None
             True
-            >>> task = CrossmodalTaskConfig(min_photometric={"images": 0.7, "hybrid": 0.4})
+            >>> task = CrossmodalTaskConfig(validation={"images": {"min_photometric": 0.7},
+            ...                                         "hybrid": {"min_photometric": 0.4}})
             >>> hybrid = task.localizer_for("hybrid")
             >>> hybrid.validation.min_photometric, hybrid.min_photometric_real
             (0.4, 0.7)
@@ -369,24 +371,31 @@ class CrossmodalTaskConfig:
             >>> task = CrossmodalTaskConfig(localizer=prior, prior_growth_mps=6.0)
             >>> task.localizer_for("mesh").prior.growth_mps
             6.0
-            >>> task = CrossmodalTaskConfig(max_plane_share={"mesh": 0.95})
-            >>> task.localizer_for("mesh").validation.max_plane_share
-            0.95
-            >>> task.localizer_for("images").validation.max_plane_share is None
-            True
+            >>> task = CrossmodalTaskConfig(validation={"mesh": {"theta_in": 80,
+            ...                                                  "max_plane_share": 0.95}})
+            >>> mesh = task.localizer_for("mesh").validation
+            >>> mesh.theta_in, mesh.max_plane_share, task.localizer.validation.theta_in
+            (80, 0.95, 150)
         """
         localizer = self.localizer
         if localizer.prior is not None and localizer.prior.growth_mps is None:
             prior = replace(localizer.prior, growth_mps=self.prior_growth_mps)
             localizer = replace(localizer, prior=prior)
-        validation = localizer.validation
-        if validation is None:
+        if localizer.validation is None or option not in self.validation:
             return localizer
-        if option in self.max_plane_share:
-            validation = replace(validation, max_plane_share=self.max_plane_share[option])
-        if option in self.min_photometric:
-            validation = replace(validation, min_photometric=self.min_photometric[option])
-            if option == "hybrid" and "images" in self.min_photometric:
-                real = self.min_photometric["images"]
-                localizer = replace(localizer, min_photometric_real=real)
+        settings = dict(self.validation[option])
+        names = {f.name for f in fields(ValidationConfig)}
+        for name in settings:
+            if name not in names:
+                raise ValueError(
+                    f"task.validation.{option}.{name}: not a validation setting (one of "
+                    f"{sorted(names)})"
+                )
+        try:
+            validation = replace(localizer.validation, **settings)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"task.validation.{option}: {exc}") from exc
+        real = self.validation.get("images", {}).get("min_photometric")
+        if option == "hybrid" and real is not None:
+            localizer = replace(localizer, min_photometric_real=real)
         return replace(localizer, validation=validation)

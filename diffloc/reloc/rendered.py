@@ -159,10 +159,10 @@ class RenderedLocalizerConfig:
 
     Held-out seeds are reported in ``experiments/results/rendered_localization_*.md``.
 
-    ``validation.min_photometric`` is off here; ``task=crossmodal`` sets it per map
-    (``task.min_photometric`` in ``task/scene/crossmodal_indoor.yaml``, chosen on indoor seed
-    0: 0.4 for the rendered maps, 0.7 for the real images;
-    ``experiments/results/crossmodal_photometric_indoor_seed0.md``).
+    ``validation.min_photometric`` is off here; ``task=crossmodal`` sets it, and other
+    thresholds, per map (``task.validation.<map>`` in ``task/scene/crossmodal_indoor.yaml``,
+    chosen on indoor seed 0; e.g. ``min_photometric`` 0.4 for the TLS cloud, 0.7 for the real
+    images: ``experiments/results/crossmodal_photometric_indoor_seed0.md``).
 
     Attributes:
         retriever: ``"netvlad"`` or ``"bow"``.
