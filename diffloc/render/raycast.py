@@ -89,12 +89,12 @@ class MeshRaycaster:
             raise ValueError("origins or directions overflow float32")
         result = self._scene.cast_rays(o3d.core.Tensor(rays))
         distance = torch.from_numpy(result["t_hit"].numpy())
-        hit = torch.isfinite(distance)
+        miss = ~torch.isfinite(distance)
         triangle_ids = torch.from_numpy(result["primitive_ids"].numpy().astype(np.int64))
-        triangle_ids = torch.where(hit, triangle_ids, torch.full_like(triangle_ids, -1))
+        triangle_ids.masked_fill_(miss, -1)
         barycentric = torch.from_numpy(result["primitive_uvs"].numpy())
         normals = torch.from_numpy(result["primitive_normals"].numpy())
-        normals = torch.where(hit[:, None], normals, torch.zeros_like(normals))
+        normals.masked_fill_(miss[:, None], 0.0)  # open3d's own buffer, not shared elsewhere
         return RayHits(distance, triangle_ids, barycentric, normals)
 
 
@@ -143,13 +143,13 @@ def world_rays(rays_cam: torch.Tensor, T_wc: torch.Tensor) -> tuple[torch.Tensor
         T_wc: (B, 4, 4) camera-to-world poses.
 
     Returns:
-        origins (B, P, 3) and directions (B, P, 3), float32 (rotated in float64).
+        origins (B, P, 3) (an expanded view of the B camera centres) and directions
+        (B, P, 3), float32 (rotated in float64).
     """
     check_shape(T_wc, "B,4,4", "T_wc")
     T = T_wc.to(torch.float64)
-    directions = torch.einsum("bij,nj->bni", T[:, :3, :3], rays_cam)
-    origins = T[:, None, :3, 3].expand_as(directions)
-    return origins.to(torch.float32), directions.to(torch.float32)
+    directions = torch.einsum("bij,nj->bni", T[:, :3, :3], rays_cam).to(torch.float32)
+    return T[:, None, :3, 3].to(torch.float32).expand_as(directions), directions
 
 
 def camera_rays(camera: PinholeCamera, T_wc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
