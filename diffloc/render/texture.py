@@ -24,8 +24,7 @@ class MipmapTextures:
 
     Every texture is brought to one power-of-two size S (the largest given). Level l has size
     ``S >> l`` and is the 2x2 box-filtered level ``l - 1``. All levels of all materials live in one
-    flat (3, texels) buffer of colour planes, so sampling is one gather regardless of M and
-    blends whole (N,) rows.
+    flat (texels, 3) buffer, so sampling is one gather regardless of M.
 
     Args:
         textures: M images, each (S_m, T_m, 3) float in [0, 1].
@@ -49,8 +48,7 @@ class MipmapTextures:
         self.num_levels = len(levels)
         counts = torch.tensor([self.num_materials * s * s for s in sizes], dtype=torch.int64)
         self._offsets = torch.cumsum(counts, 0) - counts
-        # Channel planes (3, texels): a gather gives (3, N) rows that blend with (N,) weights.
-        self._planes = torch.cat([lv.permute(1, 0, 2, 3).reshape(3, -1) for lv in levels], 1)
+        self._texels = torch.cat([lv.permute(0, 2, 3, 1).reshape(-1, 3) for lv in levels])
 
     def _bilinear(
         self, material: torch.Tensor, uv: torch.Tensor, level: torch.Tensor
@@ -63,7 +61,7 @@ class MipmapTextures:
             level: (N,) int64 mip level.
 
         Returns:
-            (3, N) colours (channel-major).
+            (N, 3) colours.
         """
         size = torch.bitwise_right_shift(torch.tensor(self.size), level)  # S >> level
         base = self._offsets.index_select(0, level) + material * size * size
@@ -77,11 +75,10 @@ class MipmapTextures:
         row0 = base + y0 * size
         row1 = base + ((y0 + 1) & wrap) * size
         index = torch.stack([row0 + x0, row0 + x1, row1 + x0, row1 + x1])  # (4, N)
-        texels = self._planes.index_select(1, index.view(-1)).view(3, 4, -1)
-        t00, t01, t10, t11 = texels.unbind(1)
-        gx = 1 - fx
-        top = t00 * gx + t01 * fx
-        bottom = t10 * gx + t11 * fx
+        t00, t01, t10, t11 = self._texels.index_select(0, index.view(-1)).view(4, -1, 3)
+        fx, fy = fx[:, None], fy[:, None]
+        top = t00 * (1 - fx) + t01 * fx
+        bottom = t10 * (1 - fx) + t11 * fx
         return top * (1 - fy) + bottom * fy
 
     def sample(
@@ -96,7 +93,7 @@ class MipmapTextures:
                 it selects the mip level (log2 of it, clamped to the pyramid).
 
         Returns:
-            (N, 3) float32 colours (a transposed view of channel-major (3, N) storage).
+            (N, 3) float32 colours.
         """
         check_shape(uv, "N,2", "uv")
         check_shape(material, f"{uv.shape[0]}", "material")
@@ -110,8 +107,8 @@ class MipmapTextures:
         # whole level: blend 0), the same value with fewer lookups.
         mixed = (blend > 0).nonzero().squeeze(1)
         if len(mixed):
-            w = blend[mixed].to(colour.dtype)
+            w = blend[mixed, None].to(colour.dtype)
             upper = (lower[mixed] + 1).clamp(max=self.num_levels - 1)
             above = self._bilinear(material[mixed], uv[mixed], upper)
-            colour[:, mixed] = (1 - w) * colour[:, mixed] + w * above
-        return colour.t()
+            colour[mixed] = (1 - w) * colour[mixed] + w * above
+        return colour
