@@ -63,23 +63,29 @@ class MipmapTextures:
         Returns:
             (N, 3) colours.
         """
+        # In place wherever the buffer is this call's own: the same operations in the same
+        # order, with a third of the fresh memory (the page faults of which dominate at 640x480).
         size = torch.bitwise_right_shift(torch.tensor(self.size), level)  # S >> level
-        base = self._offsets.index_select(0, level) + material * size * size
+        base = self._offsets.index_select(0, level).add_((material * size).mul_(size))
         uv = uv.t()  # (2, N): whole rows per coordinate
-        xy = (uv - torch.floor(uv)) * size - 0.5
+        xy = torch.floor(uv)
+        xy = torch.sub(uv, xy, out=xy).mul_(size).sub_(0.5)
         xy0 = torch.floor(xy)
-        fx, fy = xy - xy0
+        fx, fy = xy.sub_(xy0)
         wrap = size - 1  # sizes are powers of two, so "& (size - 1)" is "% size"
-        x0, y0 = xy0.long() & wrap
-        x1 = (x0 + 1) & wrap
-        row0 = base + y0 * size
-        row1 = base + ((y0 + 1) & wrap) * size
-        index = torch.stack([row0 + x0, row0 + x1, row1 + x0, row1 + x1])  # (4, N)
+        x0, y0 = xy0.long().bitwise_and_(wrap)
+        x1 = (x0 + 1).bitwise_and_(wrap)
+        row0 = (y0 * size).add_(base)
+        row1 = (y0 + 1).bitwise_and_(wrap).mul_(size).add_(base)
+        index = torch.empty(4, len(level), dtype=torch.int64)
+        for k, (row, column) in enumerate(((row0, x0), (row0, x1), (row1, x0), (row1, x1))):
+            torch.add(row, column, out=index[k])
         t00, t01, t10, t11 = self._texels.index_select(0, index.view(-1)).view(4, -1, 3)
         fx, fy = fx[:, None], fy[:, None]
-        top = t00 * (1 - fx) + t01 * fx
-        bottom = t10 * (1 - fx) + t11 * fx
-        return top * (1 - fy) + bottom * fy
+        gx = 1 - fx
+        top = t00.mul_(gx).add_(t01.mul_(fx))
+        bottom = t10.mul_(gx).add_(t11.mul_(fx))
+        return top.mul_(1 - fy).add_(bottom.mul_(fy))
 
     def sample(
         self, material: torch.Tensor, uv: torch.Tensor, footprint_texels: torch.Tensor
