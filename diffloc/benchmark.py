@@ -65,8 +65,8 @@ def retain_freed_heap(mmap_threshold_mb: int = 32, trim_threshold_mb: int = 1024
     glibc serves allocations from ``mmap_threshold_mb`` MB up by fresh ``mmap`` pages and
     hands them back on free; smaller ones come from the heap, whose free top is given back once
     it exceeds ``trim_threshold_mb``. By default both thresholds start low (128 kB) and float,
-    so a loop of large temporaries (a 640x480 mesh render's buffers of 1-10 MB) touches fresh
-    pages every time: ~17 000 page faults per render and a third of its CPU time here
+    so a loop of large temporaries (a 640x480 mesh render's buffers of 1-15 MB) touches fresh
+    pages every time: ~9 300 page faults per render and a sixth of its CPU time here
     (``experiments/bench_mesh_render.py``). Raising both makes later iterations reuse the
     memory; the process then keeps up to ``trim_threshold_mb`` MB of freed memory resident.
     Process-wide: call it once at start-up, from a script that wants it, never from library
