@@ -1,5 +1,9 @@
 """The shared benchmark helpers measure what they claim (no timing assertions)."""
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 
 from diffloc.benchmark import median_ms, peak_added_mb
@@ -28,3 +32,56 @@ def test_peak_added_mb_counts_temporaries_the_allocator_would_keep_resident():
 
     allocate()  # its 10 MB stay resident once freed
     assert 8 <= peak_added_mb(allocate) <= 40
+
+
+FAULT_PROBE = """
+import sys
+import numpy as np
+import torch
+from diffloc.benchmark import retain_freed_heap
+from diffloc.geometry.camera import PinholeCamera
+from diffloc.io.textured_mesh import TexturedMesh
+from diffloc.render.raycast import MeshRenderer
+
+torch.set_num_threads(1)
+if sys.argv[1] == "retain":
+    assert retain_freed_heap()
+wall = TexturedMesh(
+    vertices=np.array([[-9, -9, 5], [9, -9, 5], [9, 9, 5], [-9, 9, 5]], np.float32),
+    triangles=np.array([[0, 2, 1], [0, 3, 2]], dtype=np.int32),
+    corner_uvs=np.random.default_rng(0).random((2, 3, 2), dtype=np.float32),
+    material_ids=np.zeros(2, dtype=np.int32),
+    object_ids=np.zeros(2, dtype=np.int32),
+    textures=[np.random.default_rng(1).random((64, 64, 3), dtype=np.float32)],
+    material_names=["wall"],
+)
+renderer, camera = MeshRenderer(wall), PinholeCamera.from_fov(640, 480, 1.5)
+renderer.render_rgbd(torch.eye(4)[None], camera)
+
+
+def faults():
+    return int(open("/proc/self/stat").read().split()[9])
+
+
+start = faults()
+for _ in range(4):
+    renderer.render_rgbd(torch.eye(4)[None], camera)
+print((faults() - start) // 4)
+"""
+
+
+def test_retain_freed_heap_stops_page_faults_of_repeated_renders():
+    def faults_per_render(mode: str) -> int:
+        env = {**os.environ, "OMP_NUM_THREADS": "1"}
+        run = subprocess.run(
+            [sys.executable, "-c", FAULT_PROBE, mode],
+            capture_output=True,
+            text=True,
+            check=True,
+            env=env,
+        )
+        return int(run.stdout.split()[-1])
+
+    plain, retained = faults_per_render("plain"), faults_per_render("retain")
+    assert plain > 2000  # fresh pages for the 640x480 temporaries on every render
+    assert retained < plain / 4

@@ -154,8 +154,8 @@ class MeshMap:
         check_shape(T_wc, "B,4,4", "T_wc")
         if T_wc.shape[0] == 0:
             raise ShapeError("T_wc must hold at least one pose, got shape (0, 4, 4)")
-        out = self.renderer.render(T_wc, camera)
-        return RGBD(out.albedo.clamp(0.0, 1.0), out.depth)
+        albedo, depth = self.renderer.render_rgbd(T_wc, camera)
+        return RGBD(albedo.clamp(0.0, 1.0), depth)
 
 
 def render_views(

@@ -81,18 +81,20 @@ class MeshRaycaster:
         """
         check_shape(origins, "R,3", "origins")
         check_shape(directions, f"{origins.shape[0]},3", "directions")
-        check_finite(origins, "origins")
-        check_finite(directions, "directions")
         o3d = open3d()
         rays = torch.cat([origins, directions], dim=1).to(torch.float32).contiguous().numpy()
+        if not np.isfinite(rays).all():  # one pass over the float32 rays open3d gets
+            check_finite(origins, "origins")
+            check_finite(directions, "directions")
+            raise ValueError("origins or directions overflow float32")
         result = self._scene.cast_rays(o3d.core.Tensor(rays))
         distance = torch.from_numpy(result["t_hit"].numpy())
-        hit = torch.isfinite(distance)
+        miss = ~torch.isfinite(distance)
         triangle_ids = torch.from_numpy(result["primitive_ids"].numpy().astype(np.int64))
-        triangle_ids = torch.where(hit, triangle_ids, torch.full_like(triangle_ids, -1))
+        triangle_ids.masked_fill_(miss, -1)
         barycentric = torch.from_numpy(result["primitive_uvs"].numpy())
         normals = torch.from_numpy(result["primitive_normals"].numpy())
-        normals = torch.where(hit[:, None], normals, torch.zeros_like(normals))
+        normals.masked_fill_(miss[:, None], 0.0)  # open3d's own buffer, not shared elsewhere
         return RayHits(distance, triangle_ids, barycentric, normals)
 
 
@@ -119,6 +121,37 @@ class MeshRender:
     rays: torch.Tensor
 
 
+def camera_frame_rays(camera: PinholeCamera) -> torch.Tensor:
+    """Unit camera-frame rays through every pixel centre of ``camera``.
+
+    Args:
+        camera: an unbatched camera (distortion honoured).
+
+    Returns:
+        (H*W, 3) float64 unit directions, pixels in row-major order.
+    """
+    pixels = camera.pixel_grid(torch.float64).reshape(-1, 2)
+    rays_cam = camera.to(torch.float64).unproject(pixels)
+    return rays_cam / rays_cam.norm(dim=-1, keepdim=True)
+
+
+def world_rays(rays_cam: torch.Tensor, T_wc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera-frame rays moved into the world by B poses.
+
+    Args:
+        rays_cam: (P, 3) float64 camera-frame directions (:func:`camera_frame_rays`).
+        T_wc: (B, 4, 4) camera-to-world poses.
+
+    Returns:
+        origins (B, P, 3) (an expanded view of the B camera centres) and directions
+        (B, P, 3), float32 (rotated in float64).
+    """
+    check_shape(T_wc, "B,4,4", "T_wc")
+    T = T_wc.to(torch.float64)
+    directions = torch.einsum("bij,nj->bni", T[:, :3, :3], rays_cam).to(torch.float32)
+    return T[:, None, :3, 3].to(torch.float32).expand_as(directions), directions
+
+
 def camera_rays(camera: PinholeCamera, T_wc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Unit world-frame rays through every pixel centre of ``camera``.
 
@@ -130,13 +163,37 @@ def camera_rays(camera: PinholeCamera, T_wc: torch.Tensor) -> tuple[torch.Tensor
         origins (B, H*W, 3) and directions (B, H*W, 3), float32; pixels in row-major order.
     """
     check_shape(T_wc, "B,4,4", "T_wc")
-    pixels = camera.pixel_grid(torch.float64).reshape(-1, 2)
-    rays_cam = camera.to(torch.float64).unproject(pixels)
-    rays_cam = rays_cam / rays_cam.norm(dim=-1, keepdim=True)
-    T = T_wc.to(torch.float64)
-    directions = torch.einsum("bij,nj->bni", T[:, :3, :3], rays_cam)
-    origins = T[:, None, :3, 3].expand_as(directions)
-    return origins.to(torch.float32), directions.to(torch.float32)
+    return world_rays(camera_frame_rays(camera), T_wc)
+
+
+def _camera_key(camera: PinholeCamera) -> tuple:
+    """What the rays of an unbatched camera depend on: size, dtype and parameter values."""
+    values = [camera.fx, camera.fy, camera.cx, camera.cy]
+    if camera.distortion is not None:
+        values.append(camera.distortion)
+    flat = torch.cat([v.reshape(-1) for v in values]).tolist()
+    return camera.width, camera.height, camera.dtype, camera.distortion is None, tuple(flat)
+
+
+@dataclass
+class _Surface:
+    """What every render output is made from, for R = B * P rays (P pixels per view).
+
+    Attributes:
+        origins: (B, P, 3) float32 ray origins.
+        directions: (B, P, 3) float32 unit ray directions, world frame.
+        hits: the R first hits.
+        distance: (R,) float32 hit distance, 0 where no hit.
+        albedo: (3, R) float32 texture colour, 0 where no hit.
+        depth: (R,) float32 z-depth, 0 where no hit.
+    """
+
+    origins: torch.Tensor
+    directions: torch.Tensor
+    hits: RayHits
+    distance: torch.Tensor
+    albedo: torch.Tensor
+    depth: torch.Tensor
 
 
 class MeshRenderer:
@@ -144,7 +201,8 @@ class MeshRenderer:
 
     Texture lookups are trilinear on a mip pyramid; the level follows each pixel's footprint on
     the surface (distance / focal length, stretched by the incidence angle), so distant and
-    grazing surfaces do not alias.
+    grazing surfaces do not alias. The camera-frame rays of the last camera are kept and
+    reused while the camera (size and parameter values) stays the same.
 
     Args:
         mesh: the mesh; it must have at least one triangle.
@@ -176,10 +234,65 @@ class MeshRenderer:
         duv1, duv2 = uvs[:, 1] - uvs[:, 0], uvs[:, 2] - uvs[:, 0]
         area_uv = 0.5 * (duv1[:, 0] * duv2[:, 1] - duv1[:, 1] * duv2[:, 0]).abs()
         texels_per_metre = self.textures.size * torch.sqrt(area_uv / area_world.clamp_min(1e-12))
-        self._texels_per_metre = texels_per_metre.to(torch.float32)
-        self._corner_uvs = torch.from_numpy(mesh.corner_uvs)
+        # Per-triangle rows (u0, v0, u1, v1, u2, v2, texels per metre) as planes (7, F): one
+        # gather gives every hit's corner UVs and texel density.
+        rows = [torch.from_numpy(mesh.corner_uvs).reshape(-1, 6), texels_per_metre[:, None]]
+        self._triangle_planes = torch.cat(rows, 1).to(torch.float32).t().contiguous()
         self._material_ids = torch.from_numpy(mesh.material_ids).long()
         self._object_ids = torch.from_numpy(mesh.object_ids)
+        self._rays_cam: tuple[tuple, torch.Tensor] | None = None
+
+    def _camera_frame_rays(self, camera: PinholeCamera) -> torch.Tensor:
+        """(H*W, 3) float64 camera-frame rays of ``camera``, reused for the same camera."""
+        key = _camera_key(camera)
+        if self._rays_cam is None or self._rays_cam[0] != key:
+            self._rays_cam = (key, camera_frame_rays(camera))
+        return self._rays_cam[1]
+
+    def _surface(self, T_wc: torch.Tensor, camera: PinholeCamera) -> _Surface:
+        """Cast the rays of B views and texture their hits (see :class:`_Surface`)."""
+        check_shape(T_wc, "B,4,4", "T_wc")
+        check_finite(T_wc, "T_wc")
+        origins, directions = world_rays(self._camera_frame_rays(camera), T_wc)
+        flat_dirs = directions.reshape(-1, 3)
+        hits = self.raycaster.cast(origins.reshape(-1, 3), flat_dirs)
+        hit = hits.hit
+        tri = hits.triangle_ids.clamp_min(0)
+        # In place on this call's own buffers (the gathered rows, fresh sums): the same
+        # operations in the same order with less fresh memory to fault in.
+        u0, v0, u1, v1, u2, v2, texels_per_metre = self._triangle_planes.index_select(1, tri)
+        b1, b2 = hits.barycentric.t()
+        b0 = (1 - b1).sub_(b2)
+        u = u0.mul_(b0).add_(u1.mul_(b1)).add_(u2.mul_(b2))
+        v = v0.mul_(b0).add_(v1.mul_(b1)).add_(v2.mul_(b2))
+        distance = torch.where(hit, hits.distance, torch.zeros_like(hits.distance))
+        cos_incidence = (hits.normals * flat_dirs).sum(-1).abs_().clamp_min_(0.05)
+        focal = float(camera.fx) if camera.fx.ndim == 0 else float(camera.fx.reshape(-1)[0])
+        footprint = texels_per_metre.mul_(distance).div_(focal).div_(cos_incidence.sqrt_())
+        seen = hit.nonzero().squeeze(1)  # textures are sampled where a ray hit only
+        material = self._material_ids.index_select(0, tri.index_select(0, seen))
+        uv = torch.stack([u.index_select(0, seen), v.index_select(0, seen)])  # (2, N)
+        sampled = self.textures.sample(material, uv.t(), footprint.index_select(0, seen))
+        albedo = sampled.new_zeros(3, len(hit)).index_copy_(1, seen, sampled.t())
+        z_axis = T_wc[:, :3, 2].to(torch.float32)
+        cos_axis = (directions * z_axis[:, None, :]).sum(-1).reshape(-1)
+        return _Surface(origins, directions, hits, distance, albedo, cos_axis.mul_(distance))
+
+    def render_rgbd(
+        self, T_wc: torch.Tensor, camera: PinholeCamera
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Render the albedo and depth of B views only (the same values as :meth:`render`).
+
+        Args:
+            T_wc: (B, 4, 4) camera-to-world poses.
+            camera: an unbatched pinhole camera with image size (H, W).
+
+        Returns:
+            albedo (B, 3, H, W) and depth (B, 1, H, W), as in :class:`MeshRender`.
+        """
+        surface = self._surface(T_wc, camera)
+        shape = (T_wc.shape[0], camera.height, camera.width)
+        return _planes_image(surface.albedo, shape), _planes_image(surface.depth[None], shape)
 
     def render(self, T_wc: torch.Tensor, camera: PinholeCamera) -> MeshRender:
         """Render B views.
@@ -191,42 +304,32 @@ class MeshRenderer:
         Returns:
             The per-pixel :class:`MeshRender`.
         """
-        check_shape(T_wc, "B,4,4", "T_wc")
-        check_finite(T_wc, "T_wc")
-        batch, height, width = T_wc.shape[0], camera.height, camera.width
-        origins, directions = camera_rays(camera, T_wc)
-        hits = self.raycaster.cast(origins.reshape(-1, 3), directions.reshape(-1, 3))
+        surface = self._surface(T_wc, camera)
+        hits, distance = surface.hits, surface.distance
         hit = hits.hit
         tri = hits.triangle_ids.clamp_min(0)
-        b1, b2 = hits.barycentric[:, 0:1], hits.barycentric[:, 1:2]
-        corner_uv = self._corner_uvs[tri]
-        uv = (1 - b1 - b2) * corner_uv[:, 0] + b1 * corner_uv[:, 1] + b2 * corner_uv[:, 2]
-        distance = torch.where(hit, hits.distance, torch.zeros_like(hits.distance))
-        flat_dirs = directions.reshape(-1, 3)
-        cos_incidence = (hits.normals * flat_dirs).sum(-1).abs().clamp_min(0.05)
-        focal = float(camera.fx) if camera.fx.ndim == 0 else float(camera.fx.reshape(-1)[0])
-        footprint = self._texels_per_metre[tri] * distance / focal / cos_incidence.sqrt()
-        seen = hit.nonzero().squeeze(1)  # textures are sampled where a ray hit only
-        sampled = self.textures.sample(self._material_ids[tri[seen]], uv[seen], footprint[seen])
-        albedo = sampled.new_zeros(len(hit), 3).index_copy_(0, seen, sampled)
-        z_axis = T_wc[:, :3, 2].to(torch.float32)
-        cos_axis = (directions * z_axis[:, None, :]).sum(-1).reshape(-1)
-        depth = distance * cos_axis
-        points = origins.reshape(-1, 3) + directions.reshape(-1, 3) * distance[:, None]
+        origins, directions = surface.origins.reshape(-1, 3), surface.directions.reshape(-1, 3)
+        points = origins + directions * distance[:, None]
         points = torch.where(hit[:, None], points, torch.zeros_like(points))
-        object_ids = torch.where(
-            hit, self._object_ids[tri], torch.full_like(self._object_ids[tri], -1)
-        )
+        object_ids = self._object_ids[tri]
+        object_ids = torch.where(hit, object_ids, torch.full_like(object_ids, -1))
+        shape = (T_wc.shape[0], camera.height, camera.width)
 
         def image(values: torch.Tensor) -> torch.Tensor:
-            return values.reshape(batch, height, width, -1).permute(0, 3, 1, 2).contiguous()
+            return values.reshape(*shape, -1).permute(0, 3, 1, 2).contiguous()
 
         return MeshRender(
-            albedo=image(albedo),
-            depth=image(depth),
+            albedo=_planes_image(surface.albedo, shape),
+            depth=_planes_image(surface.depth[None], shape),
             normals=image(hits.normals),
             object_ids=image(object_ids),
             triangle_ids=image(hits.triangle_ids),
             points=image(points),
-            rays=image(directions),
+            rays=image(surface.directions),
         )
+
+
+def _planes_image(planes: torch.Tensor, shape: tuple[int, int, int]) -> torch.Tensor:
+    """(C, B*H*W) channel planes -> (B, C, H, W) images (a view when B = 1)."""
+    batch, height, width = shape
+    return planes.reshape(-1, batch, height, width).transpose(0, 1).contiguous()
