@@ -41,6 +41,7 @@ from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.reloc.rendered import RenderedLocalizerConfig
 from diffloc.render.point_sizes import PointSizes
+from diffloc.render.screen_space import ScreenSpaceVisibility
 
 __all__ = [
     "MAP_OPTIONS",
@@ -81,6 +82,11 @@ class PointMapConfig:
         rho_max: Eq. 2 splat size at 1 m, pixels (also the sizes of the occlusion depth used
             when colouring).
         levels: the multi-pass sizes, pixels.
+        visibility_radius: the database renders' screen-space visibility filter
+            (:mod:`~diffloc.render.screen_space`: a pixel that nearer splats enclose takes
+            their point): pixels searched in each of 8 directions; 0 turns it off.
+        visibility_sectors: directions (of 8) that must hold a nearer splat, in [5, 8].
+        visibility_depth_ratio: a splat is nearer below this times the pixel's depth.
     """
 
     point_map: str = "tls_map"
@@ -88,18 +94,43 @@ class PointMapConfig:
     rho_min: float = 1.0
     rho_max: float = 8.0
     levels: list[int] = field(default_factory=lambda: [1, 2, 4, 8])
+    visibility_radius: int = 0
+    visibility_sectors: int = 7
+    visibility_depth_ratio: float = 0.9
 
     def __post_init__(self) -> None:
         _check_point_map(self.point_map)
         if self.passes not in PASSES:
             raise ValueError(f"passes must be one of {PASSES}, got {self.passes!r}")
+        if isinstance(self.visibility_radius, bool) or not isinstance(self.visibility_radius, int):
+            raise ValueError(
+                f"visibility_radius must be an integer, got {self.visibility_radius!r}"
+            )
+        if self.visibility_radius < 0:
+            raise ValueError(f"visibility_radius must be >= 0, got {self.visibility_radius}")
         self.sizes()
+        self.visibility()
 
     def sizes(self) -> PointSizes:
         """The splat sizes of the database renders."""
         if self.passes == "single":
             return PointSizes.inverse_depth(self.rho_min, self.rho_max)
         return PointSizes.multi_pass(self.rho_min, self.rho_max, tuple(self.levels))
+
+    def visibility(self) -> ScreenSpaceVisibility | None:
+        """The database renders' screen-space visibility filter (``None``: off).
+
+        Example:
+            >>> PointMapConfig().visibility() is None
+            True
+            >>> PointMapConfig(visibility_radius=16, visibility_sectors=6).visibility()
+            ScreenSpaceVisibility(radius=16, min_sectors=6, depth_ratio=0.9)
+        """
+        if self.visibility_radius == 0:
+            return None
+        return ScreenSpaceVisibility(
+            self.visibility_radius, self.visibility_sectors, self.visibility_depth_ratio
+        )
 
 
 @dataclass
