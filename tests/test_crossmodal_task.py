@@ -355,3 +355,23 @@ def test_tuned_retrieval_is_a_stage_the_localization_keys_on(dataset, first, tmp
         name: {**entry, "files": again["sequences"][name]["files"]}
         for name, entry in results["sequences"].items()
     }
+
+
+def test_the_visibility_filter_renders_the_database_again_and_keeps_the_map(
+    dataset, first, tmp_path, monkeypatch
+):
+    """``map.visibility_radius`` (issue 18) is a key of the database only, and only when on,
+    so the records of the renders without it stay valid."""
+    before = _records(dataset)
+    assert "visibility" not in json.loads(before[STAGE_RECORDS[2]][0])["stage"]["key"]["config"]
+    _refuse(monkeypatch, ("select_render_poses", "colored_point_map"))
+    _run(dataset, tmp_path, "map.visibility_radius=4")
+    after = _records(dataset)
+    assert all(after[rel] == before[rel] for rel in STAGE_RECORDS[:2])
+    record = json.loads(after[STAGE_RECORDS[2]][0])
+    assert record["stage"]["key"]["config"]["visibility"] == {
+        "radius": 4,
+        "min_sectors": 7,
+        "depth_ratio": 0.9,
+    }
+    assert record["hole_share"] < json.loads(before[STAGE_RECORDS[2]][0])["hole_share"]
