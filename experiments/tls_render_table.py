@@ -4,9 +4,12 @@ Reads the runs of ``experiments/tls_render_runs.sh`` (one folder per named setti
 dataset's ``experiments/runs/tls_render/<dataset name>/``, each with the ``results.json`` of
 ``diffloc task=crossmodal map=tls`` and the ``breakdown.json`` of
 ``experiments/crossmodal_breakdown.py``) and writes one Markdown + JSON report: per setting
-its overrides, the database (images, share of pixels without depth, render + XFeat + NetVLAD
-CPU and wall seconds), per query sequence the localisation rate at 1 m / 30 deg, right and
-accepted poses, the pooled precision, and the breakdown's outcome counts.
+its overrides and map settings, the coloured points, the database (images, share of pixels
+without depth, render + XFeat + NetVLAD CPU and wall seconds), per query sequence the
+localisation rate at 1 m / 30 deg, right and accepted poses, the pooled precision, the
+breakdown's outcome counts, and for each wrong accepted pose its horizontal and vertical
+position error (the ground truth of the query sequence, read for scoring only: an error of
+one storey height in z with the right x, y is a confusion of two storeys that look alike).
 
 ``--choose`` (the tuning seed) applies the rule fixed before the runs: the setting with the
 most right poses (accepted within 1 m / 30 deg) summed over the sequences, among the settings
@@ -24,9 +27,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
+import shlex
+import sys
 from pathlib import Path
 
+import numpy as np
+
 from diffloc.eval.report_files import made_by_lines, write_report
+from diffloc.io.dataset import read_sequence
+from diffloc.io.trajectory import read_tum
 
 DEFAULT = "default"
 """The run of the task's defaults, the reference of the rule."""
@@ -35,11 +45,28 @@ MIN_PRECISION = 0.95
 RATE = "1m_30deg"
 
 
+def wrong_pose_errors(folder: Path, dataset: Path, sequence: str, rows: list[dict]) -> list:
+    """``[frame, horizontal m, vertical m]`` of each wrong accepted pose of ``sequence`` in
+    the run ``folder`` (its ``trajectory_<sequence>.tum`` against the ground truth)."""
+    frames = [r["frame"] for r in rows if r["outcome"] == "wrong accepted"]
+    if not frames:
+        return []
+    truth = read_sequence(dataset, sequence)
+    stamps, T_wc = read_tum(folder / f"trajectory_{sequence}.tum")
+    errors = []
+    for frame in frames:
+        index = int(np.argmin(np.abs(stamps - float(truth.timestamps[frame]))))
+        offset = (T_wc[index, :3, 3] - truth.T_wc[frame, :3, 3]).numpy()
+        errors.append([frame, round(float(np.hypot(*offset[:2])), 2), round(float(offset[2]), 2)])
+    return errors
+
+
 def read_run(folder: Path) -> dict:
     """The setting, database, per-sequence figures and outcome counts of one run folder."""
     results = json.loads((folder / "results.json").read_text())
     breakdown = json.loads((folder / "breakdown.json").read_text())
     counts = {m["sequence"]: m["counts"] for m in breakdown["maps"]}
+    rows = {m["sequence"]: m["rows"] for m in breakdown["maps"]}
     database = results["stages"]["database"]
     sequences = {}
     for name, seq in results["sequences"].items():
@@ -52,11 +79,16 @@ def read_run(folder: Path) -> dict:
             "precision": seq["precision"],
             "median_ms_per_query": seq["median_ms_per_query"],
             "outcomes": counts[name],
+            "wrong_pose_errors": wrong_pose_errors(
+                folder, Path(results["dataset"]), name, rows[name]
+            ),
         }
     return {
         "name": folder.name,
         "command": breakdown["command"],
         "map_settings": results["map_settings"],
+        "colored_points": results["stages"]["map"]["colored_points"],
+        "points": results["stages"]["map"]["points"],
         "images": database["images"],
         "hole_share": database["hole_share"],
         "render_cpu_s": database["cpu_seconds"],
@@ -97,6 +129,18 @@ def _pct(value: float | None) -> str:
     return "-" if value is None else f"{100 * value:.1f} %"
 
 
+def _map_cell(settings: dict) -> str:
+    """The render settings of a run's ``map`` node, e.g. ``single, rho_max 8, no filter``."""
+    radius = settings.get("visibility_radius", 0)
+    visibility = f"visibility radius {radius}" if radius else "no filter"
+    return f"{settings['passes']}, rho_max {settings['rho_max']:g}, {visibility}"
+
+
+def _rounded(text: str) -> str:
+    """``text`` with its decimal numbers rounded to one decimal."""
+    return re.sub(r"\d+\.\d+", lambda m: f"{float(m[0]):.1f}", text)
+
+
 def markdown(report: dict) -> str:
     """The report as Markdown: the settings table, the outcome counts, the rule's choice."""
     runs = report["runs"]
@@ -108,11 +152,13 @@ def markdown(report: dict) -> str:
     ]
     lines.append(
         "Every 4th frame, `task=crossmodal map=tls` defaults otherwise; rate = accepted within "
-        "1 m / 30 deg over all queries; render = database render + XFeat + NetVLAD (stage "
-        "`rgbd_database`, one thread)."
+        "1 m / 30 deg over all queries; map = the run's map settings (rho_max sizes the Eq. 2 "
+        "splats of the renders and of the colouring's occlusion test, whose points no mapping "
+        "image sees unoccluded are dropped: coloured points); render = the database stage "
+        "(render + XFeat + NetVLAD, one thread; colouring the map is not counted)."
     )
     lines.append("")
-    head = ["setting", "overrides", "images", "holes", "render CPU s (wall)"]
+    head = ["setting", "map", "coloured points", "images", "holes", "render CPU s (wall)"]
     head += [f"`{s}` rate (right / accepted / queries)" for s in sequences]
     head += ["precision (pooled)"]
     lines += [
@@ -122,7 +168,8 @@ def markdown(report: dict) -> str:
     for r in runs:
         cells = [
             r["name"],
-            f"`{r['overrides']}`" if r["overrides"] else "(defaults)",
+            _map_cell(r["map_settings"]),
+            f"{r['colored_points']} / {r['points']}",
             str(r["images"]),
             _pct(r["hole_share"]),
             f"{r['render_cpu_s']:.0f} ({r['render_wall_s']:.0f})",
@@ -148,10 +195,18 @@ def markdown(report: dict) -> str:
             " / ".join(str(r["sequences"][s]["outcomes"][o]) for s in sequences) for o in outcomes
         ]
         lines.append(f"| {r['name']} | " + " | ".join(cells) + " |")
+    lines += ["", "Wrong accepted poses: sequence, frame: horizontal / vertical (z) error, m.", ""]
+    for r in runs:
+        wrong = [
+            f"{s} {frame}: {horizontal:.2f} / {vertical:+.2f}"
+            for s in sequences
+            for frame, horizontal, vertical in r["sequences"][s]["wrong_pose_errors"]
+        ]
+        lines.append(f"- {r['name']}: " + ("; ".join(wrong) if wrong else "none"))
     lines += [
         "",
-        "Load and machine per run: "
-        + "; ".join(f"{r['name']}: {r['machine']}" for r in runs)
+        "Machine and load when each run's results were written: "
+        + "; ".join(f"{r['name']}: {_rounded(r['machine'])}" for r in runs)
         + ".",
     ]
     if "choice" in report:
@@ -174,7 +229,9 @@ def markdown(report: dict) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=Path, required=True, help="one dataset's run folders")
-    parser.add_argument("--command", action="append", required=True, help="the runs' commands")
+    parser.add_argument(
+        "--command", action="append", required=True, help="the runs' commands, in order"
+    )
     parser.add_argument("--choose", action="store_true", help="apply the tuning rule")
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
     args = parser.parse_args()
@@ -187,13 +244,18 @@ def main() -> None:
         words = r["command"].split()  # the overrides follow task.out_dir
         out_dir = next(i for i, w in enumerate(words) if w.startswith("task.out_dir="))
         r["overrides"] = " ".join(words[out_dir + 1 :])
-    report = {"dataset": str(args.runs.name), "commands": args.command, "runs": runs}
+    this = shlex.join(["python3", "experiments/tls_render_table.py", *sys.argv[1:]])
+    report = {
+        "dataset": str(args.runs.name),
+        "commands": [*args.command, f"PYTHONPATH=. {this}"],
+        "runs": runs,
+    }
     if args.choose:
         report["choice"] = choose(runs)
     write_report(
         args.out,
         markdown(report),
-        {**report, "command": " && ".join(args.command)},
+        {**report, "command": " && ".join(report["commands"])},
     )
 
 
