@@ -5,7 +5,8 @@
 # query-by-query breakdown of that run (experiments/crossmodal_breakdown.py, 1 m render
 # spacing). Each run writes experiments/runs/tls_render/<dataset name>/<name>/results.json and
 # breakdown.{md,json}; experiments/tls_render_table.py turns them into the table.
-# Runs are sequential: the map, database and localisation stages under
+# TLS_RENDER_ROOT replaces experiments/runs/tls_render (e.g. for diagnostic runs kept apart
+# from the ones a rule chooses among). Runs are sequential: the map, database and localisation stages under
 # <dataset>/crossmodal/tls/ hold one setting at a time (the render poses are reused).
 #   bash experiments/tls_render_runs.sh DATASET NAME 'OVERRIDES' [NAME 'OVERRIDES' ...]
 #   e.g. bash experiments/tls_render_runs.sh data/indoor_seed0 default '' multi map.passes=multi
@@ -16,7 +17,7 @@ shift
 while (($# >= 2)); do
   name=$1 overrides=$2
   shift 2
-  out=experiments/runs/tls_render/$(basename "$dataset")/$name
+  out=${TLS_RENDER_ROOT:-experiments/runs/tls_render}/$(basename "$dataset")/$name
   echo "$(date -u +%H:%M:%S) $out: $overrides (load $(cut -d' ' -f1-3 /proc/loadavg))"
   cmd="diffloc task=crossmodal map=tls dataset=$dataset scene=indoor"
   cmd+=" task.sequences=[query_same,query_reverse] task.every=4 task.out_dir=$out $overrides"

@@ -275,6 +275,11 @@ def test_bad_map_settings_name_their_key():
         run(cfg)
 
 
+def test_occlusion_sizes_below_the_smallest_splat_are_refused():
+    with pytest.raises(ValueError, match="occlusion_rho_max must be a finite number >= rho_min"):
+        to_object(compose_config(["task=crossmodal", "map=tls", "map.occlusion_rho_max=0.5"]))
+
+
 def test_the_mesh_map_stage_never_reads_the_ground_truth(dataset, tmp_path, monkeypatch):
     root = tmp_path / dataset.name
     shutil.copytree(dataset, root, ignore=shutil.ignore_patterns("crossmodal"))

@@ -307,7 +307,12 @@ def _map_settings(config: PointMapConfig | MeshMapConfig) -> dict:
     """The settings the map depends on: a cloud's colours depend on its occlusion sizes only
     (the render passes are the database's), a mesh on all of its settings."""
     if isinstance(config, PointMapConfig):
-        return {"point_map": config.point_map, "rho_min": config.rho_min, "rho_max": config.rho_max}
+        occlusion = config.occlusion_sizes()
+        return {
+            "point_map": config.point_map,
+            "rho_min": occlusion.rho_min,
+            "rho_max": occlusion.rho_max,
+        }
     return asdict(config)
 
 
@@ -320,8 +325,7 @@ def _make_cloud(
     show_progress: bool,
 ) -> tuple[ColoredCloudSummary, list[str]]:
     """Colour the cloud into ``work/colored_map.ply``; the summary and the outputs."""
-    occlusion = PointSizes.inverse_depth(config.rho_min, config.rho_max)
-    colored = colored_point_map(cloud, mapping, camera, occlusion, show_progress)
+    colored = colored_point_map(cloud, mapping, camera, config.occlusion_sizes(), show_progress)
     colored.save_ply(work / "colored_map.ply")
     summary = ColoredCloudSummary(
         map=map_option(config), points=len(cloud.points), colored_points=len(colored.positions)
