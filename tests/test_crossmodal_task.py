@@ -5,7 +5,10 @@ than the shared fixture's (whose 48 x 96 scan leaves only scanner-station disks 
 space). At 160x120 a correct pose has 40-70 PnP inliers, so the validation's inlier threshold
 (150, chosen at 320x240 on the default scene) is lowered to 30 here, and the photometric
 threshold of map=tls (0.4, chosen there too) to 0.2: the tiny scene's coarse textures score
-lower (0.32 for the right pose at 160x120).
+lower (0.32 for the right pose at 160x120). The splats keep their size from before the indoor
+TLS default became 12 px at 1 m (``map/scene/tls_indoor.yaml``, chosen at 320x240): sizes are
+pixels of the render camera, so 12 px at 160x120 would be twice as coarse, and 0 of the 4
+queries were accepted with it.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ TASK = [
     "task.every=2",
     "task.localizer.validation.theta_in=30",
     "task.validation.tls.min_photometric=0.2",
+    "map.rho_max=8",
 ]
 MESH = [
     "map.texture.reconstruction.poisson_depth=7",
@@ -271,6 +275,11 @@ def test_bad_map_settings_name_their_key():
         run(cfg)
 
 
+def test_occlusion_sizes_below_the_smallest_splat_are_refused():
+    with pytest.raises(ValueError, match="occlusion_rho_max must be a finite number >= rho_min"):
+        to_object(compose_config(["task=crossmodal", "map=tls", "map.occlusion_rho_max=0.5"]))
+
+
 def test_the_mesh_map_stage_never_reads_the_ground_truth(dataset, tmp_path, monkeypatch):
     root = tmp_path / dataset.name
     shutil.copytree(dataset, root, ignore=shutil.ignore_patterns("crossmodal"))
@@ -357,3 +366,23 @@ def test_tuned_retrieval_is_a_stage_the_localization_keys_on(dataset, first, tmp
         name: {**entry, "files": again["sequences"][name]["files"]}
         for name, entry in results["sequences"].items()
     }
+
+
+def test_the_visibility_filter_renders_the_database_again_and_keeps_the_map(
+    dataset, first, tmp_path, monkeypatch
+):
+    """``map.visibility_radius`` (issue 18) is a key of the database only, and only when on,
+    so the records of the renders without it stay valid."""
+    before = _records(dataset)
+    assert "visibility" not in json.loads(before[STAGE_RECORDS[2]][0])["stage"]["key"]["config"]
+    _refuse(monkeypatch, ("select_render_poses", "colored_point_map"))
+    _run(dataset, tmp_path, "map.visibility_radius=4")
+    after = _records(dataset)
+    assert all(after[rel] == before[rel] for rel in STAGE_RECORDS[:2])
+    record = json.loads(after[STAGE_RECORDS[2]][0])
+    assert record["stage"]["key"]["config"]["visibility"] == {
+        "radius": 4,
+        "min_sectors": 7,
+        "depth_ratio": 0.9,
+    }
+    assert record["hole_share"] < json.loads(before[STAGE_RECORDS[2]][0])["hole_share"]

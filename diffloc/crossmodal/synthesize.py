@@ -43,6 +43,7 @@ from diffloc.progress import progress
 from diffloc.render.point_render import render_points
 from diffloc.render.point_sizes import PointSizes
 from diffloc.render.raycast import MeshRenderer
+from diffloc.render.screen_space import ScreenSpaceVisibility
 
 __all__ = [
     "RGBD",
@@ -92,6 +93,9 @@ class PointCloudMap:
         sizes: splat sizes in pixels: ``PointSizes.inverse_depth(rho_min, rho_max)`` (Eq. 2
             per point) or ``PointSizes.multi_pass(rho_min, rho_max, levels)`` (a few passes
             merged by nearest depth); sizes are for the camera it is rendered with.
+        visibility: optional screen-space visibility filter
+            (:mod:`~diffloc.render.screen_space`): pixels that nearer splats enclose take
+            their point (see-through gaps and small holes closed).
 
     Raises:
         ShapeError: wrong shapes.
@@ -101,6 +105,7 @@ class PointCloudMap:
     points: torch.Tensor
     colors: torch.Tensor
     sizes: PointSizes
+    visibility: ScreenSpaceVisibility | None = None
 
     def __post_init__(self) -> None:
         check_shape(self.points, "N,3", "points")
@@ -124,7 +129,7 @@ class PointCloudMap:
         Returns:
             :class:`RGBD` with rgb (B, 3, H, W) and depth (B, 1, H, W).
         """
-        out = render_points(self.points, self.colors, T_wc, camera, self.sizes)
+        out = render_points(self.points, self.colors, T_wc, camera, self.sizes, self.visibility)
         return RGBD(out.rgb, out.depth)
 
 

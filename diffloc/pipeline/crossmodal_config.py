@@ -43,6 +43,7 @@ from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.reloc.rendered import RenderedLocalizerConfig
 from diffloc.reloc.validation import ValidationConfig
 from diffloc.render.point_sizes import PointSizes
+from diffloc.render.screen_space import ScreenSpaceVisibility
 
 __all__ = [
     "MAP_OPTIONS",
@@ -81,8 +82,15 @@ class PointMapConfig:
             ``levels`` and rendered in passes merged by nearest depth, seed 2 Fig. 5).
         rho_min: smallest splat size, pixels.
         rho_max: Eq. 2 splat size at 1 m, pixels (also the sizes of the occlusion depth used
-            when colouring).
+            when colouring, unless ``occlusion_rho_max`` is set).
         levels: the multi-pass sizes, pixels.
+        visibility_radius: the database renders' screen-space visibility filter
+            (:mod:`~diffloc.render.screen_space`: a pixel that nearer splats enclose takes
+            their point): pixels searched in each of 8 directions; 0 turns it off.
+        visibility_sectors: directions (of 8) that must hold a nearer splat, in [5, 8].
+        visibility_depth_ratio: a splat is nearer below this times the pixel's depth.
+        occlusion_rho_max: the Eq. 2 size at 1 m of the occlusion depth the cloud is coloured
+            with (a point no mapping image sees unoccluded is dropped); ``None``: ``rho_max``.
     """
 
     point_map: str = "tls_map"
@@ -90,18 +98,63 @@ class PointMapConfig:
     rho_min: float = 1.0
     rho_max: float = 8.0
     levels: list[int] = field(default_factory=lambda: [1, 2, 4, 8])
+    visibility_radius: int = 0
+    visibility_sectors: int = 7
+    visibility_depth_ratio: float = 0.9
+    occlusion_rho_max: float | None = None
 
     def __post_init__(self) -> None:
         _check_point_map(self.point_map)
         if self.passes not in PASSES:
             raise ValueError(f"passes must be one of {PASSES}, got {self.passes!r}")
+        if isinstance(self.visibility_radius, bool) or not isinstance(self.visibility_radius, int):
+            raise ValueError(
+                f"visibility_radius must be an integer, got {self.visibility_radius!r}"
+            )
+        if self.visibility_radius < 0:
+            raise ValueError(f"visibility_radius must be >= 0, got {self.visibility_radius}")
         self.sizes()
+        self.visibility()
+        if self.occlusion_rho_max is not None and not (
+            math.isfinite(self.occlusion_rho_max) and self.occlusion_rho_max >= self.rho_min
+        ):
+            raise ValueError(
+                f"occlusion_rho_max must be a finite number >= rho_min ({self.rho_min}), "
+                f"got {self.occlusion_rho_max!r}"
+            )
 
     def sizes(self) -> PointSizes:
         """The splat sizes of the database renders."""
         if self.passes == "single":
             return PointSizes.inverse_depth(self.rho_min, self.rho_max)
         return PointSizes.multi_pass(self.rho_min, self.rho_max, tuple(self.levels))
+
+    def occlusion_sizes(self) -> PointSizes:
+        """The splat sizes of the occlusion depth the cloud is coloured with (Eq. 2 per point).
+
+        Example:
+            >>> PointMapConfig(rho_max=12.0).occlusion_sizes().rho_max
+            12.0
+            >>> PointMapConfig(rho_max=12.0, occlusion_rho_max=8.0).occlusion_sizes().rho_max
+            8.0
+        """
+        rho_max = self.rho_max if self.occlusion_rho_max is None else self.occlusion_rho_max
+        return PointSizes.inverse_depth(self.rho_min, rho_max)
+
+    def visibility(self) -> ScreenSpaceVisibility | None:
+        """The database renders' screen-space visibility filter (``None``: off).
+
+        Example:
+            >>> PointMapConfig().visibility() is None
+            True
+            >>> PointMapConfig(visibility_radius=16, visibility_sectors=6).visibility()
+            ScreenSpaceVisibility(radius=16, min_sectors=6, depth_ratio=0.9)
+        """
+        if self.visibility_radius == 0:
+            return None
+        return ScreenSpaceVisibility(
+            self.visibility_radius, self.visibility_sectors, self.visibility_depth_ratio
+        )
 
 
 @dataclass

@@ -307,7 +307,12 @@ def _map_settings(config: PointMapConfig | MeshMapConfig) -> dict:
     """The settings the map depends on: a cloud's colours depend on its occlusion sizes only
     (the render passes are the database's), a mesh on all of its settings."""
     if isinstance(config, PointMapConfig):
-        return {"point_map": config.point_map, "rho_min": config.rho_min, "rho_max": config.rho_max}
+        occlusion = config.occlusion_sizes()
+        return {
+            "point_map": config.point_map,
+            "rho_min": occlusion.rho_min,
+            "rho_max": occlusion.rho_max,
+        }
     return asdict(config)
 
 
@@ -320,8 +325,7 @@ def _make_cloud(
     show_progress: bool,
 ) -> tuple[ColoredCloudSummary, list[str]]:
     """Colour the cloud into ``work/colored_map.ply``; the summary and the outputs."""
-    occlusion = PointSizes.inverse_depth(config.rho_min, config.rho_max)
-    colored = colored_point_map(cloud, mapping, camera, occlusion, show_progress)
+    colored = colored_point_map(cloud, mapping, camera, config.occlusion_sizes(), show_progress)
     colored.save_ply(work / "colored_map.ply")
     summary = ColoredCloudSummary(
         map=map_option(config), points=len(cloud.points), colored_points=len(colored.positions)
@@ -401,7 +405,10 @@ def build_rgbd_map(
         outcome = stage.outcome(summary)
         if cloud:
             colored = PointMap.load_ply(folder / "colored_map.ply")
-            return PointCloudMap(colored.positions, colored.colors, config.sizes()), outcome
+            rgbd_map = PointCloudMap(
+                colored.positions, colored.colors, config.sizes(), config.visibility()
+            )
+            return rgbd_map, outcome
         return MeshMap(read_textured_mesh_obj(folder / "mesh" / "mesh.obj")), outcome
 
 
@@ -419,7 +426,8 @@ def build_rgbd_database(
 
     Args:
         dataset: the dataset folder.
-        config: the map settings (the render sizes of a cloud are part of the key).
+        config: the map settings (the render sizes of a cloud are part of the key, and its
+            screen-space visibility filter when it is on).
         database: features and NetVLAD settings.
         rgbd_map: the map and its outcome (:func:`build_rgbd_map`, or
             :func:`~diffloc.pipeline.crossmodal_nerf.build_nerf_map`).
@@ -431,10 +439,15 @@ def build_rgbd_database(
     folder = crossmodal_folder(dataset) / option / "database"
     renderer, map_outcome = rgbd_map
     T_wc, pose_outcome = poses
-    sizes = asdict(config.sizes()) if isinstance(config, PointMapConfig) else None
+    cloud = isinstance(config, PointMapConfig)
+    sizes = asdict(config.sizes()) if cloud else None
+    settings = {"database": asdict(database), "sizes": sizes, "camera": _camera(camera)}
+    visibility = config.visibility() if cloud else None
+    if visibility is not None:  # keyed only when on: the keys of the renders before stay
+        settings["visibility"] = asdict(visibility)
     map_output = MAP_OUTPUTS[type(config)]
     key = stage_key(
-        {"database": asdict(database), "sizes": sizes, "camera": _camera(camera)},
+        settings,
         {
             "map": map_outcome.outputs[map_output],
             "poses": pose_outcome.outputs["poses.npz"],
@@ -444,7 +457,8 @@ def build_rgbd_database(
     with open_stage(folder, "rgbd_database", command, LockLevel.DATABASE) as stage:
         summary = stage.reusable(key, RgbdDatabaseSummary)
         if summary is None:
-            source = f"{option} ({config.passes})" if sizes else option
+            filtered = ", screen-space visibility" if visibility is not None else ""
+            source = f"{option} ({config.passes}{filtered})" if cloud else option
             start, start_cpu = time.perf_counter(), time.process_time()
             db = render_database(
                 renderer, T_wc, camera, database, source, show_progress=show_progress

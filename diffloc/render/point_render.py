@@ -22,6 +22,7 @@ import torch
 from diffloc.checks import ShapeError, check_shape
 from diffloc.geometry.camera import MIN_DEPTH, PinholeCamera
 from diffloc.render.point_sizes import PointSizes
+from diffloc.render.screen_space import ScreenSpaceVisibility, hide_enclosed
 from diffloc.render.view import _check_camera, _check_map_size, _check_poses, _View, _views
 from diffloc.render.zbuffer import _CHUNK, _empty_keys, _pack_keys, _unpack_keys
 
@@ -182,12 +183,16 @@ def render_points(
     T_wc: torch.Tensor,
     camera: PinholeCamera,
     sizes: PointSizes | None = None,
+    visibility: ScreenSpaceVisibility | None = None,
 ) -> PointRender:
     """Render a coloured point cloud as square splats with a z-buffer (seed 2 Sec. III-D1).
 
     The splat size of each point follows ``sizes`` (default: 1 pixel): fixed, per-point inverse
     depth (Eq. 2) or the multi-pass scheme; see :class:`PointSizes`. Splats are flat: every
     pixel of a splat gets the point's depth; the nearest splat wins (ties: lower index).
+    With ``visibility``, pixels that nearer splats enclose in the image (see-through gaps and
+    small holes) then take that nearer surface's point
+    (:func:`~diffloc.render.screen_space.hide_enclosed`).
 
     Args:
         points: (N, 3) points, world frame (metres); rows with NaN/inf are culled.
@@ -195,6 +200,7 @@ def render_points(
         T_wc: (B, 4, 4) camera-to-world poses.
         camera: one camera or a batch of ``B`` (same image size); distortion allowed.
         sizes: splat sizes.
+        visibility: the screen-space visibility filter (default: none).
 
     Returns:
         A :class:`PointRender`: rgb (B, 3, H, W), depth (B, 1, H, W), ids (B, H, W),
@@ -224,7 +230,10 @@ def render_points(
             chunk = points[first : first + _CHUNK]
             _scatter_point_anchors(chunk, first, view, sizes, layout, anchors)
         keys.append(layout.merge(anchors))
-    ids, depth = _unpack_keys(torch.stack(keys))
+    keys = torch.stack(keys)
+    if visibility is not None:
+        keys = hide_enclosed(keys, visibility)
+    ids, depth = _unpack_keys(keys)
     mask = ids >= 0
     rgb = _gather_channels_first(colors.to(torch.float32), ids).masked_fill_(~mask[:, None], 0.0)
     return PointRender(rgb, depth[:, None], ids, mask[:, None])
