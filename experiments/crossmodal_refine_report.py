@@ -37,7 +37,7 @@ def main() -> None:
     body = (run / "results.md").read_text(encoding="utf-8").splitlines()
     lines = [body[0], "", *made_by_lines(commands)]
     lines += [args.note, ""] if args.note else []
-    lines += body[1:]
+    lines += [line for k, line in enumerate(body[1:]) if k or line]  # one blank line above
     write_report(Path(args.out), "\n".join(lines), {"commands": commands, "results": results})
     print(Path(args.out).with_suffix(".md").read_text(encoding="utf-8"))
 

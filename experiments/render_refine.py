@@ -3,7 +3,10 @@
 For every ``--every``-th frame of ``query_same`` with a localised pose (the relocaliser's
 ``estimates.tum``, camera-to-world, matched by timestamp), the pose is refined through a
 differentiable render of a map, and again from the true pose perturbed by each seeded
-``--perturb-m`` / ``--perturb-deg`` pair (the refinement's basin). ``--map`` picks the map:
+``--perturb-m`` / ``--perturb-deg`` pair (the refinement's basin; with no values, the localised
+starts only). The per-query work is the library's
+(:func:`diffloc.optim.render_refine.refine_query`, as ``diffloc task=crossmodal
+task.refine.enabled=true`` runs it). ``--map`` picks the map:
 
 - ``cloud``: the soft-splatted TLS cloud coloured from the mapping images (as
   ``task=crossmodal map=tls`` does: :func:`diffloc.pipeline.crossmodal_stage.colored_point_map`);
