@@ -50,6 +50,7 @@ from diffloc.io.lock import lock_config
 from diffloc.pipeline.build_map import MapSummary, build_maps
 from diffloc.pipeline.colmap_stage import ColmapExport, export_colmap
 from diffloc.pipeline.crossmodal_config import map_option
+from diffloc.pipeline.crossmodal_refine import check_refinable
 from diffloc.pipeline.crossmodal_stage import crossmodal_folder
 from diffloc.pipeline.crossmodal_task import run_crossmodal
 from diffloc.pipeline.database_stage import build_database, optimize_database
@@ -348,7 +349,10 @@ def check_values(cfg: DictConfig) -> None:
     for key in VALUE_NODES:
         if key in cfg:
             _build_node(cfg[key], key)
-    check_map_option(cfg.task.name, map_option(to_object(cfg.map)))
+    option = map_option(to_object(cfg.map))
+    check_map_option(cfg.task.name, option)
+    if cfg.task.name == "crossmodal" and cfg.task.refine.enabled:
+        check_refinable(option)
     if cfg.task.name in MAKE_DATASET:
         validate_scene_config(OmegaConf.to_object(cfg.scene))
 

@@ -3,7 +3,10 @@
 For every ``--every``-th frame of ``query_same`` with a localised pose (the relocaliser's
 ``estimates.tum``, camera-to-world, matched by timestamp), the pose is refined through a
 differentiable render of a map, and again from the true pose perturbed by each seeded
-``--perturb-m`` / ``--perturb-deg`` pair (the refinement's basin). ``--map`` picks the map:
+``--perturb-m`` / ``--perturb-deg`` pair (the refinement's basin; with no values, the localised
+starts only). The per-query work is the library's
+(:func:`diffloc.optim.render_refine.refine_query`, as ``diffloc task=crossmodal
+task.refine.enabled=true`` runs it). ``--map`` picks the map:
 
 - ``cloud``: the soft-splatted TLS cloud coloured from the mapping images (as
   ``task=crossmodal map=tls`` does: :func:`diffloc.pipeline.crossmodal_stage.colored_point_map`);
@@ -36,7 +39,6 @@ import math
 import os
 import shlex
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -45,24 +47,19 @@ import torch.nn.functional as F
 
 from diffloc.eval.report_files import made_by_lines, write_report
 from diffloc.features.local import XFeatConfig, XFeatExtractor
-from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import se3_exp
 from diffloc.io.dataset import read_sequence
 from diffloc.io.ply import read_point_cloud
 from diffloc.io.trajectory import read_tum
 from diffloc.maps.nerf.export import load_field
-from diffloc.maps.nerf.submaps import load_submaps, serving_submap
+from diffloc.maps.nerf.submaps import load_submaps
 from diffloc.maps.pointcloud import PointMap
 from diffloc.optim.render_refine import (
-    DifferentiableMap,
+    CloudMaps,
+    FieldSubmaps,
     MatchCheckConfig,
     RenderRefineConfig,
-    crop_to_view,
-    fit_query_appearance,
-    match_alignment_check,
-    point_cloud_map,
-    radiance_field_map,
-    refine_pose_by_rendering,
+    refine_query,
 )
 from diffloc.pipeline.crossmodal_stage import colored_point_map
 from diffloc.render.point_sizes import PointSizes
@@ -86,68 +83,30 @@ def coloured_cloud(scene: Path, voxel_m: float, cache: Path) -> PointMap:
     return coloured
 
 
-class CloudMaps:
-    """The TLS cloud, cropped to each start's view (one map, served index 0)."""
-
-    def __init__(self, args: argparse.Namespace, scene: Path) -> None:
-        cloud = coloured_cloud(scene, args.voxel_m, Path(args.cache))
-        cells = np.floor(cloud.positions.numpy() / args.thin_m)
-        _, first = np.unique(cells, axis=0, return_index=True)
-        first = torch.from_numpy(np.sort(first))
-        self.points = cloud.positions[first].double()
-        self.colours = cloud.colors[first].double()
-        self.args = args
-
-    def serving(self, T_wc: torch.Tensor) -> list[int]:
-        """(B, 4, 4) poses -> the map serving each: always 0."""
-        return [0] * len(T_wc)
-
-    def model(
-        self, served: int, T0: torch.Tensor, image: torch.Tensor, camera: PinholeCamera
-    ) -> tuple[DifferentiableMap, dict]:
-        keep = crop_to_view(self.points, T0, camera, self.args.max_depth_m)
-        cloud = point_cloud_map(self.points[keep], self.colours[keep], self.args.thin_m / 2)
-        return cloud, {"points": int(len(keep))}
+def cloud_maps(args: argparse.Namespace, scene: Path) -> CloudMaps:
+    """The TLS cloud, thinned to one point per ``--thin-m`` cell and cropped to each start's
+    view (one map, served index 0)."""
+    cloud = coloured_cloud(scene, args.voxel_m, Path(args.cache))
+    return CloudMaps(cloud.positions, cloud.colors, args.thin_m, args.max_depth_m)
 
 
-class FieldMaps:
+def field_maps(args: argparse.Namespace, scene: Path) -> FieldSubmaps:
     """The dataset's trained submap fields, each query served by one (module doc)."""
+    folder = Path(args.nerf_dir) if args.nerf_dir else scene / "nerf"
+    submaps, config = load_submaps(folder / "submaps.json")
 
-    def __init__(self, args: argparse.Namespace, scene: Path) -> None:
-        self.folder = Path(args.nerf_dir) if args.nerf_dir else scene / "nerf"
-        self.submaps, self.config = load_submaps(self.folder / "submaps.json")
-        self.mapping_T_wc = read_sequence(scene, "mapping").T_wc.double()
-        self.fields: dict[int, tuple] = {}
-        self.args, self.scene = args, scene
+    def load(k: int):
+        path = folder / f"submap_{k}" / "field"
+        if not (path / "field.json").is_file():
+            raise SystemExit(
+                f"{path} has no trained field: run `diffloc task=train_nerf "
+                f"dataset={scene} nerf.submap={k}` (with the run's nerf.* overrides)"
+            )
+        return load_field(path)
 
-    def serving(self, T_wc: torch.Tensor) -> list[int]:
-        """(B, 4, 4) poses -> the submap serving each (largest core-frame affinity)."""
-        return serving_submap(T_wc, self.submaps, self.mapping_T_wc, self.config).tolist()
-
-    def field(self, k: int) -> tuple:
-        """Submap ``k``'s field and density grid, frozen (loaded once)."""
-        if k not in self.fields:
-            path = self.folder / f"submap_{k}" / "field"
-            if not (path / "field.json").is_file():
-                raise SystemExit(
-                    f"{path} has no trained field: run `diffloc task=train_nerf "
-                    f"dataset={self.scene} nerf.submap={k}` (with the run's nerf.* overrides)"
-                )
-            field, grid = load_field(path)
-            field.eval().requires_grad_(False)
-            self.fields[k] = (field, grid)
-        return self.fields[k]
-
-    def model(
-        self, served: int, T0: torch.Tensor, image: torch.Tensor, camera: PinholeCamera
-    ) -> tuple[DifferentiableMap, dict]:
-        field, grid = self.field(served)
-        cpu = time.process_time()
-        code = fit_query_appearance(
-            field, grid, image.float(), T0.float(), camera, steps=self.args.fit_steps
-        )
-        fit_ms = 1e3 * (time.process_time() - cpu)
-        return radiance_field_map(field, grid, code), {"submap": served, "fit_cpu_ms": fit_ms}
+    mapping_T_wc = read_sequence(scene, "mapping").T_wc
+    every = [s.index for s in submaps]
+    return FieldSubmaps(submaps, config, mapping_T_wc, load, every, args.fit_steps)
 
 
 def pose_errors(T: torch.Tensor, T_gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -199,10 +158,10 @@ def query_frames(args: argparse.Namespace, maps, seq, stamps, T_est: torch.Tenso
 
 def run(args: argparse.Namespace) -> list[dict]:
     scene = Path(args.scene)
-    maps = CloudMaps(args, scene) if args.map == "cloud" else FieldMaps(args, scene)
+    maps = cloud_maps(args, scene) if args.map == "cloud" else field_maps(args, scene)
     seq = read_sequence(scene, "query_same")
     stamps, T_est_all = read_tum(args.estimates)
-    camera = seq.camera.scaled(args.scale).to(torch.float64)
+    camera = seq.camera.scaled(args.scale)  # the refinement's size, for the record
     config = RenderRefineConfig(
         levels=tuple(args.levels),
         iterations=args.iterations,
@@ -218,7 +177,6 @@ def run(args: argparse.Namespace) -> list[dict]:
     rows = []
     for frame, k, served in query_frames(args, maps, seq, stamps, T_est_all):
         full = seq.load_rgb(frame)[None].double()
-        image = F.interpolate(full, (camera.height, camera.width), mode="area")
         T_gt = seq.T_wc[frame][None].double()
         starts = {} if args.skip_localised else {"localised": T_est_all[k][None].double()}
         for metres, degrees in perturbations(vars(args)):
@@ -226,23 +184,14 @@ def run(args: argparse.Namespace) -> list[dict]:
                 T_gt, metres, degrees, args.seed + frame
             )
         for name, T0 in starts.items():
-            cpu, wall = time.process_time(), time.perf_counter()
-            model, info = maps.model(served, T0, image, camera)
-            verify = None
-            if check:
-                check_cpu = time.process_time()
-                verify = timed(match_alignment_check(model, full, seq.camera, extractor, check))
-                info["check_cpu_ms"] = 1e3 * (time.process_time() - check_cpu)
-            result = refine_pose_by_rendering(
-                model, image, T0, camera, config=config, verify=verify
+            refined = refine_query(
+                maps, served, full, T0, seq.camera, args.scale, config, check, extractor
             )
-            cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+            result, info = refined.result, dict(refined.info)
             if result.evidence is not None:
                 info |= evidence_record(result.evidence)
-            if verify is not None:
-                info["check_cpu_ms"] += verify.cpu_ms
             before, after = pose_errors(T0, T_gt), pose_errors(result.T_wc, T_gt)
-            refined = pose_errors(result.T_refined, T_gt)
+            moved = pose_errors(result.T_refined, T_gt)
             rows.append(
                 {
                     "frame": frame,
@@ -252,14 +201,14 @@ def run(args: argparse.Namespace) -> list[dict]:
                     "r_before_deg": float(before[1][0]),
                     "t_after_m": float(after[0][0]),
                     "r_after_deg": float(after[1][0]),
-                    "t_refined_m": float(refined[0][0]),
-                    "r_refined_deg": float(refined[1][0]),
+                    "t_refined_m": float(moved[0][0]),
+                    "r_refined_deg": float(moved[1][0]),
                     "accepted": bool(result.accepted[0]),
                     "correlation": float(result.correlation[0]),
                     "cost_before": float(result.cost_before[0]),
                     "cost_after": float(result.cost_after[0]),
-                    "cpu_ms": 1e3 * cpu,
-                    "wall_ms": 1e3 * wall,
+                    "cpu_ms": refined.cpu_ms,
+                    "wall_ms": refined.wall_ms,
                 }
             )
             print(json.dumps(rows[-1]), flush=True)
@@ -284,20 +233,6 @@ def check_config(args: argparse.Namespace) -> MatchCheckConfig | None:
         min_fraction=args.check_min_fraction,
         min_gain=args.check_min_gain,
     )
-
-
-class timed:  # noqa: N801 (a function wrapper)
-    """A verifier that adds up the CPU time of its calls in ``cpu_ms``."""
-
-    def __init__(self, verify) -> None:
-        self.verify, self.cpu_ms = verify, 0.0
-
-    def __call__(self, T_init: torch.Tensor, T_refined: torch.Tensor):
-        cpu = time.process_time()
-        try:
-            return self.verify(T_init, T_refined)
-        finally:
-            self.cpu_ms += 1e3 * (time.process_time() - cpu)
 
 
 def evidence_record(evidence) -> dict:
@@ -581,8 +516,10 @@ def main() -> None:
     parser.add_argument("--nerf-dir", default="", help="nerf: train_nerf's folder")
     parser.add_argument("--submaps", type=int, nargs="*", default=[], help="nerf: served by")
     parser.add_argument("--fit-steps", type=int, default=60, help="nerf: appearance fit steps")
-    parser.add_argument("--perturb-m", type=float, nargs="+", default=[0.10])
-    parser.add_argument("--perturb-deg", type=float, nargs="+", default=[2.0])
+    parser.add_argument(
+        "--perturb-m", type=float, nargs="*", default=[0.10], help="none: localised starts only"
+    )
+    parser.add_argument("--perturb-deg", type=float, nargs="*", default=[2.0])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--skip-localised", action="store_true", help="refine the perturbed starts only"

@@ -153,6 +153,32 @@ def test_a_second_run_reuses_every_stage(dataset, first, tmp_path, monkeypatch):
     assert again["sequences"]["query_same"]["rates"] == first[0]["sequences"]["query_same"]["rates"]
 
 
+def test_the_refinement_runs_after_the_localization_and_is_reported(
+    dataset, first, tmp_path, monkeypatch
+):
+    _refuse(monkeypatch, UPSTREAM)
+    settings = (
+        "task.refine.enabled=true",
+        "task.refine.image_scale=0.5",
+        "task.refine.verify=false",
+    )
+    results = _run(dataset, tmp_path, *settings)
+    entry = results["sequences"]["query_same"]
+    refine = entry["refine"]
+    assert refine["localised"] == refine["refined"] == entry["accepted"] >= 1
+    assert 0 <= refine["kept"] <= refine["refined"] and refine["median_cpu_ms"] > 0
+    assert refine["rates_before"] == entry["rates"]
+    assert results["stages"]["refine_query_same"]["localised"] == entry["accepted"]
+    assert results["refine"]["image_scale"] == 0.5
+    times, poses = read_tum(tmp_path / "trajectory_query_same_refined.tum")
+    assert len(times) == entry["accepted"] and np.isfinite(poses).all()
+    assert (
+        "Render-and-compare refinement of the accepted poses"
+        in (tmp_path / "results.md").read_text()
+    )
+    assert (dataset / "crossmodal" / "tls" / "refine_query_same" / "refine.json").is_file()
+
+
 def test_a_changed_localizer_setting_runs_only_the_localization(
     dataset, first, tmp_path, monkeypatch
 ):

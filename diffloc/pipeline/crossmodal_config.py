@@ -30,7 +30,7 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 from diffloc.checks import check_number, check_positive_int
@@ -40,6 +40,7 @@ from diffloc.crossmodal.mesh_map import POINT_MAPS, TexturedMeshConfig
 from diffloc.crossmodal.pose_selection import PoseSelectionConfig
 from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig
 from diffloc.maps.surfel import SurfelMapConfig
+from diffloc.optim.render_refine import MatchCheckConfig, RenderRefineConfig
 from diffloc.reloc.rendered import RenderedLocalizerConfig
 from diffloc.reloc.validation import ValidationConfig
 from diffloc.render.point_sizes import PointSizes
@@ -47,6 +48,8 @@ from diffloc.render.screen_space import ScreenSpaceVisibility
 
 __all__ = [
     "MAP_OPTIONS",
+    "REFINE_MAPS",
+    "CrossmodalRefineConfig",
     "CrossmodalTaskConfig",
     "HybridMapConfig",
     "ImageMapConfig",
@@ -269,6 +272,65 @@ def map_option(config: object) -> str:
     raise TypeError(f"not a map config: {type(config).__name__}")
 
 
+REFINE_MAPS = ("nerf", "tls", "cloud")
+"""The ``map`` options whose map the refinement renders differentiably: the radiance-field
+submaps and the coloured point clouds."""
+
+
+@dataclass
+class CrossmodalRefineConfig:
+    """``task.refine``: render-and-compare refinement of every accepted pose
+    (:mod:`diffloc.pipeline.crossmodal_refine`, :mod:`diffloc.optim.render_refine`).
+
+    Attributes:
+        enabled: refine after each sequence's localisation (``map=nerf``, ``tls``, ``cloud``;
+            refused with the others).
+        image_scale: the query is compared at this share of its own size (0.125: 80x60 of
+            640x480).
+        fit_steps: ``map=nerf``: Adam steps of the query's appearance-code fit at its
+            localised pose.
+        render: the refinement's settings (levels, iterations, acceptance); the correlation
+            floor 0.7 was chosen on indoor seed 0 (README, "Render-and-compare pose
+            refinement").
+        verify: also require the match check (:attr:`check`) before a refined pose is kept.
+        check: the match check's settings.
+        cloud_spacing_m: ``map=tls|cloud``: the coloured cloud is thinned to one point per
+            cell of this size (splats of half its radius).
+        cloud_max_depth_m: ``map=tls|cloud``: points farther from the query are not rendered.
+
+    Example:
+        >>> cfg = CrossmodalRefineConfig()
+        >>> cfg.enabled, cfg.render.levels, cfg.render.min_correlation, cfg.check.width
+        (False, (0.25, 0.5, 1.0), 0.7, 256)
+    """
+
+    enabled: bool = False
+    image_scale: float = 0.125
+    fit_steps: int = 60
+    render: RenderRefineConfig = field(
+        default_factory=lambda: RenderRefineConfig(min_correlation=0.7)
+    )
+    verify: bool = True
+    check: MatchCheckConfig = field(default_factory=MatchCheckConfig)
+    cloud_spacing_m: float = 0.1
+    cloud_max_depth_m: float = 8.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.image_scale <= 1.0:
+            raise ValueError(f"task.refine.image_scale must be in (0, 1], got {self.image_scale}")
+        check_positive_int(self.fit_steps, "task.refine.fit_steps")
+        for name in ("cloud_spacing_m", "cloud_max_depth_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"task.refine.{name} must be positive, got {value}")
+
+    def settings(self) -> dict:
+        """Everything but :attr:`enabled`: what a refinement's result depends on."""
+        out = asdict(self)
+        del out["enabled"]
+        return out
+
+
 POSE_SETTINGS = {
     "floor_closing_m": "floor_closing_radius_m",
     "trajectory_gap_m": "trajectory_gap_m",
@@ -325,6 +387,7 @@ class CrossmodalTaskConfig:
         loose_m: position bound of the loose localisation criterion (with 30 deg): 1 m
             indoors, 2 m outdoors (seed 2).
         plot_queries: queries shown beside their retrieved render per sequence.
+        refine: render-and-compare refinement of the accepted poses (off by default).
     """
 
     name: str = "crossmodal"
@@ -345,6 +408,7 @@ class CrossmodalTaskConfig:
     validation: dict[str, dict[str, Any]] = field(default_factory=dict)
     loose_m: float = 1.0
     plot_queries: int = 4
+    refine: CrossmodalRefineConfig = field(default_factory=CrossmodalRefineConfig)
 
     def __post_init__(self) -> None:
         check_positive_int(self.every, "every")

@@ -19,8 +19,15 @@ The only place the task reads the query sequences' ground-truth poses. Per seque
   matched, mean CPU ms per stage (:data:`~diffloc.reloc.stage_clock.STAGES`) and the median
   CPU ms of one LighterGlue match.
 
+With ``task.refine.enabled`` (:func:`score_refinement`): the same rates before and after the
+refinement of the accepted poses, median and p90 translation and rotation errors of the
+localised queries before and after, the share of refined poses kept, those kept that ended
+farther from the true position than they started, and the median CPU and wall ms per refined
+query.
+
 Files in the run folder: ``results.md`` and ``results.json`` (the same figures),
-``trajectory_<sequence>.tum`` (the accepted poses, for ``evo_ape tum``),
+``trajectory_<sequence>.tum`` (the accepted poses, for ``evo_ape tum``;
+``trajectory_<sequence>_refined.tum``: the same after the refinement),
 ``retrieved_<sequence>.png`` (queries beside the render their pose came from) and
 ``trajectory_<sequence>.png`` (top-down).
 
@@ -45,6 +52,7 @@ from diffloc.eval.plots import plot_trajectory_topdown
 from diffloc.features.retrieval_eval import pairwise_pose_distances
 from diffloc.io.images import write_rgb
 from diffloc.io.sequence import SequenceData
+from diffloc.pipeline.crossmodal_refine import SequenceRefinement
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization, scaled_images
 from diffloc.reloc.stage_clock import STAGES
 
@@ -54,7 +62,9 @@ __all__ = [
     "markdown_table",
     "nearest_renders",
     "plot_retrieved",
+    "refinement_table",
     "retrieval_hits",
+    "score_refinement",
     "score_sequence",
     "thresholds",
     "time_breakdown",
@@ -183,6 +193,133 @@ def score_sequence(
         "median_ms_per_query": float(np.median(loc.time_ms)),
         "time": time_breakdown(loc),
     }
+
+
+def _spread(values: np.ndarray) -> dict[str, float | None]:
+    """Median and p90 of ``values`` (``None`` for none)."""
+    if not len(values):
+        return {"median": None, "p90": None}
+    return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90))}
+
+
+def score_refinement(
+    loc: SequenceLocalization, refinement: SequenceRefinement, T_gt: torch.Tensor, loose_m: float
+) -> dict:
+    """The refinement's figures of one sequence (module docstring).
+
+    Args:
+        loc: the localiser's answers (Q queries).
+        refinement: the refinement of its accepted ones.
+        T_gt: (Q, 4, 4) true poses of the localised frames.
+        loose_m: the loose bound.
+
+    Returns:
+        ``rates_before`` / ``rates_after`` (:func:`localization_rates`), ``before`` /
+        ``after``: median and p90 of ``translation_m`` and ``rotation_deg`` over the accepted
+        queries, ``localised``, ``refined`` (served by the map), ``kept`` and its share of the
+        refined, ``wrong_kept`` (kept, ending farther from the true position than it started),
+        ``closer`` (refined queries whose refinement ended nearer the true position than it
+        started, kept or not), ``all_kept``: median and p90 errors of the refined queries had
+        every refined pose been kept (what the acceptance rule chose from),
+        ``median_cpu_ms`` / ``median_wall_ms`` per refined query (``None`` for none).
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> T_gt = torch.eye(4, dtype=torch.float64)[None].repeat(2, 1, 1)
+        >>> start = np.tile(np.eye(4), (2, 1, 1)); start[:, 0, 3] = [0.1, 0.3]
+        >>> after = start.copy(); after[0, 0, 3] = 0.02
+        >>> loc = SimpleNamespace(T_wc=start, accepted=np.array([True, True]))
+        >>> one = lambda *v: np.array(v)
+        >>> ref = SimpleNamespace(query=one(0, 1), T_wc_start=start, T_wc_refined=after,
+        ...     T_wc=after, kept=one(True, False), served=one(0, 0), cpu_ms=one(10.0, 30.0),
+        ...     wall_ms=one(20.0, 40.0), answers=lambda loc: after)
+        >>> s = score_refinement(loc, ref, T_gt, 1.0)
+        >>> s["kept"], s["wrong_kept"], round(s["after"]["translation_m"]["median"], 2)
+        (1, 0, 0.16)
+        >>> s["closer"], round(s["all_kept"]["translation_m"]["median"], 2)
+        (1, 0.16)
+        >>> s["rates_before"]["0.25m_2deg"], s["rates_after"]["0.25m_2deg"]
+        (0.5, 0.5)
+    """
+    accepted = loc.accepted.astype(bool)
+    before = pose_errors(loc.T_wc, T_gt.numpy(), accepted)
+    after = pose_errors(refinement.answers(loc), T_gt.numpy(), accepted)
+    gt = T_gt.numpy()[refinement.query]
+    moved = np.linalg.norm(refinement.T_wc_refined[:, :3, 3] - gt[:, :3, 3], axis=-1)
+    started = np.linalg.norm(refinement.T_wc_start[:, :3, 3] - gt[:, :3, 3], axis=-1)
+    refined = refinement.served >= 0
+    kept = refinement.kept.astype(bool)
+
+    def spread(errors: PoseErrors, rows: np.ndarray = accepted) -> dict:
+        return {
+            "translation_m": _spread(errors.translation_m[rows]),
+            "rotation_deg": _spread(errors.rotation_deg[rows]),
+        }
+
+    moves = pose_errors(refinement.T_wc_refined[refined], gt[refined], np.ones(refined.sum(), bool))
+
+    def median(values: np.ndarray) -> float | None:
+        return float(np.median(values)) if len(values) else None
+
+    return {
+        "rates_before": localization_rates(
+            before.translation_m, before.rotation_deg, accepted, loose_m
+        ),
+        "rates_after": localization_rates(
+            after.translation_m, after.rotation_deg, accepted, loose_m
+        ),
+        "before": spread(before),
+        "after": spread(after),
+        "localised": int(accepted.sum()),
+        "refined": int(refined.sum()),
+        "kept": int(kept.sum()),
+        "kept_share": float(kept.sum() / refined.sum()) if refined.any() else None,
+        "wrong_kept": int((kept & (moved > started)).sum()),
+        "closer": int((refined & (moved < started)).sum()),
+        "all_kept": spread(moves, np.ones(len(moves.translation_m), bool)),
+        "median_cpu_ms": median(refinement.cpu_ms[refined]),
+        "median_wall_ms": median(refinement.wall_ms[refined]),
+    }
+
+
+def refinement_table(rows: dict[str, dict], loose_m: float) -> str:
+    """Markdown: per sequence the :func:`score_refinement` figures in ``rows[name]["refine"]``,
+    "before -> after"."""
+    head = ["sequence", "refined", "kept (wrong)", "ended closer"]
+    head += [f"{m:g} m / {d:g} deg" for m, d in thresholds(loose_m)]
+    head += ["t median", "t p90", "r median", "r p90", "t median / p90 had all been kept"]
+    head += ["CPU ms / query"]
+
+    def cm(x: float | None) -> str:
+        return "-" if x is None else f"{100 * x:.2f} cm"
+
+    def deg(x: float | None) -> str:
+        return "-" if x is None else f"{x:.3f} deg"
+
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, r in rows.items():
+        f = r["refine"]
+        t = [f[when]["translation_m"] for when in ("before", "after")]
+        a = [f[when]["rotation_deg"] for when in ("before", "after")]
+        cells = [
+            name,
+            f"{f['refined']} of {f['localised']}",
+            f"{f['kept']} ({f['wrong_kept']})",
+            str(f["closer"]),
+            *[
+                f"{100 * f['rates_before'][k]:.1f} -> {100 * f['rates_after'][k]:.1f} %"
+                for k in f["rates_before"]
+            ],
+            f"{cm(t[0]['median'])} -> {cm(t[1]['median'])}",
+            f"{cm(t[0]['p90'])} -> {cm(t[1]['p90'])}",
+            f"{deg(a[0]['median'])} -> {deg(a[1]['median'])}",
+            f"{deg(a[0]['p90'])} -> {deg(a[1]['p90'])}",
+            f"{cm(f['all_kept']['translation_m']['median'])} / "
+            f"{cm(f['all_kept']['translation_m']['p90'])}",
+            "-" if f["median_cpu_ms"] is None else f"{f['median_cpu_ms']:.0f}",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def time_breakdown(loc: SequenceLocalization) -> dict:

@@ -8,7 +8,9 @@ localisation of each ``task.sequences`` (each a cached stage,
 :mod:`diffloc.pipeline.crossmodal_stage`; ``map=images``: the database of the mapping images,
 :mod:`diffloc.pipeline.crossmodal_images`, then the same localisation; ``map=hybrid``: both
 databases of ``map=images`` and ``map=mesh``, then their union,
-:mod:`diffloc.pipeline.crossmodal_hybrid`) -> scores, ``results.md``, ``results.json``, TUM
+:mod:`diffloc.pipeline.crossmodal_hybrid`) -> (``task.refine.enabled``, ``map=nerf|tls|cloud``:
+render-and-compare refinement of each sequence's accepted poses, a cached stage of its own,
+:mod:`diffloc.pipeline.crossmodal_refine`) -> scores, ``results.md``, ``results.json``, TUM
 files and plots in the run folder (:mod:`diffloc.pipeline.crossmodal_report`). A rerun with
 the same settings reuses every stage; a changed ``task.localizer`` setting runs only the
 localisation again.
@@ -40,18 +42,29 @@ from diffloc.pipeline.crossmodal_config import (
 from diffloc.pipeline.crossmodal_hybrid import build_hybrid_database
 from diffloc.pipeline.crossmodal_images import build_image_database
 from diffloc.pipeline.crossmodal_nerf import build_nerf_map
+from diffloc.pipeline.crossmodal_refine import (
+    MapSource,
+    check_refinable,
+    cloud_source,
+    field_source,
+    refine_sequence,
+)
 from diffloc.pipeline.crossmodal_report import (
     markdown_table,
     plot_retrieved,
     plot_trajectory,
+    refinement_table,
+    score_refinement,
     score_sequence,
     time_table,
 )
 from diffloc.pipeline.crossmodal_retrieval import tune_retrieval_stage
 from diffloc.pipeline.crossmodal_stage import (
+    MAP_OUTPUTS,
     MAPPING,
     build_rgbd_database,
     build_rgbd_map,
+    crossmodal_folder,
     localize_sequence,
     render_pose_stage,
 )
@@ -103,6 +116,8 @@ def run_crossmodal(
     start = time.perf_counter()
     dataset, out = Path(dataset), Path(out)
     option = map_option(map_config)
+    if task.refine.enabled:
+        check_refinable(option)
     if task.tune_retrieval and isinstance(map_config, ImageMapConfig | HybridMapConfig):
         raise ValueError(
             f"task.tune_retrieval tunes a rendered map's NetVLAD across the render/real gap; "
@@ -117,7 +132,7 @@ def run_crossmodal(
         real = build_image_database(
             dataset, map_config.images(), task.database, camera, show_progress
         )
-        rendered, stages = _rendered_database(
+        rendered, stages, _ = _rendered_database(
             dataset, map_config.mesh, task, camera, nerf, show_progress
         )
         database = build_hybrid_database(
@@ -129,9 +144,11 @@ def run_crossmodal(
             "database": database[1].summary.to_json(),
         }
     else:
-        database, stages = _rendered_database(
+        database, stages, map_outcome = _rendered_database(
             dataset, map_config, task, camera, nerf, show_progress
         )
+        if task.refine.enabled:
+            source = _refine_source(dataset, map_config, map_outcome, task)
         if task.tune_retrieval:
             tuned, retrieval = tune_retrieval_stage(
                 dataset, option, task.retrieval, database, show_progress
@@ -169,6 +186,17 @@ def run_crossmodal(
                 out / f"trajectory_{name}.png", loc, T_gt, f"{name} in {option} ({dataset.name})"
             ),
         }
+        if task.refine.enabled:
+            refinement, refined = refine_sequence(
+                dataset, option, name, (loc, outcome), source, task.refine, show_progress
+            )
+            stages[f"refine_{name}"] = refined.summary.to_json()
+            scores["refine"] = score_refinement(loc, refinement, T_gt, task.loose_m)
+            files["refined_tum"] = out / f"trajectory_{name}_refined.tum"
+            refined_T_wc = refinement.answers(loc)
+            write_tum(
+                files["refined_tum"], seq.timestamps[loc.frames][accepted], refined_T_wc[accepted]
+            )
         sequences[name] = {**scores, "files": {k: str(v) for k, v in files.items()}}
     results = {
         "dataset": str(dataset),
@@ -180,6 +208,7 @@ def run_crossmodal(
         "loose_m": task.loose_m,
         "every": task.every,
         "prior": None if prior is None else asdict(prior),
+        "refine": asdict(task.refine) if task.refine.enabled else None,
         "sequences": sequences,
         "machine": f"{platform.node()} {os.cpu_count()} cores, load {os.getloadavg()}",
         "wall_s": round(time.perf_counter() - start, 1),
@@ -190,6 +219,20 @@ def run_crossmodal(
     return results
 
 
+def _refine_source(
+    dataset: Path,
+    map_config: PointMapConfig | MeshMapConfig | NerfMapConfig,
+    map_outcome: StageOutcome,
+    task: CrossmodalTaskConfig,
+) -> MapSource:
+    """The map stage's output the refinement renders (``map=nerf``: the submap fields;
+    ``map=tls|cloud``: the coloured cloud; :func:`check_refinable` refused the others)."""
+    output = MAP_OUTPUTS[type(map_config)]
+    path = crossmodal_folder(dataset) / map_option(map_config) / "map" / output
+    make = field_source if isinstance(map_config, NerfMapConfig) else cloud_source
+    return make(path, map_outcome.outputs[output], task.refine)
+
+
 def _rendered_database(
     dataset: Path,
     map_config: PointMapConfig | MeshMapConfig | NerfMapConfig,
@@ -197,9 +240,10 @@ def _rendered_database(
     camera: PinholeCamera,
     nerf: TrainNerfConfig | None,
     show_progress: bool,
-) -> tuple[tuple[RenderedDatabase, StageOutcome], dict[str, dict]]:
+) -> tuple[tuple[RenderedDatabase, StageOutcome], dict[str, dict], StageOutcome]:
     """Render poses -> map -> database of a rendered map (each made or reused): the database
-    with its outcome, and the three stages' summaries by :data:`STAGES` name."""
+    with its outcome, the three stages' summaries by :data:`STAGES` name, and the map stage's
+    outcome."""
     option = map_option(map_config)
     poses = render_pose_stage(
         dataset, map_config.point_map, task.poses_for(map_config.point_map), option
@@ -215,7 +259,7 @@ def _rendered_database(
     stages = {
         name: outcome.summary.to_json() for name, outcome in zip(STAGES, outcomes, strict=True)
     }
-    return database, stages
+    return database, stages, rgbd_map[1]
 
 
 def _markdown(results: dict) -> str:
@@ -253,5 +297,40 @@ def _markdown(results: dict) -> str:
             "(query left, the render its pose came from, or its top-1 render, right) and "
             "`trajectory_<sequence>.png` (top-down, ground truth in black).",
             "",
+            *_refinement_markdown(results),
         ]
     )
+
+
+def _refinement_markdown(results: dict) -> list[str]:
+    """The refinement's section of ``results.md`` (none when ``task.refine`` was off)."""
+    refine = results["refine"]
+    if refine is None:
+        return []
+    render, check = refine["render"], refine["check"]
+    rule = (
+        f"cost drop > {100 * render['min_improvement']:g} % and correlation >= "
+        f"{render['min_correlation']:g}"
+    )
+    if refine["verify"]:
+        rule += (
+            f", and the match check at {check['width']} px width (>= {check['min_inliers']} "
+            f"XFeat matches aligned within {check['inlier_px']:g} px, >= "
+            f"{100 * check['min_fraction']:g} % of them, >= {check['min_gain']:g} x the start's)"
+        )
+    return [
+        "Render-and-compare refinement of the accepted poses (`task.refine`; before -> after; "
+        f"queries at {refine['image_scale']:g} of their size, levels {render['levels']}, "
+        f"{render['iterations']} LM iterations per level; a refined pose is kept if {rule}; "
+        "rates over all queries, errors over the localised ones; kept (wrong): refined poses "
+        "kept, of them ending farther from the true position than they started; ended closer: "
+        "refinements that ended nearer the true position than they started, kept or not; "
+        "had all been kept: the refined queries' errors without the acceptance rule; CPU ms: "
+        "median process CPU per refined query, the appearance fit and the check included; its "
+        "load average is in results.json, stages.refine_<sequence>):",
+        "",
+        refinement_table(results["sequences"], results["loose_m"]),
+        "",
+        "`trajectory_<sequence>_refined.tum`: the accepted poses after the refinement.",
+        "",
+    ]

@@ -57,6 +57,11 @@ Example:
     >>> RenderRefineConfig().min_correlation
     0.5
 
+Per query, against the part of a map serving it (a thinned cloud or radiance-field submaps,
+:mod:`~diffloc.optim.render_refine.sources`), with the appearance fit, the match check and
+the timing: :func:`refine_query` (what ``experiments/render_refine.py`` and ``diffloc
+task=crossmodal task.refine.enabled=true`` run).
+
 Usage::
 
     cloud = point_cloud_map(points, colors, radius_m=0.02)      # or radiance_field_map(...)
@@ -72,6 +77,7 @@ from diffloc.optim.render_refine.linearization import (
     forward_mode_linearization,
 )
 from diffloc.optim.render_refine.point_cloud import crop_to_view, point_cloud_map
+from diffloc.optim.render_refine.query import QueryRefinement, TimedVerifier, refine_query
 from diffloc.optim.render_refine.radiance_field import fit_query_appearance, radiance_field_map
 from diffloc.optim.render_refine.refine import RefineResult, refine_pose_by_rendering
 from diffloc.optim.render_refine.residuals import (
@@ -80,6 +86,7 @@ from diffloc.optim.render_refine.residuals import (
     compared_residuals,
     mean_robust_cost,
 )
+from diffloc.optim.render_refine.sources import NO_MAP, CloudMaps, FieldSubmaps, QueryMaps
 from diffloc.optim.render_refine.verification import (
     MatchCheckConfig,
     MatchEvidence,
@@ -89,13 +96,19 @@ from diffloc.optim.render_refine.verification import (
 )
 
 __all__ = [
+    "NO_MAP",
+    "CloudMaps",
     "DifferentiableMap",
+    "FieldSubmaps",
     "LinearizeFn",
     "MatchCheckConfig",
     "MatchEvidence",
+    "QueryMaps",
+    "QueryRefinement",
     "RefineResult",
     "RenderFn",
     "RenderRefineConfig",
+    "TimedVerifier",
     "Verifier",
     "affine_colour_fit",
     "colour_correlation",
@@ -109,4 +122,5 @@ __all__ = [
     "point_cloud_map",
     "radiance_field_map",
     "refine_pose_by_rendering",
+    "refine_query",
 ]
