@@ -29,6 +29,7 @@ from diffloc.pipeline.crossmodal_refine import MapSource, refine_sequence
 from diffloc.pipeline.crossmodal_task import run_crossmodal
 from diffloc.pipeline.stage import StageOutcome
 from tests.localization_records import sequence_localization
+from tests.test_render_refine import wall_and_floor
 
 CAMERA = PinholeCamera.from_fov(48, 36, 1.2)
 SPACING_M = 0.05
@@ -49,20 +50,8 @@ OFFSET = torch.tensor([[0.02, -0.02, 0.02, 0.01, -0.01, 0.008]], dtype=torch.flo
 """A right perturbation of 3.5 cm and 0.9 deg."""
 
 
-def wall_and_floor() -> tuple[torch.Tensor, torch.Tensor]:
-    """(N, 3) points of a textured wall 3 m ahead and a floor strip 1 m below, colours."""
-    g = torch.arange(-3.5, 3.5, SPACING_M, dtype=torch.float64)
-    a, b = (t.flatten() for t in torch.meshgrid(g, g, indexing="ij"))
-    wall = torch.stack((a, b, torch.full_like(a, 3.0)), 1)
-    strip = (b + 3.5 > 1.2) & (b + 3.5 < 3.0)
-    floor = torch.stack((a, torch.full_like(a, 1.0), b + 3.5), 1)[strip]
-    p = torch.cat((wall, floor))
-    colours = 0.5 + 0.2 * torch.sin(4 * p + 2 * p[:, [1, 2, 0]])
-    return p, (colours + 0.15 * torch.cos(9 * p[:, [2, 0, 1]] - 5 * p)).clamp(0, 1)
-
-
 def cloud() -> CloudMaps:
-    points, colours = wall_and_floor()
+    points, colours = wall_and_floor(SPACING_M)
     return CloudMaps(points, colours, SPACING_M, 8.0)
 
 
