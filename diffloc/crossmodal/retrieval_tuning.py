@@ -29,10 +29,12 @@ import torch
 from diffloc.checks import ShapeError, check_positive_int, check_shape
 from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.features.dense import DenseXFeat
+from diffloc.features.learned_whitening import LearnedWhiteningConfig
 from diffloc.features.netvlad_training import FinetuneConfig, FinetuneResult, finetune_netvlad
 from diffloc.progress import progress
 
 __all__ = [
+    "RETRIEVAL_METHODS",
     "REAL",
     "RENDER",
     "RetrievalTuningConfig",
@@ -45,25 +47,38 @@ __all__ = [
 REAL, RENDER = 0, 1
 """Domain labels of the mapping images and the renders."""
 
+RETRIEVAL_METHODS = ("finetune", "whitening")
+"""How the mapping images teach the retrieval: triplet fine-tuning of the layer
+(:func:`tune_render_retrieval`) or a learned whitening of its descriptors
+(:func:`~diffloc.crossmodal.retrieval_whitening.whiten_render_retrieval`)."""
+
 
 @dataclass
 class RetrievalTuningConfig:
     """Settings of :func:`tune_render_retrieval`.
 
     Attributes:
+        method: one of :data:`RETRIEVAL_METHODS`.
         mapping_every: every n-th mapping image is a training image.
         finetune: triplet thresholds and optimisation (positives within 1 m / 30 deg,
-            negatives beyond 5 m, 5 hard negatives, margin 0.1 on squared distances).
+            negatives beyond 5 m, 5 hard negatives, margin 0.1 on squared distances); the
+            whitening takes its same-place pairs within ``finetune.triplets``' positive
+            bounds.
+        whitening: dimensions and shrinkage of the learned whitening.
         batch_size: images per XFeat pass.
         seed: seed of the tuple sampling and the batch order.
     """
 
+    method: str = "finetune"
     mapping_every: int = 1
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
+    whitening: LearnedWhiteningConfig = field(default_factory=LearnedWhiteningConfig)
     batch_size: int = 8
     seed: int = 0
 
     def __post_init__(self) -> None:
+        if self.method not in RETRIEVAL_METHODS:
+            raise ValueError(f"method must be one of {RETRIEVAL_METHODS}, got {self.method!r}")
         check_positive_int(self.mapping_every, "mapping_every")
         check_positive_int(self.batch_size, "batch_size")
 
@@ -75,13 +90,16 @@ class TunedRetrieval:
     Attributes:
         database: the input database with the tuned ``netvlad`` and its renders'
             ``global_descriptors`` (images, depth and local features are the same objects).
-        result: the loss history (:class:`~diffloc.features.netvlad_training.FinetuneResult`).
+        result: the loss history (:class:`~diffloc.features.netvlad_training.FinetuneResult`;
+            ``None`` for the whitening, which has no loss).
         mapping_images: mapping images used.
+        pairs: training tuples (fine-tuning) or same-place pairs (whitening).
     """
 
     database: RenderedDatabase
-    result: FinetuneResult
+    result: FinetuneResult | None
     mapping_images: int
+    pairs: int
 
 
 @torch.no_grad()
@@ -188,4 +206,6 @@ def tune_on_dense_maps(
     with torch.no_grad():
         descriptors = torch.cat([netvlad(m.float()) for m in renders.split(config.batch_size)])
     tuned = replace(database, netvlad=netvlad, global_descriptors=descriptors)
-    return TunedRetrieval(database=tuned, result=result, mapping_images=len(real))
+    return TunedRetrieval(
+        database=tuned, result=result, mapping_images=len(real), pairs=result.num_tuples
+    )

@@ -316,6 +316,41 @@ class NetVLAD(nn.Module):
         self.whitening_fitted.fill_(True)
         return variance
 
+    @torch.no_grad()
+    def whitened(self, mean: torch.Tensor, projection: torch.Tensor) -> NetVLAD:
+        """A copy of this layer (clusters, assignment) that whitens with a given projection.
+
+        Args:
+            mean: (K * D,) mean subtracted from :meth:`aggregate`'s descriptors.
+            projection: (K * D, W) projection (e.g.
+                :func:`~diffloc.features.learned_whitening.learned_whitening`); the copy's
+                descriptors are ``normalise((aggregate(x) - mean) @ projection)``, W floats.
+
+        Raises:
+            ShapeError: ``mean`` or ``projection`` of the wrong size.
+
+        Example:
+            >>> vlad = NetVLAD(num_clusters=2, dim=4)
+            >>> white = vlad.whitened(torch.zeros(8), torch.eye(8)[:, :3])
+            >>> white.output_dim, white(torch.randn(1, 4, 2, 2)).shape
+            (3, torch.Size([1, 3]))
+        """
+        check_shape(mean, f"{self.num_clusters * self.dim}", "mean")
+        check_shape(projection, f"{self.num_clusters * self.dim},W", "projection")
+        layer = NetVLAD(self.num_clusters, self.dim, whiten_dim=projection.shape[1])
+        state = {
+            k: v for k, v in self.state_dict().items() if not k.startswith(("pca_", "whitening"))
+        }
+        layer.load_state_dict(
+            {
+                **state,
+                "pca_mean": mean.float(),
+                "pca_projection": projection.float(),
+                "whitening_fitted": torch.tensor(True),
+            }
+        )
+        return layer.to(self.centroids.device).eval()
+
 
 def netvlad_from_dense_maps(
     maps: torch.Tensor,

@@ -366,11 +366,12 @@ class CrossmodalTaskConfig:
             listed keeps ``poses``'s own, by default none). Only a map made along that run,
             the lidar map, has its trajectory; the TLS map has scan stations, not a path.
         database: features and NetVLAD of the rendered database.
-        tune_retrieval: fine-tune the rendered database's NetVLAD on the mapping images
-            against the renders before localising (a cached stage,
-            :mod:`diffloc.pipeline.crossmodal_retrieval`); refused with ``map=images`` and
+        tune_retrieval: teach the rendered database's NetVLAD the render / real gap with the
+            mapping images before localising (a cached stage,
+            :mod:`diffloc.pipeline.crossmodal_retrieval`; ``retrieval.method``: triplet
+            fine-tuning or a learned whitening); refused with ``map=images`` and
             ``map=hybrid``, whose databases hold the mapping images themselves.
-        retrieval: the settings of that fine-tuning.
+        retrieval: the settings of that stage.
         localizer: Algorithm 1 with re-ranking and validation (``localizer.prior``: the pose
             prior over a query sequence, off by default).
         prior_growth_mps: the scene kind's growth of the pose prior's radius per second

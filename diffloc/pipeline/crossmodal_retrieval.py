@@ -1,9 +1,12 @@
-"""The retrieval stage of ``diffloc task=crossmodal``: NetVLAD tuned on the mapping images.
+"""The retrieval stage of ``diffloc task=crossmodal``: NetVLAD taught by the mapping images.
 
 ``<dataset>/crossmodal/<map>/retrieval/`` (``retrieval.json``) holds ``netvlad.safetensors``:
 the database's NetVLAD layer fine-tuned across the render / real-image gap
-(:func:`~diffloc.crossmodal.retrieval_tuning.tune_render_retrieval`) and the renders' global
-descriptors made with it (tensors ``netvlad.<name>`` and ``global_descriptors``). Keyed on
+(``task.retrieval.method=finetune``,
+:func:`~diffloc.crossmodal.retrieval_tuning.tune_render_retrieval`) or with a learned
+whitening (``whitening``,
+:func:`~diffloc.crossmodal.retrieval_whitening.whiten_render_retrieval`), and the renders'
+global descriptors made with it (tensors ``netvlad.<name>`` and ``global_descriptors``). Keyed on
 ``task.retrieval``, the database stage's output and the mapping sequence's images, poses and
 calibration; the localisation stages key on its output, so a retuned layer localises again.
 Query sequences are never read here.
@@ -19,6 +22,7 @@ from safetensors.torch import load, save
 
 from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig, tune_render_retrieval
+from diffloc.crossmodal.retrieval_whitening import whiten_render_retrieval
 from diffloc.features.global_ import NetVLAD
 from diffloc.io.atomic import atomic_open
 from diffloc.io.dataset import read_sequence
@@ -39,13 +43,15 @@ _DESCRIPTORS = "global_descriptors"
 
 @dataclass(frozen=True)
 class RetrievalSummary(StageSummary):
-    """The ``retrieval`` summary: ``tuples`` training tuples from ``mapping_images`` mapping
-    images, the triplet loss over them before and after, the wall ``seconds``."""
+    """The ``retrieval`` summary: the ``method``, ``tuples`` training tuples (fine-tuning) or
+    same-place pairs (whitening) from ``mapping_images`` mapping images, the fine-tuning's
+    triplet loss before and after (``None`` for the whitening), the wall ``seconds``."""
 
+    method: str
     mapping_images: int
     tuples: int
-    initial_loss: float
-    final_loss: float
+    initial_loss: float | None
+    final_loss: float | None
     seconds: float
 
 
@@ -57,7 +63,9 @@ def _tensors(db: RenderedDatabase) -> dict:
 def _tuned(db: RenderedDatabase, path: Path) -> RenderedDatabase:
     """``db`` with the layer and descriptors of the file ``path``."""
     tensors = load(path.read_bytes())
-    netvlad = NetVLAD(db.netvlad.num_clusters, db.netvlad.dim)
+    projection = tensors.get("netvlad.pca_projection")
+    whiten_dim = None if projection is None else projection.shape[1]
+    netvlad = NetVLAD(db.netvlad.num_clusters, db.netvlad.dim, whiten_dim)
     netvlad.load_state_dict(
         {k.removeprefix("netvlad."): v for k, v in tensors.items() if k.startswith("netvlad.")}
     )
@@ -98,16 +106,19 @@ def tune_retrieval_stage(
             mapping = read_sequence(dataset, MAPPING)
             camera = mapping.camera.scaled(db.camera.width / mapping.camera.width)
             images = scaled_images(mapping, camera, list(range(len(mapping))))
-            tuned = tune_render_retrieval(
-                db, images, mapping.T_wc, config, show_progress=show_progress
+            teach = (
+                tune_render_retrieval if config.method == "finetune" else whiten_render_retrieval
             )
+            tuned = teach(db, images, mapping.T_wc, config, show_progress=show_progress)
+            result = tuned.result
             with atomic_open(stage.workdir() / RETRIEVAL_FILE, "wb") as handle:
                 handle.write(save(_tensors(tuned.database)))
             summary = RetrievalSummary(
+                method=config.method,
                 mapping_images=tuned.mapping_images,
-                tuples=tuned.result.num_tuples,
-                initial_loss=tuned.result.initial_loss,
-                final_loss=tuned.result.final_loss,
+                tuples=tuned.pairs,
+                initial_loss=None if result is None else result.initial_loss,
+                final_loss=None if result is None else result.final_loss,
                 seconds=round(time.perf_counter() - start, 1),
             )
             summary = stage.commit(key, summary, [RETRIEVAL_FILE])
