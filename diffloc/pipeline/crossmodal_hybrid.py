@@ -24,7 +24,7 @@ from diffloc.crossmodal.database import DatabaseConfig, RenderedDatabase, build_
 from diffloc.crossmodal.hybrid import uncovered_views
 from diffloc.crossmodal.synthesize import RGBD
 from diffloc.pipeline.crossmodal_config import HybridMapConfig
-from diffloc.pipeline.crossmodal_stage import _camera, _command, crossmodal_folder
+from diffloc.pipeline.crossmodal_stage import camera_settings, crossmodal_folder, stage_command
 from diffloc.pipeline.stage import LockLevel, StageOutcome, StageSummary, open_stage, stage_key
 
 __all__ = ["HybridDatabaseSummary", "build_hybrid_database"]
@@ -69,10 +69,10 @@ def build_hybrid_database(
         ValueError: the two parts have different cameras.
     """
     (real_db, real_outcome), (render_db, render_outcome) = real, rendered
-    if _camera(real_db.camera) != _camera(render_db.camera):
+    if camera_settings(real_db.camera) != camera_settings(render_db.camera):
         raise ValueError(
             "map=hybrid: the real-image and rendered databases have different cameras "
-            f"({_camera(real_db.camera)} vs {_camera(render_db.camera)})"
+            f"({camera_settings(real_db.camera)} vs {camera_settings(render_db.camera)})"
         )
     folder = crossmodal_folder(dataset) / "hybrid" / "database"
     coverage = {"max_distance_m": config.max_distance_m, "max_angle_deg": config.max_angle_deg}
@@ -81,7 +81,7 @@ def build_hybrid_database(
         {"real": real_outcome.outputs["rgbd"], "rendered": render_outcome.outputs["rgbd"]},
     )
     with open_stage(
-        folder, "rgbd_database", _command(dataset, "hybrid"), LockLevel.DATABASE
+        folder, "rgbd_database", stage_command(dataset, "hybrid"), LockLevel.DATABASE
     ) as stage:
         summary = stage.reusable(key, HybridDatabaseSummary)
         if summary is None:

@@ -23,11 +23,11 @@ from diffloc.io.dataset import read_sequence
 from diffloc.pipeline.crossmodal_config import ImageMapConfig
 from diffloc.pipeline.crossmodal_stage import (
     MAPPING,
-    _camera,
-    _command,
-    _sequence_inputs,
+    camera_settings,
     crossmodal_folder,
     scaled_images,
+    sequence_inputs,
+    stage_command,
 )
 from diffloc.pipeline.database_stage import read_surfel_map
 from diffloc.pipeline.stage import (
@@ -79,14 +79,14 @@ def build_image_database(
     folder = crossmodal_folder(dataset) / "images" / "database"
     map_record, surfels = read_surfel_map(dataset)
     key = stage_key(
-        {"images": asdict(config), "database": asdict(database), "camera": _camera(camera)},
+        {"images": asdict(config), "database": asdict(database), "camera": camera_settings(camera)},
         {
             "surfel_map": output_identity(map_record, "surfel_map.ply"),
-            **_sequence_inputs(dataset, MAPPING, with_poses=True),
+            **sequence_inputs(dataset, MAPPING, with_poses=True),
         },
     )
     with open_stage(
-        folder, "rgbd_database", _command(dataset, "images"), LockLevel.DATABASE
+        folder, "rgbd_database", stage_command(dataset, "images"), LockLevel.DATABASE
     ) as stage:
         summary = stage.reusable(key, ImageDatabaseSummary)
         if summary is None:

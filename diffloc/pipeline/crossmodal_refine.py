@@ -35,8 +35,8 @@ from diffloc.optim.render_refine import NO_MAP, CloudMaps, FieldSubmaps, QueryMa
 from diffloc.pipeline.crossmodal_config import REFINE_MAPS, CrossmodalRefineConfig
 from diffloc.pipeline.crossmodal_stage import (
     SequenceLocalization,
-    _sequence_inputs,
     crossmodal_folder,
+    sequence_inputs,
 )
 from diffloc.pipeline.hints import Command
 from diffloc.pipeline.stage import LockLevel, StageOutcome, StageSummary, open_stage, stage_key
@@ -332,7 +332,7 @@ def refine_sequence(
         {
             "localization": loc_outcome.outputs["localization.npz"],
             "map": source.identity,
-            **_sequence_inputs(dataset, sequence, with_poses=False),
+            **sequence_inputs(dataset, sequence, with_poses=False),
         },
     )
     command = Command("crossmodal", (f"dataset={dataset}", f"map={option}"))

@@ -29,10 +29,10 @@ from diffloc.io.dataset import read_sequence
 from diffloc.pipeline.crossmodal_stage import (
     MAPPING,
     RETRIEVAL_FILE,
-    _command,
-    _sequence_inputs,
     crossmodal_folder,
     scaled_images,
+    sequence_inputs,
+    stage_command,
 )
 from diffloc.pipeline.stage import LockLevel, StageOutcome, StageSummary, open_stage, stage_key
 
@@ -97,9 +97,11 @@ def tune_retrieval_stage(
     folder = crossmodal_folder(dataset) / option / "retrieval"
     key = stage_key(
         {"retrieval": asdict(config)},
-        {"database": db_outcome.outputs["rgbd"], **_sequence_inputs(dataset, MAPPING, True)},
+        {"database": db_outcome.outputs["rgbd"], **sequence_inputs(dataset, MAPPING, True)},
     )
-    with open_stage(folder, "retrieval", _command(dataset, option), LockLevel.DATABASE) as stage:
+    with open_stage(
+        folder, "retrieval", stage_command(dataset, option), LockLevel.DATABASE
+    ) as stage:
         summary = stage.reusable(key, RetrievalSummary)
         if summary is None:
             start = time.perf_counter()

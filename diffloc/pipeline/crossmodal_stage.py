@@ -85,12 +85,15 @@ __all__ = [
     "SequenceLocalization",
     "build_rgbd_database",
     "build_rgbd_map",
+    "camera_settings",
     "candidate_arrays",
     "colored_point_map",
     "crossmodal_folder",
     "localize_sequence",
     "render_pose_stage",
     "scaled_images",
+    "sequence_inputs",
+    "stage_command",
 ]
 
 MAPPING = "mapping"
@@ -127,11 +130,12 @@ def crossmodal_folder(dataset: str | os.PathLike) -> Path:
     return Path(dataset) / "crossmodal"
 
 
-def _command(dataset: Path, option: str) -> Command:
+def stage_command(dataset: Path, option: str) -> Command:
+    """The command a stage of ``task=crossmodal`` records as its maker."""
     return Command("crossmodal", (f"dataset={dataset}", f"map={option}"))
 
 
-def _sequence_inputs(dataset: Path, name: str, with_poses: bool) -> dict[str, dict]:
+def sequence_inputs(dataset: Path, name: str, with_poses: bool) -> dict[str, dict]:
     """Identities of the files of sequence ``name`` a stage reads: images and calibration,
     and the poses only where they are an input (the mapping run), never a query's truth."""
     files = ["rgb", "calib.yaml", *(["poses.txt"] if with_poses else [])]
@@ -235,7 +239,7 @@ def render_pose_stage(
     if with_trajectory:  # the mapping run's camera poses: the map's trajectory
         inputs[f"{MAPPING}/poses.txt"] = identity(_checked(dataset / MAPPING / "poses.txt"))
     key = stage_key({"poses": asdict(config)}, inputs)
-    with open_stage(folder, "render_poses", _command(dataset, option), LockLevel.MAP) as stage:
+    with open_stage(folder, "render_poses", stage_command(dataset, option), LockLevel.MAP) as stage:
         summary = stage.reusable(key, RenderPosesSummary)
         if summary is None:
             cloud = _read_cloud(path)
@@ -385,9 +389,11 @@ def build_rgbd_map(
     folder = crossmodal_folder(dataset) / option / "map"
     key = stage_key(
         {"map": _map_settings(config), "image_scale": image_scale},
-        {"point_map": identity(path), **_sequence_inputs(dataset, MAPPING, with_poses=True)},
+        {"point_map": identity(path), **sequence_inputs(dataset, MAPPING, with_poses=True)},
     )
-    with open_stage(folder, "crossmodal_map", _command(dataset, option), LockLevel.MAP) as stage:
+    with open_stage(
+        folder, "crossmodal_map", stage_command(dataset, option), LockLevel.MAP
+    ) as stage:
         cloud = isinstance(config, PointMapConfig)
         summary = stage.reusable(key, ColoredCloudSummary if cloud else TexturedMeshSummary)
         if summary is None:
@@ -441,7 +447,7 @@ def build_rgbd_database(
     T_wc, pose_outcome = poses
     cloud = isinstance(config, PointMapConfig)
     sizes = asdict(config.sizes()) if cloud else None
-    settings = {"database": asdict(database), "sizes": sizes, "camera": _camera(camera)}
+    settings = {"database": asdict(database), "sizes": sizes, "camera": camera_settings(camera)}
     visibility = config.visibility() if cloud else None
     if visibility is not None:  # keyed only when on: the keys of the renders before stay
         settings["visibility"] = asdict(visibility)
@@ -453,7 +459,7 @@ def build_rgbd_database(
             "poses": pose_outcome.outputs["poses.npz"],
         },
     )
-    command = _command(dataset, option)
+    command = stage_command(dataset, option)
     with open_stage(folder, "rgbd_database", command, LockLevel.DATABASE) as stage:
         summary = stage.reusable(key, RgbdDatabaseSummary)
         if summary is None:
@@ -475,7 +481,8 @@ def build_rgbd_database(
         return RenderedDatabase.load(folder / "rgbd"), outcome
 
 
-def _camera(camera: PinholeCamera) -> dict:
+def camera_settings(camera: PinholeCamera) -> dict:
+    """A camera's intrinsics and size as floats (a stage key's part; compared by value)."""
     return {k: float(getattr(camera, k)) for k in ("fx", "fy", "cx", "cy", "width", "height")}
 
 
@@ -677,16 +684,16 @@ def localize_sequence(
         {
             "localizer": asdict(config),
             "every": every,
-            "camera": _camera(db.camera),
+            "camera": camera_settings(db.camera),
             "record": LOCALIZATION_RECORD,
         },
         {
             "database": db_outcome.outputs["rgbd"],
             **tuned,
-            **_sequence_inputs(dataset, sequence, with_poses=False),
+            **sequence_inputs(dataset, sequence, with_poses=False),
         },
     )
-    command = _command(dataset, option)
+    command = stage_command(dataset, option)
     with open_stage(folder, "localize", command, LockLevel.UPDATED) as stage:
         summary = stage.reusable(key, LocalizationSummary)
         if summary is None:
