@@ -13,9 +13,10 @@ and 45 deg) and the report gives the rank (1 = first) of the best-ranked near re
 - after re-ranking the whole database by the same mutual-nearest-neighbour count.
 
 So the ``top_k`` a localiser must match to reach the near render can be read off per query.
-No matching or PnP runs here (a few seconds of CPU per query). ``--tune`` first fine-tunes the
-database's NetVLAD on the mapping images against the renders
-(:mod:`diffloc.crossmodal.retrieval_tuning`, default settings; never on query images).
+No matching or PnP runs here (a few seconds of CPU per query). ``--tune`` first teaches the
+database's NetVLAD the render / real gap with the mapping images (``--method finetune``:
+:mod:`diffloc.crossmodal.retrieval_tuning`; ``whitening``:
+:mod:`diffloc.crossmodal.retrieval_whitening`; default settings; never on query images).
 
 Usage:
     PYTHONPATH=. python3 experiments/retrieval_rank.py --dataset /tmp/P/indoor_seed0 \\
@@ -34,6 +35,7 @@ import torch
 
 from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig, tune_render_retrieval
+from diffloc.crossmodal.retrieval_whitening import whiten_render_retrieval
 from diffloc.eval.report_files import write_report
 from diffloc.features.retrieval_eval import pairwise_pose_distances
 from diffloc.io.dataset import read_sequence
@@ -48,24 +50,25 @@ def first_rank(order: torch.Tensor, near: torch.Tensor) -> int | None:
     return int(hits[0]) + 1 if len(hits) else None
 
 
-def tuned(dataset: Path, db: RenderedDatabase) -> RenderedDatabase:
-    """``db`` with its NetVLAD fine-tuned on the mapping images (their poses are an input)."""
+def tuned(dataset: Path, db: RenderedDatabase, method: str) -> RenderedDatabase:
+    """``db`` with its NetVLAD taught by the mapping images (their poses are an input)."""
     mapping = read_sequence(dataset, "mapping")
     camera = mapping.camera.scaled(db.camera.width / mapping.camera.width)
     images = scaled_images(mapping, camera, list(range(len(mapping))))
-    result = tune_render_retrieval(db, images, mapping.T_wc, RetrievalTuningConfig())
-    print(f"tuning: {result.result}")
+    teach = tune_render_retrieval if method == "finetune" else whiten_render_retrieval
+    result = teach(db, images, mapping.T_wc, RetrievalTuningConfig(method=method))
+    print(f"tuning ({method}): {result.result}, {result.pairs} tuples or pairs")
     return result.database
 
 
 def ranks(
-    dataset: Path, option: str, sequence: str, every: int, spacing_m: float, tune: bool = False
+    dataset: Path, option: str, sequence: str, every: int, spacing_m: float, tune: str | None = None
 ) -> list[dict]:
     """Per query: frame, near renders, and the rank of the first near one before/after
-    re-ranking (``tune``: with the NetVLAD fine-tuned on the mapping images)."""
+    re-ranking (``tune``: with the NetVLAD taught by the mapping images by that method)."""
     db = RenderedDatabase.load(crossmodal_folder(dataset) / option / "database" / "rgbd")
-    if tune:
-        db = tuned(dataset, db)
+    if tune is not None:
+        db = tuned(dataset, db, tune)
     localizer = RenderedDatabaseLocalizer(db, RenderedLocalizerConfig())
     seq = read_sequence(dataset, sequence)
     camera = seq.camera.scaled(db.camera.width / seq.camera.width)
@@ -105,7 +108,8 @@ def markdown(report: dict) -> str:
     covered = [r for r in rows if r["near_renders"]]
     lines = [
         f"# Rank of the nearest render: {report['map']} `{report['sequence']}` of "
-        f"{report['dataset']}",
+        f"{report['dataset']}"
+        + (f", NetVLAD taught by {report['tuned']}" if report["tuned"] else ""),
         "",
         f"Made by: `{report['command']}` (experiments/retrieval_rank.py docstring). "
         f"Near: within {report['spacing_m']:g} m and 45 deg; NetVLAD ranks the whole database "
@@ -136,23 +140,26 @@ def main() -> None:
     parser.add_argument("--sequence", required=True)
     parser.add_argument("--every", type=int, default=4)
     parser.add_argument("--spacing-m", type=float, default=2.0)
-    parser.add_argument("--tune", action="store_true", help="fine-tune NetVLAD first")
+    parser.add_argument("--tune", action="store_true", help="teach NetVLAD first")
+    parser.add_argument("--method", choices=("finetune", "whitening"), default="finetune")
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
     args = parser.parse_args()
-    rows = ranks(args.dataset, args.map, args.sequence, args.every, args.spacing_m, args.tune)
+    method = args.method if args.tune else None
+    rows = ranks(args.dataset, args.map, args.sequence, args.every, args.spacing_m, method)
     db_json = crossmodal_folder(args.dataset) / args.map / "database" / "rgbd_database.json"
     report = {
         "dataset": str(args.dataset),
         "map": args.map,
         "sequence": args.sequence,
-        "tuned": args.tune,
+        "tuned": method,
         "spacing_m": args.spacing_m,
         "database": json.loads(db_json.read_text())["images"],
         "pool": RenderedLocalizerConfig().rerank.candidates,
         "command": (
             f"PYTHONPATH=. python3 experiments/retrieval_rank.py --dataset {args.dataset} "
-            f"--map {args.map} --sequence {args.sequence} --every {args.every}"
-            + (" --tune" if args.tune else "")
+            f"--map {args.map} --sequence {args.sequence} --every {args.every} "
+            f"--spacing-m {args.spacing_m:g}"
+            + (f" --tune --method {method}" if method else "")
             + f" --out {args.out}"
         ),
         "rows": rows,
