@@ -180,7 +180,7 @@ def measure_sequence(
         T_wc = torch.from_numpy(loc.T_wc[q])
         for name in PASSES[1:]:
             if T_wc is None:
-                row[name] = {"found": False}
+                row[name] = {"found": False, "accepted": False, "failed": []}
                 continue
             generator = torch.Generator().manual_seed(config.seed)
             result = rerender_candidate(
