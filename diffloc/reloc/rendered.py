@@ -89,7 +89,9 @@ __all__ = [
     "accept_pose",
     "choose_candidate",
     "lift_keypoints",
+    "localizer_networks",
     "pose_evidence",
+    "reference_candidate",
     "reference_validation",
     "rerank_shortlist",
     "single_image_validation",
@@ -451,6 +453,22 @@ def reference_validation(
     return replace(validation, min_photometric=min_photometric_real)
 
 
+def localizer_networks(
+    config: RenderedLocalizerConfig,
+) -> tuple[XFeatExtractor, LighterGlueMatcher]:
+    """The XFeat extractor (``config.max_keypoints``) and LighterGlue matcher (its confidence,
+    pruning and early-stop settings) a :class:`RenderedDatabaseLocalizer` of ``config`` uses."""
+    extractor = XFeatExtractor(XFeatConfig(max_keypoints=config.max_keypoints))
+    matcher = LighterGlueMatcher(
+        LighterGlueConfig(
+            min_confidence=config.min_confidence,
+            width_confidence=config.width_confidence,
+            depth_confidence=config.depth_confidence,
+        )
+    )
+    return extractor, matcher
+
+
 def lift_keypoints(
     keypoints: torch.Tensor, depth: torch.Tensor, camera: PinholeCamera
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -508,16 +526,10 @@ class RenderedDatabaseLocalizer:
             raise TypeError(f"database must be a RenderedDatabase, got {type(database).__name__}")
         self.database = database
         self.config = config
-        self.extractor = extractor or XFeatExtractor(
-            XFeatConfig(max_keypoints=config.max_keypoints)
-        )
-        self.matcher = matcher or LighterGlueMatcher(
-            LighterGlueConfig(
-                min_confidence=config.min_confidence,
-                width_confidence=config.width_confidence,
-                depth_confidence=config.depth_confidence,
-            )
-        )
+        if extractor is None or matcher is None:
+            own_extractor, own_matcher = localizer_networks(config)
+            extractor, matcher = extractor or own_extractor, matcher or own_matcher
+        self.extractor, self.matcher = extractor, matcher
         self.retriever = self._retriever()
         self.reranker = None
         if config.rerank is not None:
@@ -685,36 +697,72 @@ class RenderedDatabaseLocalizer:
         matches: Matches,
         generator: torch.Generator,
     ) -> RenderedCandidate:
-        """The candidate of the LighterGlue ``matches`` with ``reference``: its confident
-        matches lifted by the reference depth, then PnP RANSAC + refinement."""
+        """The candidate of the LighterGlue ``matches`` with database image ``reference``
+        (:func:`reference_candidate`)."""
         db = self.database
-        ref = db.features[reference]
-        keep = matches.scores > self.config.min_confidence
-        pairs = matches.indices[keep]
-        points_ref, valid = lift_keypoints(
-            ref.keypoints[pairs[:, 1]], db.depth[reference], db.camera
+        return reference_candidate(
+            query,
+            camera,
+            matches,
+            (db.features[reference], db.depth[reference], db.camera, db.T_wc[reference]),
+            self.config,
+            generator,
+            reference,
         )
-        points_ref, query_px = points_ref[valid], query.keypoints[pairs[valid, 0]]
-        if len(points_ref) < self.config.min_points:
-            return RenderedCandidate.none(reference, len(pairs), len(points_ref))
-        result = solve_pnp_ransac(points_ref, query_px, camera, self.config.pnp, generator)
-        if not result.success:
-            return RenderedCandidate.none(
-                reference, len(pairs), len(points_ref), result.num_inliers
-            )
-        T_RQ = result.T_wc  # the query camera in the reference camera's frame
-        inliers = result.inliers
-        return RenderedCandidate(
-            reference=reference,
-            T_wc=db.T_wc[reference] @ T_RQ,
-            success=True,
-            num_matches=len(pairs),
-            num_points=len(points_ref),
-            num_inliers=result.num_inliers,
-            coverage=grid_coverage(query_px[inliers], camera, self.config.coverage_grid),
-            rms_px=float(result.reprojection_errors[inliers].square().mean().sqrt()),
-            plane_share=dominant_plane_share(points_ref[inliers]),
-        )
+
+
+def reference_candidate(
+    query: Features,
+    camera: PinholeCamera,
+    matches: Matches,
+    reference_view: tuple[Features, torch.Tensor, PinholeCamera, torch.Tensor],
+    config: RenderedLocalizerConfig,
+    generator: torch.Generator,
+    reference: int = -1,
+) -> RenderedCandidate:
+    """The candidate of LighterGlue ``matches`` between a query and one RGB-D reference view
+    (Algorithm 1, lines 4-8): the confident matches (score above ``config.min_confidence``)
+    lifted by the reference depth, then PnP RANSAC + refinement; its coverage and plane share.
+
+    Args:
+        query: the query's features (keypoints in the pixels of ``camera``).
+        camera: the query camera (unbatched).
+        matches: query-to-reference matches (``indices[:, 0]`` query, ``[:, 1]`` reference).
+        reference_view: ``(features, depth, reference_camera, T_w_reference)``: the reference
+            image's features, its (1, h, w) z-depth (0 = none), its unbatched camera of size
+            w x h and its (4, 4) camera-to-world pose.
+        config: ``min_confidence``, ``min_points``, ``pnp`` and ``coverage_grid`` are read.
+        generator: RANSAC's random generator.
+        reference: the reference's database index, kept in the candidate (-1: not a
+            database image, e.g. a render made at a pose found).
+
+    Returns:
+        The :class:`RenderedCandidate` (pose ``T_w_reference T_RQ``; ``success`` false with
+        fewer than ``config.min_points`` points with depth or no PnP pose).
+    """
+    ref_features, ref_depth, ref_camera, T_w_reference = reference_view
+    keep = matches.scores > config.min_confidence
+    pairs = matches.indices[keep]
+    points_ref, valid = lift_keypoints(ref_features.keypoints[pairs[:, 1]], ref_depth, ref_camera)
+    points_ref, query_px = points_ref[valid], query.keypoints[pairs[valid, 0]]
+    if len(points_ref) < config.min_points:
+        return RenderedCandidate.none(reference, len(pairs), len(points_ref))
+    result = solve_pnp_ransac(points_ref, query_px, camera, config.pnp, generator)
+    if not result.success:
+        return RenderedCandidate.none(reference, len(pairs), len(points_ref), result.num_inliers)
+    T_RQ = result.T_wc  # the query camera in the reference camera's frame
+    inliers = result.inliers
+    return RenderedCandidate(
+        reference=reference,
+        T_wc=T_w_reference.to(torch.float64) @ T_RQ,
+        success=True,
+        num_matches=len(pairs),
+        num_points=len(points_ref),
+        num_inliers=result.num_inliers,
+        coverage=grid_coverage(query_px[inliers], camera, config.coverage_grid),
+        rms_px=float(result.reprojection_errors[inliers].square().mean().sqrt()),
+        plane_share=dominant_plane_share(points_ref[inliers]),
+    )
 
 
 def rerank_shortlist(counts: torch.Tensor, min_ratio: float | None) -> torch.Tensor:
