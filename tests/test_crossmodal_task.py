@@ -26,7 +26,8 @@ from diffloc.config import compose_config, to_object
 from diffloc.io.dataset import read_sequence
 from diffloc.io.exposure import EXPOSURE_FILE
 from diffloc.io.trajectory import read_tum
-from diffloc.pipeline import crossmodal_retrieval, crossmodal_stage
+from diffloc.pipeline import crossmodal_alias, crossmodal_retrieval, crossmodal_stage
+from diffloc.pipeline.crossmodal_alias import SequenceAliases
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization
 from diffloc.reloc.stage_clock import STAGES
 from diffloc.sim.dataset import simulate_dataset
@@ -151,6 +152,35 @@ def test_a_second_run_reuses_every_stage(dataset, first, tmp_path, monkeypatch):
     again = _run(dataset, tmp_path)
     assert _records(dataset) == before
     assert again["sequences"]["query_same"]["rates"] == first[0]["sequences"]["query_same"]["rates"]
+
+
+def test_the_storey_alias_test_runs_after_the_localization_and_is_reused(
+    dataset, first, tmp_path, monkeypatch
+):
+    results, _ = first  # scene=indoor: task.storey_alias.maps=[tls]
+    folder = dataset / "crossmodal" / "tls"
+    loc = SequenceLocalization.load(folder / "localize_query_same" / "localization.npz")
+    aliases = SequenceAliases.load(folder / "alias_query_same" / "alias.npz")
+    stage = results["stages"]["alias_query_same"]
+    assert stage["floors"] == 2 and stage["checked"] == loc.accepted.sum() >= 1
+    assert aliases.alias_inliers.shape == (stage["checked"], 1)
+    assert (aliases.own_inliers > 0).all() and (aliases.cpu_ms > 0).all()
+    accepted = results["sequences"]["query_same"]["accepted"]
+    assert (
+        accepted
+        == loc.accepted.sum() - aliases.alias.sum()
+        == loc.accepted.sum() - stage["aliases"]
+    )
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the storey-alias test ran again although it was reusable")
+
+    _refuse(monkeypatch, (*UPSTREAM, "RenderedDatabaseLocalizer"))
+    monkeypatch.setattr(crossmodal_alias, "storey_alias_evidence", refuse)
+    assert _run(dataset, tmp_path / "again")["stages"]["alias_query_same"] == stage
+    off = _run(dataset, tmp_path / "off", "task.storey_alias.maps=[]")
+    assert "alias_query_same" not in off["stages"]
+    assert off["sequences"]["query_same"]["accepted"] == loc.accepted.sum()
 
 
 def test_the_refinement_runs_after_the_localization_and_is_reported(

@@ -316,7 +316,8 @@ def refine_sequence(
         option: the ``map`` option (one of :data:`REFINE_MAPS`).
         sequence: the query sequence.
         localization: its localisation and that stage's outcome
-            (:func:`~diffloc.pipeline.crossmodal_stage.localize_sequence`).
+            (:func:`~diffloc.pipeline.crossmodal_stage.localize_sequence`; after the
+            storey-alias test, its answers and both stages' outputs).
         source: the map to render (:func:`field_source`, :func:`cloud_source`).
         config: ``task.refine``.
         show_progress: a progress bar over the queries.
@@ -330,7 +331,7 @@ def refine_sequence(
     key = stage_key(
         {"refine": config.settings(), "record": REFINEMENT_RECORD},
         {
-            "localization": loc_outcome.outputs["localization.npz"],
+            "localization": loc_outcome.outputs,  # with the storey-alias test's when it ran
             "map": source.identity,
             **sequence_inputs(dataset, sequence, with_poses=False),
         },

@@ -8,7 +8,10 @@ localisation of each ``task.sequences`` (each a cached stage,
 :mod:`diffloc.pipeline.crossmodal_stage`; ``map=images``: the database of the mapping images,
 :mod:`diffloc.pipeline.crossmodal_images`, then the same localisation; ``map=hybrid``: both
 databases of ``map=images`` and ``map=mesh``, then their union,
-:mod:`diffloc.pipeline.crossmodal_hybrid`) -> (``task.refine.enabled``, ``map=nerf|tls|cloud``:
+:mod:`diffloc.pipeline.crossmodal_hybrid`) -> (``task.storey_alias.maps``, by default
+``map=tls|cloud|mesh``: each accepted pose tested against renders on the other floors, a
+cached stage of its own, :mod:`diffloc.pipeline.crossmodal_alias`; aliases are refused) ->
+(``task.refine.enabled``, ``map=nerf|tls|cloud``:
 render-and-compare refinement of each sequence's accepted poses, a cached stage of its own,
 :mod:`diffloc.pipeline.crossmodal_refine`) -> scores, ``results.md``, ``results.json``, TUM
 files and plots in the run folder (:mod:`diffloc.pipeline.crossmodal_report`). A rerun with
@@ -26,10 +29,12 @@ from dataclasses import asdict
 from pathlib import Path
 
 from diffloc.crossmodal.database import RenderedDatabase
+from diffloc.crossmodal.synthesize import RGBDMap
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.io.atomic import atomic_write_text
 from diffloc.io.dataset import read_sequence
 from diffloc.io.trajectory import write_tum
+from diffloc.pipeline.crossmodal_alias import storey_alias_stage
 from diffloc.pipeline.crossmodal_config import (
     CrossmodalTaskConfig,
     HybridMapConfig,
@@ -132,7 +137,7 @@ def run_crossmodal(
         real = build_image_database(
             dataset, map_config.images(), task.database, camera, show_progress
         )
-        rendered, stages, _ = _rendered_database(
+        rendered, stages, _, _ = _rendered_database(
             dataset, map_config.mesh, task, camera, nerf, show_progress
         )
         database = build_hybrid_database(
@@ -144,11 +149,16 @@ def run_crossmodal(
             "database": database[1].summary.to_json(),
         }
     else:
-        database, stages, map_outcome = _rendered_database(
+        database, stages, (rgbd_map, map_outcome), poses_outcome = _rendered_database(
             dataset, map_config, task, camera, nerf, show_progress
         )
         if task.refine.enabled:
             source = _refine_source(dataset, map_config, map_outcome, task)
+        if option in task.storey_alias.maps:
+            alias_inputs = (
+                (rgbd_map, map_outcome, database[0]),
+                (map_config.point_map, poses_outcome),
+            )
         if task.tune_retrieval:
             tuned, retrieval = tune_retrieval_stage(
                 dataset, option, task.retrieval, database, show_progress
@@ -171,6 +181,21 @@ def run_crossmodal(
             retrieval,
         )
         stages[f"localize_{name}"] = outcome.summary.to_json()
+        if option in task.storey_alias.maps:
+            aliases, tested = storey_alias_stage(
+                dataset,
+                option,
+                name,
+                (loc, outcome),
+                *alias_inputs,
+                task.localizer_for(option),
+                task.storey_alias.ratio,
+                show_progress,
+            )
+            stages[f"alias_{name}"] = tested.summary.to_json()
+            loc = aliases.apply(loc)  # the storey aliases are no longer accepted
+            # what comes after keys on both records
+            outcome = StageOutcome(outcome.summary, {**outcome.outputs, **tested.outputs})
         seq = read_sequence(dataset, name)  # ground truth: scoring only
         T_gt = seq.T_wc[loc.frames]
         scores = score_sequence(loc, T_gt, db.T_wc, task.poses.spacing_m, task.loose_m)
@@ -240,10 +265,15 @@ def _rendered_database(
     camera: PinholeCamera,
     nerf: TrainNerfConfig | None,
     show_progress: bool,
-) -> tuple[tuple[RenderedDatabase, StageOutcome], dict[str, dict], StageOutcome]:
+) -> tuple[
+    tuple[RenderedDatabase, StageOutcome],
+    dict[str, dict],
+    tuple[RGBDMap, StageOutcome],
+    StageOutcome,
+]:
     """Render poses -> map -> database of a rendered map (each made or reused): the database
-    with its outcome, the three stages' summaries by :data:`STAGES` name, and the map stage's
-    outcome."""
+    with its outcome, the three stages' summaries by :data:`STAGES` name, the map (its
+    renderer) with the map stage's outcome, and the render-pose stage's outcome."""
     option = map_option(map_config)
     poses = render_pose_stage(
         dataset, map_config.point_map, task.poses_for(map_config.point_map), option
@@ -259,7 +289,7 @@ def _rendered_database(
     stages = {
         name: outcome.summary.to_json() for name, outcome in zip(STAGES, outcomes, strict=True)
     }
-    return database, stages, rgbd_map[1]
+    return database, stages, rgbd_map, poses[1]
 
 
 def _markdown(results: dict) -> str:
