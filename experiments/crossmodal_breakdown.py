@@ -8,6 +8,9 @@ ONE outcome, the first stage that decides it:
 
 - ``localized``: accepted, within ``--loose-m`` / 30 deg;
 - ``wrong accepted``: accepted, outside it;
+- ``right pose refused: storey alias`` / ``wrong pose refused: storey alias``: accepted by the
+  validation, then refused by the storey-alias test (``task.storey_alias``, when it ran on this
+  localisation);
 - ``no pose``: no reference gave a PnP pose with enough inliers;
 - ``right pose rejected: inliers`` / ``...: coverage or rival`` / ``...: photometric``: a pose
   within the bound that the validation refused, by the first test it failed (fewer than
@@ -63,6 +66,8 @@ from diffloc.eval.metrics import is_correct, pose_errors
 from diffloc.eval.report_files import made_by_lines, write_report
 from diffloc.features.retrieval_eval import pairwise_pose_distances
 from diffloc.io.dataset import read_sequence
+from diffloc.io.identity import identity
+from diffloc.pipeline.crossmodal_alias import SequenceAliases
 from diffloc.pipeline.crossmodal_replay import (
     REPLAYED_TESTS,
     recorded_evidence,
@@ -77,6 +82,8 @@ from diffloc.reloc.validation import ValidationConfig
 OUTCOMES = (
     "localized",
     "wrong accepted",
+    "right pose refused: storey alias",
+    "wrong pose refused: storey alias",
     "no pose",
     "right pose rejected: inliers",
     "right pose rejected: coverage or rival",
@@ -94,6 +101,7 @@ def outcomes(
     reference_hit: np.ndarray,
     near_renders: np.ndarray,
     failed: list[tuple[str, ...]],
+    aliases: np.ndarray,
 ) -> list[str]:
     """The outcome (:data:`OUTCOMES`) of each of the Q queries (module docstring).
 
@@ -106,10 +114,13 @@ def outcomes(
         near_renders: (Q,) int, database images within them.
         failed: per query, the validation tests its pose fails
             (:func:`~diffloc.pipeline.crossmodal_replay.replay_validation`).
+        aliases: (Q,) bool, the storey-alias test refused the pose (:func:`storey_aliases`).
     """
     result = []
     for q in range(len(loc.frames)):
-        if accepted[q]:
+        if accepted[q] and aliases[q]:
+            result.append(f"{'right' if correct[q] else 'wrong'} pose refused: storey alias")
+        elif accepted[q]:
             result.append("localized" if correct[q] else "wrong accepted")
         elif not loc.success[q]:
             result.append("no pose")
@@ -125,6 +136,21 @@ def outcomes(
             far = "far reference" if near_renders[q] else "no render near"
             result.append(f"wrong pose, {far}")
     return result
+
+
+def storey_aliases(folder: Path, sequence: str, queries: int) -> np.ndarray:
+    """(Q,) bool, the accepted poses ``task.storey_alias`` refused (``<map>/alias_<sequence>``;
+    all false when it did not run on this very localisation: its record names the
+    ``localization.npz`` it tested)."""
+    refused = np.zeros(queries, dtype=bool)
+    record = folder / f"alias_{sequence}" / "alias.json"
+    localization = folder / f"localize_{sequence}" / "localization.npz"
+    if record.is_file():
+        tested = json.loads(record.read_text())["stage"]["key"]["inputs"]["localization"]
+        if tested == identity(localization):
+            aliases = SequenceAliases.load(record.parent / "alias.npz")
+            refused[aliases.query[aliases.alias]] = True
+    return refused
 
 
 def breakdown(
@@ -171,7 +197,8 @@ def breakdown(
     distance, angle = pairwise_pose_distances(T_gt, db.T_wc)
     near = (distance <= spacing_m) & (angle <= np.radians(RETRIEVAL_ANGLE_DEG))
     near_renders = near.sum(1).numpy()
-    verdicts = outcomes(loc, accepted, correct, reference_hit, near_renders, failed)
+    aliases = storey_aliases(folder, sequence, len(loc.frames))
+    verdicts = outcomes(loc, accepted, correct, reference_hit, near_renders, failed, aliases)
     rows = [
         {
             "frame": int(loc.frames[q]),
@@ -186,7 +213,7 @@ def breakdown(
             "photometric": None if np.isnan(loc.photometric[q]) else float(loc.photometric[q]),
             "error_m": float(errors.translation_m[q]) if found[q] else None,
             "error_deg": float(errors.rotation_deg[q]) if found[q] else None,
-            "accepted": bool(accepted[q]),
+            "accepted": bool(accepted[q] and not aliases[q]),
             "failed": ", ".join(failed[q]),
             "from_prior": bool(loc.from_prior[q]),
             "outcome": verdicts[q],

@@ -24,20 +24,22 @@ def load_script():
 def test_every_query_gets_the_first_stage_that_decides_it():
     script = load_script()
     # columns: success, accepted, accepted without photometric, inliers, correct,
-    # reference near, renders near
+    # reference near, renders near, refused as a storey alias
     cases = {
-        "localized": (True, True, True, 300, True, True, 3),
-        "wrong accepted": (True, True, True, 300, False, False, 3),
-        "no pose": (False, False, False, 0, False, True, 3),
-        "right pose rejected: inliers": (True, False, False, 120, True, True, 3),
-        "right pose rejected: coverage or rival": (True, False, False, 300, True, True, 3),
-        "right pose rejected: photometric": (True, False, True, 300, True, True, 3),
-        "wrong pose, no render near": (True, False, False, 90, False, False, 0),
-        "wrong pose, far reference": (True, False, False, 90, False, False, 2),
-        "wrong pose, near reference": (True, False, False, 90, False, True, 2),
+        "localized": (True, True, True, 300, True, True, 3, False),
+        "wrong accepted": (True, True, True, 300, False, False, 3, False),
+        "right pose refused: storey alias": (True, True, True, 300, True, True, 3, True),
+        "wrong pose refused: storey alias": (True, True, True, 300, False, False, 3, True),
+        "no pose": (False, False, False, 0, False, True, 3, False),
+        "right pose rejected: inliers": (True, False, False, 120, True, True, 3, False),
+        "right pose rejected: coverage or rival": (True, False, False, 300, True, True, 3, False),
+        "right pose rejected: photometric": (True, False, True, 300, True, True, 3, False),
+        "wrong pose, no render near": (True, False, False, 90, False, False, 0, False),
+        "wrong pose, far reference": (True, False, False, 90, False, False, 2, False),
+        "wrong pose, near reference": (True, False, False, 90, False, True, 2, False),
     }
     assert tuple(cases) == script.OUTCOMES
-    success, accepted, geometric, inliers, correct, near, renders = map(
+    success, accepted, geometric, inliers, correct, near, renders, aliases = map(
         np.array, zip(*cases.values(), strict=True)
     )
     q = len(cases)
@@ -55,6 +57,8 @@ def test_every_query_gets_the_first_stage_that_decides_it():
         (),
         (),
         (),
+        (),
+        (),
         ("inliers", "coverage"),
         ("rival",),
         ("photometric",),
@@ -62,4 +66,4 @@ def test_every_query_gets_the_first_stage_that_decides_it():
         ("coverage",),
         ("photometric", "rival"),
     ]
-    assert script.outcomes(loc, accepted, correct, near, renders, failed) == list(cases)
+    assert script.outcomes(loc, accepted, correct, near, renders, failed, aliases) == list(cases)
