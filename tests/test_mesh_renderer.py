@@ -56,7 +56,7 @@ def reference_bilinear(
     textures: MipmapTextures, material: torch.Tensor, uv: torch.Tensor, level: torch.Tensor
 ) -> torch.Tensor:
     """Row-wise (N, 3) bilinear wrapping lookup, read off the definition."""
-    rows = textures._texels
+    rows = textures._pairs[:, :3]  # each pair row starts with its own texel
     sizes = torch.tensor([textures.size >> k for k in range(textures.num_levels)])
     size = sizes[level]
     base = textures._offsets[level] + material * size * size

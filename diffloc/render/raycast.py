@@ -238,7 +238,7 @@ class MeshRenderer:
         # gather gives every hit's corner UVs and texel density.
         rows = [torch.from_numpy(mesh.corner_uvs).reshape(-1, 6), texels_per_metre[:, None]]
         self._triangle_planes = torch.cat(rows, 1).to(torch.float32).t().contiguous()
-        self._material_ids = torch.from_numpy(mesh.material_ids).long()
+        self._material_ids = torch.from_numpy(mesh.material_ids).to(torch.int32)
         self._object_ids = torch.from_numpy(mesh.object_ids)
         self._rays_cam: tuple[tuple, torch.Tensor] | None = None
 

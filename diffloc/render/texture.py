@@ -11,6 +11,13 @@ import torch.nn.functional as F
 from diffloc.checks import check_shape
 
 
+def _neighbour_pairs(level: torch.Tensor) -> torch.Tensor:
+    """(M, 3, s, s) mip level -> (M*s*s, 6) rows: each texel's colour, then the colour of its
+    right-hand neighbour (wrapping), so one row holds one bilinear footprint's top or bottom."""
+    texels = level.permute(0, 2, 3, 1)  # (M, s, s, 3)
+    return torch.cat([texels, texels.roll(-1, 2)], 3).reshape(-1, 6)
+
+
 def _to_power_of_two(texture: np.ndarray, size: int) -> torch.Tensor:
     """(S, T, 3) array -> (3, size, size) tensor, resized bilinearly when needed."""
     image = torch.from_numpy(np.ascontiguousarray(texture, dtype=np.float32)).permute(2, 0, 1)
@@ -24,13 +31,20 @@ class MipmapTextures:
 
     Every texture is brought to one power-of-two size S (the largest given). Level l has size
     ``S >> l`` and is the 2x2 box-filtered level ``l - 1``. All levels of all materials live in one
-    flat (texels, 3) buffer, so sampling is one gather regardless of M.
+    flat (texels, 6) buffer of neighbour pairs (a texel and the one to its right, wrapping), so a
+    bilinear lookup is two row gathers (its top and bottom pair) regardless of M; the buffer takes
+    twice the memory of the texels. Samples are looked up ``chunk_size`` at a time, so the
+    temporaries of a lookup stay small (cache-resident, reused heap memory) however many
+    samples there are.
 
     Args:
         textures: M images, each (S_m, T_m, 3) float in [0, 1].
+        chunk_size: samples looked up together (a speed setting; results do not depend on it).
     """
 
-    def __init__(self, textures: list[np.ndarray]) -> None:
+    def __init__(self, textures: list[np.ndarray], chunk_size: int = 32768) -> None:
+        if chunk_size < 1:
+            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         if not textures:
             raise ValueError("at least one texture is required")
         for i, texture in enumerate(textures):
@@ -47,8 +61,12 @@ class MipmapTextures:
         self.size = size
         self.num_levels = len(levels)
         counts = torch.tensor([self.num_materials * s * s for s in sizes], dtype=torch.int64)
-        self._offsets = torch.cumsum(counts, 0) - counts
-        self._texels = torch.cat([lv.permute(0, 2, 3, 1).reshape(-1, 3) for lv in levels])
+        # Texel indices in int32 (half the index memory) whenever every texel has one.
+        index_dtype = torch.int32 if int(counts.sum()) <= 2**31 - 1 else torch.int64
+        self._offsets = (torch.cumsum(counts, 0) - counts).to(index_dtype)
+        self._size = torch.tensor(size, dtype=index_dtype)
+        self._pairs = torch.cat([_neighbour_pairs(lv) for lv in levels])
+        self.chunk_size = chunk_size
 
     def _bilinear(
         self, material: torch.Tensor, uv: torch.Tensor, level: torch.Tensor
@@ -56,16 +74,18 @@ class MipmapTextures:
         """Bilinear, wrapping lookup at one integer mip level per sample.
 
         Args:
-            material: (N,) int64 material index.
+            material: (N,) integer material index.
             uv: (N, 2) float32 texture coordinates.
-            level: (N,) int64 mip level.
+            level: (N,) integer mip level.
 
         Returns:
             (N, 3) colours.
         """
         # In place wherever the buffer is this call's own: the same operations in the same
-        # order, with a third of the fresh memory (the page faults of which dominate at 640x480).
-        size = torch.bitwise_right_shift(torch.tensor(self.size), level)  # S >> level
+        # order, with less fresh memory.
+        index_dtype = self._offsets.dtype
+        level, material = level.to(index_dtype), material.to(index_dtype)
+        size = torch.bitwise_right_shift(self._size, level)  # S >> level
         base = self._offsets.index_select(0, level).add_((material * size).mul_(size))
         uv = uv.t()  # (2, N): whole rows per coordinate
         xy = torch.floor(uv)
@@ -73,39 +93,26 @@ class MipmapTextures:
         xy0 = torch.floor(xy)
         fx, fy = xy.sub_(xy0)
         wrap = size - 1  # sizes are powers of two, so "& (size - 1)" is "% size"
-        x0, y0 = xy0.long().bitwise_and_(wrap)
-        x1 = (x0 + 1).bitwise_and_(wrap)
+        x0, y0 = xy0.to(index_dtype).bitwise_and_(wrap)
         row0 = (y0 * size).add_(base)
         row1 = (y0 + 1).bitwise_and_(wrap).mul_(size).add_(base)
-        index = torch.empty(4, len(level), dtype=torch.int64)
-        for k, (row, column) in enumerate(((row0, x0), (row0, x1), (row1, x0), (row1, x1))):
-            torch.add(row, column, out=index[k])
-        t00, t01, t10, t11 = self._texels.index_select(0, index.view(-1)).view(4, -1, 3)
+        index = torch.empty(2, len(level), dtype=index_dtype)
+        torch.add(row0, x0, out=index[0])
+        torch.add(row1, x0, out=index[1])
+        top, bottom = self._pairs.index_select(0, index.view(-1)).view(2, -1, 6)
+        t00, t01, t10, t11 = top[:, :3], top[:, 3:], bottom[:, :3], bottom[:, 3:]
         fx, fy = fx[:, None], fy[:, None]
         gx = 1 - fx
         top = t00.mul_(gx).add_(t01.mul_(fx))
         bottom = t10.mul_(gx).add_(t11.mul_(fx))
         return top.mul_(1 - fy).add_(bottom.mul_(fy))
 
-    def sample(
+    def _trilinear(
         self, material: torch.Tensor, uv: torch.Tensor, footprint_texels: torch.Tensor
     ) -> torch.Tensor:
-        """Sample N points trilinearly.
-
-        Args:
-            material: (N,) int64 material index.
-            uv: (N, 2) texture coordinates (wrapping; v = 0 is the top row).
-            footprint_texels: (N,) size of the sample's pixel on the level-0 texture, in texels;
-                it selects the mip level (log2 of it, clamped to the pyramid).
-
-        Returns:
-            (N, 3) float32 colours.
-        """
-        check_shape(uv, "N,2", "uv")
-        check_shape(material, f"{uv.shape[0]}", "material")
-        check_shape(footprint_texels, f"{uv.shape[0]}", "footprint_texels")
+        """:meth:`sample` of one chunk (the same arguments and result)."""
         level = torch.log2(footprint_texels.clamp_min(1.0)).clamp(max=self.num_levels - 1)
-        lower = torch.floor(level).long().clamp(max=self.num_levels - 1)
+        lower = torch.floor(level).to(self._offsets.dtype).clamp(max=self.num_levels - 1)
         blend = level - lower.to(level.dtype)
         uv = uv.to(torch.float32)
         colour = self._bilinear(material, uv, lower)
@@ -118,3 +125,26 @@ class MipmapTextures:
             above = self._bilinear(material[mixed], uv[mixed], upper)
             colour[mixed] = (1 - w) * colour[mixed] + w * above
         return colour
+
+    def sample(
+        self, material: torch.Tensor, uv: torch.Tensor, footprint_texels: torch.Tensor
+    ) -> torch.Tensor:
+        """Sample N points trilinearly.
+
+        Args:
+            material: (N,) integer material index.
+            uv: (N, 2) texture coordinates (wrapping; v = 0 is the top row).
+            footprint_texels: (N,) size of the sample's pixel on the level-0 texture, in texels;
+                it selects the mip level (log2 of it, clamped to the pyramid).
+
+        Returns:
+            (N, 3) float32 colours.
+        """
+        check_shape(uv, "N,2", "uv")
+        check_shape(material, f"{uv.shape[0]}", "material")
+        check_shape(footprint_texels, f"{uv.shape[0]}", "footprint_texels")
+        colours = torch.empty(uv.shape[0], 3, dtype=torch.float32)
+        for start in range(0, uv.shape[0], self.chunk_size):
+            part = slice(start, start + self.chunk_size)
+            colours[part] = self._trilinear(material[part], uv[part], footprint_texels[part])
+        return colours
