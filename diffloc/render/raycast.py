@@ -87,7 +87,7 @@ class MeshRaycaster:
             check_finite(origins, "origins")
             check_finite(directions, "directions")
             raise ValueError("origins or directions overflow float32")
-        result = self._scene.cast_rays(o3d.core.Tensor(rays))
+        result = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays))  # shares, no copy
         distance = torch.from_numpy(result["t_hit"].numpy())
         miss = ~torch.isfinite(distance)
         triangle_ids = torch.from_numpy(result["primitive_ids"].numpy().astype(np.int64))

@@ -33,15 +33,15 @@ class MipmapTextures:
     flat (6, texels) buffer of neighbour pairs (a texel and the one to its right, wrapping), so a
     bilinear lookup is two column gathers (its top and bottom pair) regardless of M, blended as
     whole channel rows; the buffer takes twice the memory of the texels. Samples are looked up
-    ``chunk_size`` at a time, so the temporaries of a lookup stay small (cache-resident, reused
-    heap memory) however many samples there are.
+    ``chunk_size`` at a time, so the temporaries of a lookup stay bounded however many samples
+    there are: the process reuses their heap memory instead of faulting in fresh pages per call.
 
     Args:
         textures: M images, each (S_m, T_m, 3) float in [0, 1].
         chunk_size: samples looked up together (a speed setting; results do not depend on it).
     """
 
-    def __init__(self, textures: list[np.ndarray], chunk_size: int = 32768) -> None:
+    def __init__(self, textures: list[np.ndarray], chunk_size: int = 131072) -> None:
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         if not textures:
