@@ -13,7 +13,7 @@ import torch
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.geometry.se3 import se3_exp
 from diffloc.io.textured_mesh import TexturedMesh
-from diffloc.render.raycast import MeshRaycaster, MeshRenderer
+from diffloc.render.raycast import MeshRaycaster, MeshRenderer, _dot
 from diffloc.render.texture import MipmapTextures
 
 FIELDS = ("albedo", "depth", "normals", "object_ids", "triangle_ids", "points", "rays")
@@ -56,7 +56,7 @@ def reference_bilinear(
     textures: MipmapTextures, material: torch.Tensor, uv: torch.Tensor, level: torch.Tensor
 ) -> torch.Tensor:
     """Row-wise (N, 3) bilinear wrapping lookup, read off the definition."""
-    rows = textures._texels
+    rows = textures._pairs[:3].t()  # each pair column starts with its own texel
     sizes = torch.tensor([textures.size >> k for k in range(textures.num_levels)])
     size = sizes[level]
     base = textures._offsets[level] + material * size * size
@@ -140,7 +140,10 @@ CAMERAS = {
 
 @pytest.mark.parametrize("camera_name", list(CAMERAS))
 @pytest.mark.parametrize("poses", ["outside", "inside", "both"])
-def test_render_equals_the_definition_bit_for_bit(camera_name: str, poses: str) -> None:
+@pytest.mark.parametrize("chunk_size", [32768, 37])  # one lookup chunk, or many small ones
+def test_render_equals_the_definition_bit_for_bit(
+    camera_name: str, poses: str, chunk_size: int
+) -> None:
     mesh, camera = box_mesh(), CAMERAS[camera_name]
     T_wc = {
         "outside": OUTSIDE[None],
@@ -148,6 +151,7 @@ def test_render_equals_the_definition_bit_for_bit(camera_name: str, poses: str) 
         "both": torch.stack([OUTSIDE, INSIDE]),
     }[poses]
     renderer = MeshRenderer(mesh)
+    renderer.textures.chunk_size = chunk_size
     got = renderer.render(T_wc, camera)
     expected, levels = reference_render(mesh, T_wc, camera)
     for name in FIELDS:
@@ -204,3 +208,14 @@ def test_rays_beyond_float32_are_refused() -> None:
     far = torch.tensor([[1e300, 0.0, 0.0]], dtype=torch.float64)
     with pytest.raises(ValueError, match="float32"):
         caster.cast(far, torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64))
+
+
+def test_dot_sums_like_the_elementwise_product_bit_for_bit() -> None:
+    g = torch.Generator().manual_seed(0)
+    scale = 10.0 ** torch.randint(-4, 5, (20000, 1), generator=g)  # mixed magnitudes
+    a = torch.randn(20000, 3, generator=g) * scale
+    b = torch.randn(20000, 3, generator=g)
+    axis = torch.randn(3, generator=g)
+    for other in (b, axis):  # row by row, and one vector broadcast over the rows
+        got, expected = _dot(a, other), (a * other).sum(-1)
+        assert torch.equal(got.view(torch.int32), expected.view(torch.int32))

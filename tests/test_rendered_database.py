@@ -85,6 +85,16 @@ def test_mesh_map_renders_a_plane_at_its_depth_and_albedo():
     assert float(hole_fraction(out.depth)) == 0.0
 
 
+def test_mesh_map_clamps_the_albedo_to_one_and_keeps_the_renderer_depth():
+    mesh_map = MeshMap(_quad(3.0, 10.0, 1.5))  # a texture brighter than 1
+    T_wc = torch.eye(4)[None].repeat(2, 1, 1)
+    T_wc[1, 0, 3] = 0.5  # two views: the clamp works on the batch's own buffer
+    out = mesh_map.render(T_wc, CAMERA)
+    albedo, depth = mesh_map.renderer.render_rgbd(T_wc, CAMERA)
+    assert torch.equal(out.rgb, albedo.clamp(0.0, 1.0)) and torch.equal(out.depth, depth)
+    assert float(out.rgb.max()) == 1.0
+
+
 def test_mesh_map_leaves_holes_where_nothing_is_hit():
     out = MeshMap(_quad(3.0, 10.0, 0.25)).render(torch.eye(4)[None], CAMERA)
     behind = torch.eye(4)[None].clone()

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import torch
 
 from diffloc.render.texture import MipmapTextures
@@ -53,8 +54,29 @@ def test_trilinear_sampling_blends_the_next_level_only_where_needed():
     lower = torch.floor(level).long()
     upper = (lower + 1).clamp(max=mip.num_levels - 1)
     blend = (level - lower)[:, None]
-    expected = (1 - blend) * mip._bilinear(material, uv, lower) + blend * mip._bilinear(
-        material, uv, upper
-    )  # every sample at both levels, as the definition reads
+    below, above = mip._bilinear(material, uv, lower).t(), mip._bilinear(material, uv, upper).t()
+    expected = (1 - blend) * below + blend * above  # every sample at both levels, as defined
     assert bool((footprint < 1).any()) and bool((blend > 0).any())
     assert torch.equal(got, expected)
+
+
+def test_lookups_in_chunks_give_the_same_colours_bit_for_bit():
+    g = torch.Generator().manual_seed(1)
+    textures = [torch.rand(s, s, 3, generator=g).numpy() for s in (32, 8)]
+    n = 1000
+    material = torch.randint(0, 2, (n,), generator=g)
+    uv = torch.rand(n, 2, generator=g) * 4 - 2
+    footprint = torch.rand(n, generator=g) * 80  # every level, blended and clamped
+    whole = MipmapTextures(textures).sample(material, uv, footprint)
+    for chunk_size in (1, 7, 999):
+        chunked = MipmapTextures(textures, chunk_size=chunk_size).sample(material, uv, footprint)
+        assert torch.equal(chunked.view(torch.int32), whole.view(torch.int32)), chunk_size
+    assert MipmapTextures(textures).sample(material[:0], uv[:0], footprint[:0]).shape == (0, 3)
+
+
+def test_bad_chunk_sizes_and_too_many_texels_are_refused():
+    with pytest.raises(ValueError, match="chunk_size"):
+        MipmapTextures([np.ones((4, 4, 3), np.float32)], chunk_size=0)
+    huge = np.broadcast_to(np.zeros((1, 1, 3), np.float32), (32768, 32768, 3))  # no memory
+    with pytest.raises(ValueError, match="too many"):  # 2 x 1.4e9 texels overflow int32 indices
+        MipmapTextures([huge, huge])

@@ -160,7 +160,7 @@ class MeshMap:
         if T_wc.shape[0] == 0:
             raise ShapeError("T_wc must hold at least one pose, got shape (0, 4, 4)")
         albedo, depth = self.renderer.render_rgbd(T_wc, camera)
-        return RGBD(albedo.clamp(0.0, 1.0), depth)
+        return RGBD(albedo.clamp_(0.0, 1.0), depth)  # the render's own buffer
 
 
 def render_views(

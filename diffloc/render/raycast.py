@@ -87,7 +87,7 @@ class MeshRaycaster:
             check_finite(origins, "origins")
             check_finite(directions, "directions")
             raise ValueError("origins or directions overflow float32")
-        result = self._scene.cast_rays(o3d.core.Tensor(rays))
+        result = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays))  # shares, no copy
         distance = torch.from_numpy(result["t_hit"].numpy())
         miss = ~torch.isfinite(distance)
         triangle_ids = torch.from_numpy(result["primitive_ids"].numpy().astype(np.int64))
@@ -238,7 +238,7 @@ class MeshRenderer:
         # gather gives every hit's corner UVs and texel density.
         rows = [torch.from_numpy(mesh.corner_uvs).reshape(-1, 6), texels_per_metre[:, None]]
         self._triangle_planes = torch.cat(rows, 1).to(torch.float32).t().contiguous()
-        self._material_ids = torch.from_numpy(mesh.material_ids).long()
+        self._material_ids = torch.from_numpy(mesh.material_ids).to(torch.int32)
         self._object_ids = torch.from_numpy(mesh.object_ids)
         self._rays_cam: tuple[tuple, torch.Tensor] | None = None
 
@@ -266,7 +266,7 @@ class MeshRenderer:
         u = u0.mul_(b0).add_(u1.mul_(b1)).add_(u2.mul_(b2))
         v = v0.mul_(b0).add_(v1.mul_(b1)).add_(v2.mul_(b2))
         distance = torch.where(hit, hits.distance, torch.zeros_like(hits.distance))
-        cos_incidence = (hits.normals * flat_dirs).sum(-1).abs_().clamp_min_(0.05)
+        cos_incidence = _dot(hits.normals, flat_dirs).abs_().clamp_min_(0.05)
         focal = float(camera.fx) if camera.fx.ndim == 0 else float(camera.fx.reshape(-1)[0])
         footprint = texels_per_metre.mul_(distance).div_(focal).div_(cos_incidence.sqrt_())
         seen = hit.nonzero().squeeze(1)  # textures are sampled where a ray hit only
@@ -275,7 +275,7 @@ class MeshRenderer:
         sampled = self.textures.sample(material, uv.t(), footprint.index_select(0, seen))
         albedo = sampled.new_zeros(3, len(hit)).index_copy_(1, seen, sampled.t())
         z_axis = T_wc[:, :3, 2].to(torch.float32)
-        cos_axis = (directions * z_axis[:, None, :]).sum(-1).reshape(-1)
+        cos_axis = _dot(directions, z_axis[:, None, :]).reshape(-1)
         return _Surface(origins, directions, hits, distance, albedo, cos_axis.mul_(distance))
 
     def render_rgbd(
@@ -327,6 +327,18 @@ class MeshRenderer:
             points=image(points),
             rays=image(surface.directions),
         )
+
+
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Dot products of (..., 3) vectors (broadcasting) summed left to right, as
+    ``(a * b).sum(-1)`` sums three terms, from strided columns without a (..., 3) temporary.
+
+    Example:
+        >>> _dot(torch.tensor([[1.0, 2.0, 3.0]]), torch.tensor([0.5, -1.0, 2.0]))
+        tensor([4.5000])
+    """
+    out = a[..., 0] * b[..., 0]
+    return out.add_(a[..., 1] * b[..., 1]).add_(a[..., 2] * b[..., 2])
 
 
 def _planes_image(planes: torch.Tensor, shape: tuple[int, int, int]) -> torch.Tensor:
