@@ -267,7 +267,10 @@ def test_a_map_option_the_task_cannot_use_is_refused_before_any_work(task, optio
 
 def test_views_per_sample_is_part_of_the_render_pose_key(dataset, tmp_path):
     root = tmp_path / dataset.name
-    shutil.copytree(dataset / "map", root / "map")  # the point maps only: no cached stage
+    # the point maps and the mapping run (its trajectory adds render samples): no cached stage
+    for part in ("map", "mapping"):
+        shutil.copytree(dataset / part, root / part)
+    shutil.copy(dataset / "dataset.json", root / "dataset.json")
 
     def poses(*overrides: str) -> tuple[torch.Tensor, dict]:
         config = to_object(compose_config([*SCENE, *TASK, *overrides])).task.poses_for("tls_map")
@@ -301,8 +304,8 @@ def test_the_mapping_trajectory_is_an_input_of_the_render_poses_when_used(datase
         )
         return T_wc, json.loads(record.read_text())
 
-    skeleton, plain = poses()
-    walked, with_walk = poses("+task.trajectory_gap_m.tls_map=0.5")
+    skeleton, plain = poses("~task.trajectory_gap_m.tls_map")  # indoors it is on: 1 m
+    walked, with_walk = poses("task.trajectory_gap_m.tls_map=0.5")
     assert "mapping/poses.txt" not in plain["stage"]["key"]["inputs"]
     assert "mapping/poses.txt" in with_walk["stage"]["key"]["inputs"]
     assert plain["trajectory_samples"] == 0 < with_walk["trajectory_samples"]
@@ -313,7 +316,7 @@ def test_the_mapping_trajectory_is_an_input_of_the_render_poses_when_used(datase
     assert bool((torch.cdist(new, mapping[:, :3, 3]).amin(1) == 0).all())  # mapping cameras
     poses_file = root / "mapping" / "poses.txt"
     poses_file.write_text(poses_file.read_text() + "\n")  # a changed input: made again
-    _, again = poses("+task.trajectory_gap_m.tls_map=0.5")
+    _, again = poses("task.trajectory_gap_m.tls_map=0.5")
     assert again["stage"]["key"]["inputs"] != with_walk["stage"]["key"]["inputs"]
 
 

@@ -208,9 +208,9 @@ class LocalizationSummary(StageSummary):
     load_average: list[float]
 
 
-def _checked(path: Path) -> Path:
+def _checked(path: Path, what: str = "the dataset has no such point map") -> Path:
     if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing: the dataset has no such point map")
+        raise FileNotFoundError(f"{path} is missing: {what}")
     return path
 
 
@@ -237,7 +237,12 @@ def render_pose_stage(
     inputs = {"point_map": identity(_checked(path))}
     with_trajectory = config.trajectory_gap_m is not None
     if with_trajectory:  # the mapping run's camera poses: the map's trajectory
-        inputs[f"{MAPPING}/poses.txt"] = identity(_checked(dataset / MAPPING / "poses.txt"))
+        trajectory = _checked(
+            dataset / MAPPING / "poses.txt",
+            "the mapping run's poses give the render samples on its trajectory "
+            "(task.trajectory_gap_m; remove the map's entry to select without them)",
+        )
+        inputs[f"{MAPPING}/poses.txt"] = identity(trajectory)
     key = stage_key({"poses": asdict(config)}, inputs)
     with open_stage(folder, "render_poses", stage_command(dataset, option), LockLevel.MAP) as stage:
         summary = stage.reusable(key, RenderPosesSummary)
