@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -85,7 +86,9 @@ def test_every_other_mapping_image_trains(scene):
     assert tuned.mapping_images == math.ceil(len(images) / 2)
 
 
-def test_the_stage_saves_safetensors_and_reuses_them(scene, tmp_path, monkeypatch):
+def stage_inputs(scene, tmp_path, monkeypatch) -> tuple[Path, StageOutcome]:
+    """A dataset folder whose mapping run the retrieval stage reads as the scene's images and
+    line poses (``read_sequence`` replaced), and a stand-in database stage outcome."""
     db, images, _ = scene
     dataset = tmp_path / "indoor"
     mapping = dataset / "mapping"
@@ -95,7 +98,6 @@ def test_the_stage_saves_safetensors_and_reuses_them(scene, tmp_path, monkeypatc
             "stand-in: the stage reads the sequence through read_sequence\n"
         )
     rgbd = {"kind": "folder", "files": 2, "size": 1, "sha256": "0" * 64}
-    outcome = StageOutcome(summary=None, outputs={"rgbd": rgbd})
 
     class Mapping:  # what read_sequence gives the stage: images, poses, camera
         T_wc = _line_poses(len(images))
@@ -108,6 +110,12 @@ def test_the_stage_saves_safetensors_and_reuses_them(scene, tmp_path, monkeypatc
             return images[i]
 
     monkeypatch.setattr(crossmodal_retrieval, "read_sequence", lambda *_: Mapping())
+    return dataset, StageOutcome(summary=None, outputs={"rgbd": rgbd})
+
+
+def test_the_stage_saves_safetensors_and_reuses_them(scene, tmp_path, monkeypatch):
+    db, images, _ = scene
+    dataset, outcome = stage_inputs(scene, tmp_path, monkeypatch)
     first, made = tune_retrieval_stage(dataset, "mesh", CONFIG, (db, outcome))
     folder = dataset / "crossmodal" / "mesh" / "retrieval"
     assert (folder / "netvlad.safetensors").is_file()

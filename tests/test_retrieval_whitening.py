@@ -26,8 +26,7 @@ from diffloc.features.global_ import NetVLAD
 from diffloc.features.learned_whitening import LearnedWhiteningConfig, learned_whitening
 from diffloc.pipeline import crossmodal_retrieval
 from diffloc.pipeline.crossmodal_retrieval import tune_retrieval_stage
-from diffloc.pipeline.stage import StageOutcome
-from tests.test_retrieval_tuning import _line_poses, scene  # noqa: F401 (fixture)
+from tests.test_retrieval_tuning import _line_poses, scene, stage_inputs  # noqa: F401 (fixture)
 
 WHITEN = RetrievalTuningConfig(
     method="whitening", whitening=LearnedWhiteningConfig(dim=4, pca_dim=8)
@@ -183,24 +182,7 @@ def test_no_pair_within_the_bounds_names_them(scene):  # noqa: F811
 
 def test_the_stage_saves_and_reloads_the_whitened_layer(scene, tmp_path, monkeypatch):  # noqa: F811
     db, images, _ = scene
-    dataset = tmp_path / "indoor"
-    (dataset / "mapping" / "rgb").mkdir(parents=True)
-    for name in ("calib.yaml", "poses.txt"):
-        (dataset / "mapping" / name).write_text("stand-in: read_sequence is replaced\n")
-    rgbd = {"kind": "folder", "files": 2, "size": 1, "sha256": "0" * 64}
-    outcome = StageOutcome(summary=None, outputs={"rgbd": rgbd})
-
-    class Mapping:  # what read_sequence gives the stage: images, poses, camera
-        T_wc = _line_poses(len(images))
-        camera = db.camera
-
-        def __len__(self):
-            return len(images)
-
-        def load_rgb(self, i):
-            return images[i]
-
-    monkeypatch.setattr(crossmodal_retrieval, "read_sequence", lambda *_: Mapping())
+    dataset, outcome = stage_inputs(scene, tmp_path, monkeypatch)
     first, made = tune_retrieval_stage(dataset, "mesh", WHITEN, (db, outcome))
     record = json.loads(
         (dataset / "crossmodal" / "mesh" / "retrieval" / "retrieval.json").read_text()

@@ -40,6 +40,7 @@ __all__ = [
     "RetrievalTuningConfig",
     "TunedRetrieval",
     "dense_maps",
+    "training_maps",
     "tune_on_dense_maps",
     "tune_render_retrieval",
 ]
@@ -142,6 +143,25 @@ def tune_render_retrieval(
         ValueError: no mapping image has a render within the positive bounds and one beyond
             the negative distance (the message names ``finetune.triplets``).
     """
+    real, T_real, renders = training_maps(database, images, T_wc, config, dense, show_progress)
+    return tune_on_dense_maps(database, real, T_real, renders, config, show_progress)
+
+
+def training_maps(
+    database: RenderedDatabase,
+    images: torch.Tensor,
+    T_wc: torch.Tensor,
+    config: RetrievalTuningConfig,
+    dense: DenseXFeat | None = None,
+    show_progress: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The XFeat dense maps the mapping images teach the retrieval with: ``(real (N', 64, h,
+    w), their poses (N', 4, 4), renders (M, 64, h, w))``, every ``config.mapping_every``-th
+    mapping image and every render of ``database`` (:func:`dense_maps`).
+
+    Raises:
+        ShapeError: images not of the database camera's size, or counts that disagree.
+    """
     camera = database.camera
     check_shape(images, f"N,3,{camera.height},{camera.width}", "images")
     check_shape(T_wc, "N,4,4", "T_wc")
@@ -151,7 +171,7 @@ def tune_render_retrieval(
     keep = slice(None, None, config.mapping_every)
     real = dense_maps(images[keep], dense, config.batch_size, "mapping", show_progress)
     renders = dense_maps(database.rgb, dense, config.batch_size, "renders", show_progress)
-    return tune_on_dense_maps(database, real, T_wc[keep], renders, config, show_progress)
+    return real, T_wc[keep], renders
 
 
 def tune_on_dense_maps(

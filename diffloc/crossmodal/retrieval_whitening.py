@@ -25,9 +25,13 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from diffloc.checks import ShapeError, check_shape
+from diffloc.checks import check_shape
 from diffloc.crossmodal.database import RenderedDatabase
-from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig, TunedRetrieval, dense_maps
+from diffloc.crossmodal.retrieval_tuning import (
+    RetrievalTuningConfig,
+    TunedRetrieval,
+    training_maps,
+)
 from diffloc.features.dense import DenseXFeat
 from diffloc.features.learned_whitening import learned_whitening
 from diffloc.features.retrieval_eval import pairwise_pose_distances
@@ -66,7 +70,7 @@ def whiten_on_dense_maps(
     config: RetrievalTuningConfig,
 ) -> TunedRetrieval:
     """:func:`whiten_render_retrieval` on dense maps already made
-    (:func:`~diffloc.crossmodal.retrieval_tuning.dense_maps`).
+    (:func:`~diffloc.crossmodal.retrieval_tuning.training_maps`).
 
     Args:
         database: the rendered database (its layer is copied, not changed).
@@ -139,13 +143,5 @@ def whiten_render_retrieval(
         ShapeError: images not of the database camera's size, or counts that disagree.
         ValueError: see :func:`whiten_on_dense_maps`.
     """
-    camera = database.camera
-    check_shape(images, f"N,3,{camera.height},{camera.width}", "images")
-    check_shape(T_wc, "N,4,4", "T_wc")
-    if len(images) != len(T_wc):
-        raise ShapeError(f"{len(images)} mapping images but {len(T_wc)} poses")
-    dense = dense if dense is not None else DenseXFeat()
-    keep = slice(None, None, config.mapping_every)
-    real = dense_maps(images[keep], dense, config.batch_size, "mapping", show_progress)
-    renders = dense_maps(database.rgb, dense, config.batch_size, "renders", show_progress)
-    return whiten_on_dense_maps(database, real, T_wc[keep], renders, config)
+    real, T_real, renders = training_maps(database, images, T_wc, config, dense, show_progress)
+    return whiten_on_dense_maps(database, real, T_real, renders, config)
