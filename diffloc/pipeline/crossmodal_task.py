@@ -8,9 +8,10 @@ localisation of each ``task.sequences`` (each a cached stage,
 :mod:`diffloc.pipeline.crossmodal_stage`; ``map=images``: the database of the mapping images,
 :mod:`diffloc.pipeline.crossmodal_images`, then the same localisation; ``map=hybrid``: both
 databases of ``map=images`` and ``map=mesh``, then their union,
-:mod:`diffloc.pipeline.crossmodal_hybrid`) -> (``task.storey_alias.maps``, by default
-``map=tls|cloud|mesh``: each accepted pose tested against renders on the other floors, a
-cached stage of its own, :mod:`diffloc.pipeline.crossmodal_alias`; aliases are refused) ->
+:mod:`diffloc.pipeline.crossmodal_hybrid`) -> (the maps of ``task.storey_alias.maps``, any
+of ``tls|cloud|mesh``, indoors ``tls``: each accepted pose tested against renders on the other
+floors, a cached stage of its own, :mod:`diffloc.pipeline.crossmodal_alias`; aliases are
+refused) ->
 (``task.refine.enabled``, ``map=nerf|tls|cloud``:
 render-and-compare refinement of each sequence's accepted poses, a cached stage of its own,
 :mod:`diffloc.pipeline.crossmodal_refine`) -> scores, ``results.md``, ``results.json``, TUM
