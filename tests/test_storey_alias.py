@@ -98,6 +98,8 @@ def test_a_view_repeated_on_another_floor_is_an_alias_and_a_unique_one_is_not(ro
     assert twin.alias_inliers[0] == twin.own_inliers  # the same render, the same RANSAC
     assert twin.alias_distance_m[0] == pytest.approx(LIFT_M, abs=0.05)
     assert is_storey_alias(twin, 1.0, StoreyAliasConfig().ratio)
+    one_floor = storey_alias_evidence(single, T, heights[:1], camera, view, networks, config)
+    assert one_floor == AliasEvidence(-1, (), ()) and not is_storey_alias(one_floor, 1.0, 1.0)
     alone = storey_alias_evidence(single, T, heights, camera, view, networks, config)
     assert alone.own_inliers == twin.own_inliers
     assert alone.alias_inliers[0] < 0.5 * alone.own_inliers

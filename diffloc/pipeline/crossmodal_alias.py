@@ -68,7 +68,8 @@ class SequenceAliases:
 
     Attributes:
         query: (C,) int64 index into the localisation's queries.
-        own_inliers: (C,) int64 inliers against the render at the pose (0: no pose).
+        own_inliers: (C,) int64 inliers against the render at the pose (0: no pose; -1: not
+            rendered, the map has one floor).
         alias_inliers: (C, F - 1) int64 inliers against each alias render (0: no pose).
         alias_distance_m: (C, F - 1) float64 distance of each alias render's pose from the
             accepted pose (NaN: no pose).

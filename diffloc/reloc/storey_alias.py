@@ -94,7 +94,8 @@ class AliasEvidence:
     """The renders at a pose found and at its storey aliases, matched with the query.
 
     Attributes:
-        own_inliers: PnP inliers against the render at the pose (0: no pose).
+        own_inliers: PnP inliers against the render at the pose (0: no pose; -1: not rendered,
+            the map has one floor).
         alias_inliers: (F - 1,) PnP inliers against each alias render (0: no pose).
         alias_distance_m: (F - 1,) distance of each alias render's pose from the pose found
             (NaN: no pose).
@@ -160,9 +161,12 @@ def storey_alias_evidence(
         networks: the localiser's ``(extractor, matcher)``.
         config: the localiser's settings (matching, PnP; ``seed`` seeds RANSAC).
     """
+    aliases = alias_poses(T_wc, heights)
+    if len(aliases) == 0:  # one floor: nothing to compare with, nothing rendered
+        return AliasEvidence(-1, (), ())
     own = _inliers_at(T_wc, rgbd_map, render_camera, view, networks, config)
     inliers, distances = [], []
-    for T_alias in alias_poses(T_wc, heights):
+    for T_alias in aliases:
         cand = _inliers_at(T_alias, rgbd_map, render_camera, view, networks, config)
         inliers.append(cand.num_inliers if cand.success else 0)
         moved = torch.linalg.vector_norm(cand.T_wc[:3, 3] - T_wc[:3, 3].to(cand.T_wc.dtype))
