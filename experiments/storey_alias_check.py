@@ -26,6 +26,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shlex
 import sys
@@ -61,8 +62,19 @@ def map_floors(dataset: Path, option: str) -> torch.Tensor:
     return floor_heights(torch.from_numpy(arrays["T_wc"]), torch.from_numpy(arrays["floor_index"]))
 
 
-def check_sequence(dataset, option, sequence, task, rgbd_map, render_camera, networks, heights):
-    """Per query accepted by the localiser: the inliers at the pose and at its aliases."""
+def rerendered_verdicts(path: Path, sequence: str) -> dict[int, bool]:
+    """Frame -> right, of the queries whose pass-1 re-render evidence
+    (``experiments/rerender_check.py``'s JSON) the validation accepts."""
+    rows = json.loads(path.read_text())["sequences"][sequence]["queries"]
+    return {r["frame"]: r["pass 1"]["right"] for r in rows if r["pass 1"]["accepted"]}
+
+
+def check_sequence(
+    dataset, option, sequence, task, rgbd_map, render_camera, networks, heights, rerender=None
+):
+    """Per query accepted by the localiser (``rerender``: by the validation of the re-render
+    evidence of ``experiments/rerender_check.py``'s JSON, scored by its pass-1 pose): the
+    inliers at the pose and at its aliases."""
     folder = crossmodal_folder(dataset) / option / f"localize_{sequence}"
     config = task.localizer_for(option)
     loc = SequenceLocalization.load(folder / "localization.npz")
@@ -72,7 +84,14 @@ def check_sequence(dataset, option, sequence, task, rgbd_map, render_camera, net
     errors = pose_errors(loc.T_wc, T_gt, loc.success.astype(bool))
     right = is_correct(errors, task.loose_m, MAX_ROT_DEG)
     rows = []
-    for q in np.flatnonzero(loc.accepted).tolist():
+    chosen = np.flatnonzero(loc.accepted)
+    if rerender is not None:
+        verdict = rerendered_verdicts(rerender, sequence)
+        chosen = np.flatnonzero(np.isin(loc.frames, list(verdict)))
+        right = right.copy()
+        for q in chosen.tolist():
+            right[q] = verdict[int(loc.frames[q])]
+    for q in chosen.tolist():
         image = scaled_images(seq, camera, [int(loc.frames[q])])[0]
         view = (image, networks[0].extract(image), camera)
         T_wc = torch.from_numpy(loc.T_wc[q])
@@ -111,7 +130,14 @@ def markdown(report: dict) -> str:
         "accepted pose is a storey alias at ratio r when the map rendered at the pose moved to "
         f"another floor gives a pose at least {report['theta_dist_m']:g} m away with at least r "
         "x the inliers of the map rendered at the pose itself. Right: within "
-        f"{report['loose_m']:g} m / {MAX_ROT_DEG:g} deg (truth read for scoring only).",
+        f"{report['loose_m']:g} m / {MAX_ROT_DEG:g} deg (truth read for scoring only)."
+        + (
+            ""
+            if report["rerender"] is None
+            else f" Poses tested: those the validation accepts on the re-render evidence of "
+            f"`{report['rerender']}` (pass 1; right and wrong by its pass-1 pose), not the "
+            "localiser's accepted ones."
+        ),
         "",
         "| sequence | queries | accepted right | accepted wrong | "
         + " | ".join(f"right called alias ({r:g}) | wrong called alias ({r:g})" for r in ratios)
@@ -168,6 +194,11 @@ def main() -> None:
     parser.add_argument("--sequence", action="append", required=True)
     parser.add_argument("--override", action="append", default=[])
     parser.add_argument("--ratio", type=float, action="append", help="default: 0.7 and 1.0")
+    parser.add_argument(
+        "--rerender",
+        type=Path,
+        help="experiments/rerender_check.py's JSON: test the poses its pass 1 accepts instead",
+    )
     parser.add_argument("--out", type=Path, required=True, help="output path without suffix")
     args = parser.parse_args()
     start = time.perf_counter()
@@ -177,7 +208,15 @@ def main() -> None:
         heights = map_floors(args.dataset, args.map)
         sequences = {
             name: check_sequence(
-                args.dataset, args.map, name, task, rgbd_map, render_camera, networks, heights
+                args.dataset,
+                args.map,
+                name,
+                task,
+                rgbd_map,
+                render_camera,
+                networks,
+                heights,
+                args.rerender,
             )
             for name in args.sequence
         }
@@ -186,6 +225,7 @@ def main() -> None:
         "command": "OMP_NUM_THREADS=1 PYTHONPATH=. python3 " + shlex.join(sys.argv),
         "dataset": str(args.dataset),
         "map": args.map,
+        "rerender": None if args.rerender is None else str(args.rerender),
         "heights": [round(float(h), 2) for h in heights],
         "theta_dist_m": validation.theta_dist_m,
         "ratios": args.ratio or [0.7, 1.0],
