@@ -72,6 +72,7 @@ def rerender_candidate(
     networks: tuple[XFeatExtractor, LighterGlueMatcher],
     config: RenderedLocalizerConfig,
     generator: torch.Generator,
+    photometric: bool = True,
 ) -> Rerendered:
     """Render ``rgbd_map`` at ``T_wc``, match the query against the render and solve its pose.
 
@@ -87,6 +88,8 @@ def rerender_candidate(
         config: the localiser's settings (matching confidence, PnP, coverage grid, photometric
             settings).
         generator: RANSAC's random generator.
+        photometric: also score the photometric consistency of the pose found (``False``:
+            ``photometric`` is NaN, for callers that read only the candidate).
 
     Returns:
         The :class:`Rerendered` outcome.
@@ -117,11 +120,11 @@ def rerender_candidate(
         candidate = reference_candidate(
             query, camera, matches, (features, depth, render_camera, T_wc), config, generator
         )
-    photometric = math.nan
-    if candidate.success:
+    consistency = math.nan
+    if photometric and candidate.success:
         with clock.measure("photometric"):
             grey = grey_image(rgb, render_camera.height, render_camera.width)
-            photometric = warped_ncc(
+            consistency = warped_ncc(
                 grey,
                 depth[0],
                 render_camera,
@@ -131,4 +134,4 @@ def rerender_candidate(
                 candidate.T_wc,
                 config.photometric,
             )
-    return Rerendered(candidate, photometric, clock.wall_ms, clock.cpu_ms)
+    return Rerendered(candidate, consistency, clock.wall_ms, clock.cpu_ms)

@@ -136,7 +136,16 @@ def _inliers_at(
     image, query, camera = view
     generator = torch.Generator().manual_seed(config.seed)
     return rerender_candidate(
-        rgbd_map, T_wc, render_camera, image, query, camera, networks, config, generator
+        rgbd_map,
+        T_wc,
+        render_camera,
+        image,
+        query,
+        camera,
+        networks,
+        config,
+        generator,
+        photometric=False,  # the test compares inliers only
     ).candidate
 
 
