@@ -13,7 +13,9 @@ recorded thresholds (:func:`~diffloc.pipeline.crossmodal_replay.replay_validatio
 :class:`~diffloc.reloc.validation.PoseValidator`): inliers, coverage, plane share and the
 photometric consistency of the new render warped into the query; the rivals are the recorded
 candidates' inliers at their distances to the NEW pose. Pass 2 renders once more at pass 1's
-pose. The verdicts of the recorded evidence are replayed first and must equal the run's.
+pose. A fourth verdict, **rival kept**, is pass 1's with the recorded rival verdict in place of
+its own: the rule ``task.rerender`` runs (:mod:`diffloc.pipeline.crossmodal_rerender`). The
+verdicts of the recorded evidence are replayed first and must equal the run's.
 
 Query images are resized as the localiser got them
 (:func:`~diffloc.pipeline.crossmodal_stage.scaled_images`). Ground truth is read for scoring
@@ -71,8 +73,13 @@ from diffloc.reloc.rerender import RERENDER_STAGES, Rerendered, rerender_candida
 from diffloc.reloc.validation import ValidationConfig
 from diffloc.threads import intra_op_threads
 
-PASSES = ("recorded", "pass 1", "pass 2")
-"""The evidence validated: the run's, the render at the recorded pose, the render at pass 1's."""
+RENDERED = ("pass 1", "pass 2")
+"""The re-renders: at the recorded pose, at pass 1's pose."""
+MEASURED = ("recorded", *RENDERED)
+"""The evidence measured (the medians of the report)."""
+PASSES = ("recorded", "pass 1", "rival kept", "pass 2")
+"""The evidence validated: the run's, each re-render's, and pass 1's with the run's rival
+verdict (the rule of ``task.rerender``, :mod:`diffloc.pipeline.crossmodal_rerender`)."""
 MAX_ROT_DEG = 30.0
 VERDICTS = ("right accepted", "wrong accepted", "right refused", "wrong refused", "no pose")
 
@@ -178,7 +185,7 @@ def measure_sequence(
             },
         }
         T_wc = torch.from_numpy(loc.T_wc[q])
-        for name in PASSES[1:]:
+        for name in RENDERED:
             if T_wc is None:
                 row[name] = {"found": False, "accepted": False, "failed": []}
                 continue
@@ -191,6 +198,7 @@ def measure_sequence(
                 result, T_gt[q], task.loose_m
             )
             T_wc = result.candidate.T_wc if result.candidate.success else None
+        row["rival kept"] = _rival_kept(row["pass 1"], row["recorded"])
         queries.append(row)
     return {"sequence": sequence, "queries_total": len(loc.frames), "queries": queries}
 
@@ -226,6 +234,15 @@ def _pass_row(
         "failed": list(failed[0]),
         "accepted": bool(accepted[0]),
     }
+
+
+def _rival_kept(rendered: dict, recorded: dict) -> dict:
+    """``rendered``'s verdict with its rival test replaced by the recorded one (each test
+    fails on its own, so dropping ``rival`` equals validating without it)."""
+    failed = [t for t in rendered["failed"] if t != "rival"]
+    if rendered["found"] and "rival" in recorded["failed"]:
+        failed.append("rival")
+    return {**rendered, "failed": failed, "accepted": rendered["found"] and not failed}
 
 
 def _pass_errors(
@@ -272,7 +289,7 @@ def summarise(measured: dict) -> dict:
             "right refused by": refusing,
             "medians": medians,
         }
-    for name in PASSES[1:]:
+    for name in RENDERED:
         timed = [r[name] for r in rows if "wall_ms" in r[name]]
         summary["passes"][name]["median_ms"] = {
             kind: {
@@ -303,12 +320,13 @@ def markdown(report: dict) -> str:
         f"# Re-render at the found pose: `map={report['map']}`, {report['dataset']}",
         "",
         *made_by_lines(report["command"]),
-        "Every recorded query with a pose (the best candidate succeeded) is validated three "
+        "Every recorded query with a pose (the best candidate succeeded) is validated four "
         "ways with the recorded thresholds "
         f"({report['validation']}): **recorded** (the run's evidence, replayed: equal to the "
         "run's verdicts), **pass 1** (the map rendered at the recorded pose, the query matched "
         "against it, PnP again; rivals: the recorded candidates at their distance to the new "
-        "pose) and **pass 2** (rendered again at pass 1's pose). Right: within "
+        "pose), **rival kept** (pass 1's evidence, the rival test the recorded verdict: the "
+        "rule of `task.rerender`) and **pass 2** (rendered again at pass 1's pose). Right: within "
         f"{report['loose_m']:g} m / {MAX_ROT_DEG:g} deg of the truth (read for scoring only); "
         "a re-render that finds no PnP pose is `no pose`.",
         "",
@@ -349,10 +367,13 @@ def markdown(report: dict) -> str:
             cells = []
             for key, digits in (("inliers", 0), ("coverage", 3), ("photometric", 2)):
                 cells.append(
-                    " -> ".join(_fmt(passes[n]["medians"][side][key], digits) for n in PASSES)
+                    " -> ".join(
+                        _fmt(passes[n]["medians"][side][key], digits)
+                        for n in ("recorded", *RENDERED)
+                    )
                 )
             cells.append(
-                " -> ".join(_fmt(passes[n]["medians"][side]["plane_share"], 3) for n in PASSES)
+                " -> ".join(_fmt(passes[n]["medians"][side]["plane_share"], 3) for n in MEASURED)
             )
             n = passes["recorded"]["medians"][side]["n"]
             lines.append(f"| {seq} | {side} | {n} | " + " | ".join(cells) + " |")

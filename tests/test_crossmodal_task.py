@@ -26,8 +26,14 @@ from diffloc.config import compose_config, to_object
 from diffloc.io.dataset import read_sequence
 from diffloc.io.exposure import EXPOSURE_FILE
 from diffloc.io.trajectory import read_tum
-from diffloc.pipeline import crossmodal_alias, crossmodal_retrieval, crossmodal_stage
+from diffloc.pipeline import (
+    crossmodal_alias,
+    crossmodal_rerender,
+    crossmodal_retrieval,
+    crossmodal_stage,
+)
 from diffloc.pipeline.crossmodal_alias import SequenceAliases
+from diffloc.pipeline.crossmodal_rerender import SequenceRerender
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization
 from diffloc.reloc.stage_clock import STAGES
 from diffloc.sim.dataset import simulate_dataset
@@ -181,6 +187,42 @@ def test_the_storey_alias_test_runs_after_the_localization_and_is_reused(
     off = _run(dataset, tmp_path / "off", "task.storey_alias.maps=[]")
     assert "alias_query_same" not in off["stages"]
     assert off["sequences"]["query_same"]["accepted"] == loc.accepted.sum()
+
+
+def test_the_rerender_check_runs_before_the_alias_test_and_is_reused(
+    dataset, first, tmp_path, monkeypatch
+):
+    _refuse(monkeypatch, (*UPSTREAM, "RenderedDatabaseLocalizer"))
+    results = _run(dataset, tmp_path / "on", "task.rerender.maps=[tls]")
+    folder = dataset / "crossmodal" / "tls"
+    loc = SequenceLocalization.load(folder / "localize_query_same" / "localization.npz")
+    checked = SequenceRerender.load(folder / "rerender_query_same" / "rerender.npz")
+    stage = results["stages"]["rerender_query_same"]
+    assert stage["checked"] == len(checked.query) == loc.success.sum() >= 1
+    assert stage["accepted_before"] == loc.accepted.sum()
+    assert stage["accepted_after"] == checked.accepted.sum() >= 1
+    assert not (checked.accepted & ~checked.success).any()
+    # the tiny room's poses are within decimetres: a render at one keeps it near
+    assert stage["median_moved_m"] < 0.5 and (checked.cpu_ms > 0).all()
+    alias = results["stages"]["alias_query_same"]  # tests the re-render's accepted poses
+    assert alias["checked"] == checked.accepted.sum()
+    entry = results["sequences"]["query_same"]
+    assert entry["accepted"] == checked.accepted.sum() - alias["aliases"]
+    assert entry["precision"] == 1.0
+    times, poses = read_tum(tmp_path / "on" / "trajectory_query_same.tum")
+    kept = checked.accepted & checked.success
+    chosen = checked.query[kept]
+    if alias["aliases"] == 0:
+        np.testing.assert_allclose(poses, checked.T_wc[kept], atol=1e-6)
+    assert len(times) == entry["accepted"] <= len(chosen)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the re-render check ran again although it was reusable")
+
+    monkeypatch.setattr(crossmodal_rerender, "rerender_candidate", refuse)
+    again = _run(dataset, tmp_path / "again", "task.rerender.maps=[tls]")
+    assert again["stages"]["rerender_query_same"] == stage
+    assert again["sequences"]["query_same"]["rates"] == entry["rates"]
 
 
 def test_the_refinement_runs_after_the_localization_and_is_reported(

@@ -13,7 +13,7 @@ from diffloc.io.dataset import read_sequence
 from diffloc.io.mesh_obj import read_textured_mesh_obj
 from diffloc.io.textured_mesh import TexturedMesh
 from diffloc.pipeline.crossmodal_alias import SequenceAliases
-from diffloc.pipeline.crossmodal_config import StoreyAliasConfig
+from diffloc.pipeline.crossmodal_pose_checks import StoreyAliasConfig
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization
 from diffloc.reloc.rendered import RenderedLocalizerConfig, localizer_networks
 from diffloc.reloc.storey_alias import (
@@ -123,7 +123,7 @@ def test_applying_the_aliases_refuses_only_them():
 
 @pytest.mark.parametrize(
     ("kwargs", "message"),
-    [({"maps": ["nerf"]}, "cannot be tested"), ({"ratio": 0.0}, "ratio")],
+    [({"maps": ["nerf"]}, "not one of the maps"), ({"ratio": 0.0}, "ratio")],
 )
 def test_bad_storey_alias_settings_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):

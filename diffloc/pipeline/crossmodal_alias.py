@@ -5,10 +5,11 @@ every accepted pose of the sequence's localisation, the inliers of the query aga
 rendered at the pose and at the same pose on each other floor, and whether it is a storey
 alias (:mod:`diffloc.reloc.storey_alias`: an alias render's pose at least the validation's
 ``theta_dist_m`` away with at least ``task.storey_alias.ratio`` times the inliers of the render
-at the pose). An alias is refused: the answers
-are the localisation's with those poses no longer accepted (:meth:`SequenceAliases.apply`).
-Keyed on the localisation's output, the map's, the render poses' (their floors) and the
-localiser's settings; query ground truth is never read.
+at the pose). An alias is refused: the answers are the localisation's with those poses no
+longer accepted (:meth:`SequenceAliases.apply`). Keyed on the localisation's outputs (and the
+re-render check's, :mod:`diffloc.pipeline.crossmodal_rerender`, when it ran first), the map's,
+the render poses' (their floors) and the localiser's settings; query ground truth is never
+read.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from diffloc.crossmodal.synthesize import RGBDMap
 from diffloc.io.atomic import atomic_open
 from diffloc.io.dataset import read_sequence
 from diffloc.io.npz import read_npz_archive, write_npz
-from diffloc.pipeline.crossmodal_config import ALIAS_MAPS
+from diffloc.pipeline.crossmodal_pose_checks import ALIAS_MAPS
 from diffloc.pipeline.crossmodal_stage import (
     SequenceLocalization,
     crossmodal_folder,
@@ -179,7 +180,7 @@ def storey_alias_stage(
 
     Raises:
         ValueError: ``option`` is not one of
-            :data:`~diffloc.pipeline.crossmodal_config.ALIAS_MAPS`, or the localiser has no
+            :data:`~diffloc.pipeline.crossmodal_pose_checks.ALIAS_MAPS`, or the localiser has no
             validation (its accepted poses are not validated).
     """
     if option not in ALIAS_MAPS:
@@ -194,7 +195,7 @@ def storey_alias_stage(
     key = stage_key(
         {"localizer": asdict(config), "ratio": ratio},
         {
-            "localization": loc_outcome.outputs["localization.npz"],
+            "localization": loc_outcome.outputs,
             "map": map_outcome.outputs,
             "render_poses": poses_outcome.outputs["poses.npz"],
             **sequence_inputs(dataset, sequence, with_poses=False),

@@ -41,6 +41,7 @@ from diffloc.crossmodal.pose_selection import PoseSelectionConfig
 from diffloc.crossmodal.retrieval_tuning import RetrievalTuningConfig
 from diffloc.maps.surfel import SurfelMapConfig
 from diffloc.optim.render_refine import MatchCheckConfig, RenderRefineConfig
+from diffloc.pipeline.crossmodal_pose_checks import RerenderConfig, StoreyAliasConfig
 from diffloc.reloc.rendered import RenderedLocalizerConfig
 from diffloc.reloc.validation import ValidationConfig
 from diffloc.render.point_sizes import PointSizes
@@ -331,47 +332,6 @@ class CrossmodalRefineConfig:
         return out
 
 
-ALIAS_MAPS = ("tls", "cloud", "mesh")
-"""The ``map`` options whose accepted poses the storey-alias test can check (rendered at any
-pose in tens of milliseconds)."""
-
-
-@dataclass
-class StoreyAliasConfig:
-    """``task.storey_alias``: refuse an accepted pose that another floor explains at least as
-    well (:mod:`diffloc.pipeline.crossmodal_alias`, :mod:`diffloc.reloc.storey_alias`).
-
-    The map is rendered at the pose and at the same pose on each other floor of its render
-    poses; the query is matched against each render and PnP solved. The pose is refused when
-    a render on another floor gives a pose at least the validation's ``theta_dist_m`` away
-    with at least ``ratio`` times the inliers of the render at the pose.
-
-    Attributes:
-        maps: the ``map`` options tested (any of :data:`ALIAS_MAPS`; empty, the default: off;
-            ``task/scene/crossmodal_indoor.yaml`` turns it on for ``tls``).
-        ratio: 1.0: the other floor explains the query at least as well. Chosen on indoor
-            seed 0 (``experiments/storey_alias_check.py``): the TLS cloud's one wrong accepted
-            pose (2.98 m, one storey, off) gave 445 inliers on the other floor against 252 at
-            the pose (1.77); right mesh poses where the storeys look alike reached 0.70-0.84,
-            so the validation's own rival ratio 0.7 would refuse three of them.
-
-    Example:
-        >>> StoreyAliasConfig().maps, StoreyAliasConfig(maps=["tls"]).ratio
-        ([], 1.0)
-    """
-
-    maps: list[str] = field(default_factory=list)
-    ratio: float = 1.0
-
-    def __post_init__(self) -> None:
-        for option in self.maps:
-            if option not in ALIAS_MAPS:
-                raise ValueError(
-                    f"task.storey_alias.maps: {option!r} cannot be tested (one of {ALIAS_MAPS})"
-                )
-        check_number(self.ratio, "task.storey_alias.ratio", 0.0, open_low=True)
-
-
 POSE_SETTINGS = {
     "floor_closing_m": "floor_closing_radius_m",
     "trajectory_gap_m": "trajectory_gap_m",
@@ -430,7 +390,10 @@ class CrossmodalTaskConfig:
             indoors, 2 m outdoors (seed 2).
         plot_queries: queries shown beside their retrieved render per sequence.
         refine: render-and-compare refinement of the accepted poses (off by default).
-        storey_alias: the storey-alias test of the accepted poses (:class:`StoreyAliasConfig`).
+        rerender: the re-render check of the poses found
+            (:class:`~diffloc.pipeline.crossmodal_pose_checks.RerenderConfig`).
+        storey_alias: the storey-alias test of the accepted poses
+            (:class:`~diffloc.pipeline.crossmodal_pose_checks.StoreyAliasConfig`).
     """
 
     name: str = "crossmodal"
@@ -452,6 +415,7 @@ class CrossmodalTaskConfig:
     loose_m: float = 1.0
     plot_queries: int = 4
     refine: CrossmodalRefineConfig = field(default_factory=CrossmodalRefineConfig)
+    rerender: RerenderConfig = field(default_factory=RerenderConfig)
     storey_alias: StoreyAliasConfig = field(default_factory=StoreyAliasConfig)
 
     def __post_init__(self) -> None:

@@ -64,6 +64,7 @@ from diffloc.pipeline.crossmodal_report import (
     score_sequence,
     time_table,
 )
+from diffloc.pipeline.crossmodal_rerender import rerender_stage
 from diffloc.pipeline.crossmodal_retrieval import tune_retrieval_stage
 from diffloc.pipeline.crossmodal_stage import (
     MAP_OUTPUTS,
@@ -155,11 +156,8 @@ def run_crossmodal(
         )
         if task.refine.enabled:
             source = _refine_source(dataset, map_config, map_outcome, task)
-        if option in task.storey_alias.maps:
-            alias_inputs = (
-                (rgbd_map, map_outcome, database[0]),
-                (map_config.point_map, poses_outcome),
-            )
+        rendered = (rgbd_map, map_outcome, database[0])
+        render_poses = (map_config.point_map, poses_outcome)
         if task.tune_retrieval:
             tuned, retrieval = tune_retrieval_stage(
                 dataset, option, task.retrieval, database, show_progress
@@ -182,13 +180,27 @@ def run_crossmodal(
             retrieval,
         )
         stages[f"localize_{name}"] = outcome.summary.to_json()
+        if option in task.rerender.maps:
+            rerendered, checked = rerender_stage(
+                dataset,
+                option,
+                name,
+                (loc, outcome),
+                rendered,
+                task.localizer_for(option),
+                show_progress,
+            )
+            stages[f"rerender_{name}"] = checked.summary.to_json()
+            loc = rerendered.apply(loc)  # the re-render's poses and verdicts
+            outcome = StageOutcome(outcome.summary, {**outcome.outputs, **checked.outputs})
         if option in task.storey_alias.maps:
             aliases, tested = storey_alias_stage(
                 dataset,
                 option,
                 name,
                 (loc, outcome),
-                *alias_inputs,
+                rendered,
+                render_poses,
                 task.localizer_for(option),
                 task.storey_alias.ratio,
                 show_progress,

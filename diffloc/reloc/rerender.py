@@ -11,7 +11,9 @@ the query's features, lifting with the render's depth and PnP RANSAC + refinemen
 photometric consistency of the render warped into the query at the new pose
 (:func:`~diffloc.reloc.photometric.warped_ncc`). Each step is timed (wall and process CPU).
 
-Offline measurement only (``experiments/rerender_check.py``); the localiser does not call it.
+Used by the re-render check of ``diffloc task=crossmodal``
+(:mod:`diffloc.pipeline.crossmodal_rerender`), the storey-alias test
+(:mod:`diffloc.reloc.storey_alias`) and ``experiments/rerender_check.py``.
 
 Usage::
 
