@@ -8,7 +8,10 @@ localisation of each ``task.sequences`` (each a cached stage,
 :mod:`diffloc.pipeline.crossmodal_stage`; ``map=images``: the database of the mapping images,
 :mod:`diffloc.pipeline.crossmodal_images`, then the same localisation; ``map=hybrid``: both
 databases of ``map=images`` and ``map=mesh``, then their union,
-:mod:`diffloc.pipeline.crossmodal_hybrid`) -> (the maps of ``task.storey_alias.maps``, any
+:mod:`diffloc.pipeline.crossmodal_hybrid`) -> (the maps of ``task.rerender.maps``, any of
+``tls|cloud|mesh|nerf``, indoors ``mesh`` and ``cloud``: each pose found validated again on
+the map rendered at it, a cached stage of its own, :mod:`diffloc.pipeline.crossmodal_rerender`;
+its poses and verdicts replace the localisation's) -> (the maps of ``task.storey_alias.maps``, any
 of ``tls|cloud|mesh``, indoors ``tls``: each accepted pose tested against renders on the other
 floors, a cached stage of its own, :mod:`diffloc.pipeline.crossmodal_alias`; aliases are
 refused) ->
@@ -332,8 +335,10 @@ def _markdown(results: dict) -> str:
             "within the bound (a query not localised is a failure). Retrieval: the top-1 "
             "render lies within the render spacing and 45 deg of the query. mATE: mean "
             "position error of the accepted queries. ms/query: median wall time (features, "
-            "retrieval, matching, PnP) when the localisation ran (its load average is in "
-            f"results.json, stages.localize_<sequence>); machine: {results['machine']}.",
+            "retrieval, matching, PnP, and the re-render check where `task.rerender` ran: "
+            "stages.rerender_<sequence> in results.json) when the localisation ran (its load "
+            "average is in results.json, stages.localize_<sequence>); machine: "
+            f"{results['machine']}.",
             "",
             "Files per sequence: `trajectory_<sequence>.tum` (accepted poses; "
             "`evo_ape tum <truth> trajectory_<sequence>.tum`), `retrieved_<sequence>.png` "
