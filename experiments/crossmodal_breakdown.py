@@ -23,6 +23,10 @@ ONE outcome, the first stage that decides it:
 - ``wrong pose, near reference``: a wrong pose (rejected) from a reference within them:
   matching or PnP failed on the right render.
 
+The re-render check (``task.rerender``, indoors on for ``mesh`` and ``cloud``) is not replayed:
+where it ran, these outcomes are the localisation's own, before its second look
+(``experiments/rerender_check.py`` reports that check query by query).
+
 With the pose prior on (``task.localizer.prior``), each row says whether the reference came
 from the prior (``from_prior``), and per map and sequence the report counts the accepted and
 the wrong accepted poses whose reference came from it.

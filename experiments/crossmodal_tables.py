@@ -162,6 +162,12 @@ def main() -> None:
     loads = ", ".join(
         f"{r['map']} {r['load_average'][0]:.1f}" for r in rows if r["load_average"] is not None
     )
+    checked = [o for o, r in loaded.items() if f"rerender_{args.sequence}" in r["stages"]]
+    rerendered = (
+        f" (for {', '.join(checked)} the re-render check's time included, `task.rerender`)"
+        if checked
+        else ""
+    )
     text = "\n".join(
         [
             f"# {args.title}: `{args.sequence}` of {first['dataset']}, every {every}-th frame",
@@ -174,7 +180,8 @@ def main() -> None:
             f"accepted poses). Precision: accepted poses within {loose_m:g} m / 30 deg. Rates: "
             "share of ALL queries accepted within the bound. Retrieval: the top-1 database "
             "image lies within the render spacing and 45 deg of the query. ms / query: median "
-            "wall time per query including features, under the machine's load (1-minute load "
+            f"wall time per query including features{rerendered}, under the machine's load "
+            "(1-minute load "
             f"average when each localisation ran: {loads}; 2 cores); seed 1's is its "
             "median total (features included) from its own run over every frame."
             + (f"\n\n{args.note}" if args.note else ""),
