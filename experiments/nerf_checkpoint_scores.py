@@ -1,8 +1,8 @@
 """Held-out scores of a radiance-field training checkpoint (issue 19), with the PSNR split into
 pixels with ground-truth depth (surfaces) and without (the sky outdoors), and the field's mean
-opacity on the sky pixels of the held-out frames (rendered with the mean training code; near 1:
-the sky is painted by density, not by a background colour): appends one JSON line (first key
-``command``) to ``--out``.
+opacity on the sky pixels of the held-out frames (``sky_opacity_mean`` of
+``heldout_field_scores``; near 1: the sky is painted by density, not by a background colour):
+appends one JSON line (first key ``command``) to ``--out``.
 
 The checkpoint is the end-of-epoch ``last.ckpt`` a ``experiments/bench_nerf.py`` run leaves in
 ``<work>/triplane_full/checkpoints`` (read with ``weights_only=True``); ``--scene``, ``--data``
@@ -26,13 +26,11 @@ import sys
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 
 from diffloc.config import compose_config, to_object
 from diffloc.eval.field_scores import heldout_field_scores
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.nerf.data import build_submap_rays
-from diffloc.maps.nerf.renderer import render_image
 from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.maps.nerf.train import load_checkpoint
 
@@ -56,22 +54,14 @@ def main() -> None:
     rays = build_submap_rays(seq, submap.frames, nerf.data)
     module, step = load_checkpoint(rays, nerf.train, args.checkpoint)
     scores = heldout_field_scores(module.field, module.grid, seq, rays.camera, rays.heldout, True)
-    code = module.field.appearance.weight.detach().mean(0)
-    sky = []
-    for frame in rays.heldout:
-        out = render_image(module.field, module.grid, rays.camera, seq.T_wc[frame].float(), code)
-        size = (rays.camera.height, rays.camera.width)
-        gt = F.interpolate(seq.load_depth(frame)[None], size=size, mode="nearest")[0, 0]
-        sky.append(out["opacity"][0][gt <= 0])
-    sky_opacity = torch.cat(sky)
     record = {
         "command": shlex.join(["python3", *sys.argv]),
         "data": data,
         "background": nerf.train.field.background,
+        "empty_weight": nerf.train.loss.empty_weight,
         "step": step,
         "heldout_frames": len(rays.heldout),
         **scores,
-        "sky_opacity_mean": float(sky_opacity.mean()) if len(sky_opacity) else None,
         "load_avg": os.getloadavg()[0],
     }
     out = Path(args.out)
