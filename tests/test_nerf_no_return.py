@@ -114,7 +114,7 @@ def test_no_return_rays_need_the_pattern_in_the_calibration(tmp_path: Path) -> N
         build_submap_rays(seq, [0, 1], SubmapDataConfig(holdout_every=0), no_return=True)
     rays = build_submap_rays(seq, [0, 1], SubmapDataConfig(holdout_every=0))
     config = NerfTrainConfig(loss=NerfLossConfig(empty_weight=0.1))
-    with pytest.raises(ValueError, match="without a return"):
+    with pytest.raises(ValueError, match="were not built"):
         NerfDataModule(rays, config)
     with pytest.raises(ValueError, match="empty_weight"):
         NerfLossConfig(empty_weight=-0.1)

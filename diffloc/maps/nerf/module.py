@@ -222,16 +222,21 @@ class NerfDataModule(L.LightningDataModule):
         config: training settings (batch sizes, steps per epoch, seed).
 
     Raises:
-        ValueError: the empty-space loss is on but the rays hold no no-return rays.
+        ValueError: the empty-space loss is on but the no-return rays were not built, or there
+            are none.
     """
 
     def __init__(self, rays: SubmapRays, config: NerfTrainConfig) -> None:
         super().__init__()
-        if config.loss.empty_weight > 0 and (rays.no_return is None or not len(rays.no_return)):
+        if config.loss.empty_weight > 0 and rays.no_return is None:
             raise ValueError(
-                "nerf.train.loss.empty_weight > 0 needs lidar rays without a return, and these "
-                "rays have none (build them with build_submap_rays(..., no_return=True); the "
-                "calibration must record the lidar pattern)"
+                "nerf.train.loss.empty_weight > 0 needs the lidar rays without a return, which "
+                "were not built (build_submap_rays(..., no_return=True))"
+            )
+        if config.loss.empty_weight > 0 and not len(rays.no_return):
+            raise ValueError(
+                "nerf.train.loss.empty_weight > 0, but every direction of the lidar's grid has a "
+                "return in these sweeps (an enclosed space): nothing to keep empty; set it to 0"
             )
         self.rays, self.config = rays, config
 
