@@ -11,7 +11,8 @@ lidar returns up to 80 m, a 15 m box; ``diffloc/conf/nerf/scene/silvr_outdoor.ya
 ``uncontracted`` trains the same field without the contraction, ``uncontracted_all`` also with
 the box over all the returns used, ``planes512`` adds a 512 tri-plane level. ``--override``
 adds Hydra overrides to the composed config (``nerf.train.field.background=learned``: the
-learnt background colour the sky composites over, issue 19).
+learnt background colour the sky composites over, issue 19; ``nerf.train.loss.empty_weight=w``:
+the empty-space loss on the lidar rays without a return, which are then built).
 Training uses the images, mapping poses and lidar sweeps only. A held-out image's appearance
 code is fitted on its left half (field frozen) and PSNR is taken on its right half (NeRF-W).
 Ground-truth depth images are read here for scoring only (depth error, normal error).
@@ -551,7 +552,8 @@ def main() -> None:
     submaps = cluster_trajectory(seq.T_wc, nerf.submaps)
     submap = submaps[args.submap]
     tic = time.perf_counter()
-    rays = build_submap_rays(seq, submap.frames, nerf.data)
+    no_return = nerf.train.loss.empty_weight > 0
+    rays = build_submap_rays(seq, submap.frames, nerf.data, no_return=no_return)
     record: dict = {
         "command": shlex.join(["python3", *sys.argv]),
         "data": data,
@@ -565,6 +567,8 @@ def main() -> None:
         "train_frames": len(rays.frames),
         "heldout_frames": len(rays.heldout),
         "lidar_rays": len(rays.lidar),
+        "no_return_rays": len(rays.no_return) if no_return else None,
+        "empty_weight": nerf.train.loss.empty_weight,
         "box_m": [round(float(v), 2) for v in rays.box_max - rays.box_min],
         "prepare_s": round(time.perf_counter() - tic, 1),
         "threads": args.threads,
@@ -588,7 +592,7 @@ def main() -> None:
             used = rays
             if data_changes:
                 data_config = dataclasses.replace(nerf.data, **data_changes)
-                used = build_submap_rays(seq, submap.frames, data_config)
+                used = build_submap_rays(seq, submap.frames, data_config, no_return=no_return)
             result = run_variant(seq, used, config, budget, out, args.clock, args.eval_every_s)
             if data_changes:
                 result["box_m"] = [round(float(v), 2) for v in used.box_max - used.box_min]

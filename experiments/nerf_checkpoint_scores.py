@@ -1,8 +1,14 @@
 """Held-out scores of a radiance-field training checkpoint (issue 19), with the PSNR split into
 pixels with ground-truth depth (surfaces) and without (the sky outdoors), and the field's mean
-opacity on the sky pixels of the held-out frames (rendered with the mean training code; near 1:
-the sky is painted by density, not by a background colour): appends one JSON line (first key
-``command``) to ``--out``.
+opacity on the sky pixels of the held-out frames (``sky_opacity_mean`` of
+``heldout_field_scores``; near 1: the sky is painted by density, not by a background colour):
+appends one JSON line (first key ``command``) to ``--out``. The sky opacity is also split by
+the elevation of the pixel's ray: ``sky_opacity_mean_lidar_fov`` (within the lidar's vertical
+field of view, where lidar rays without a return exist) and ``sky_opacity_mean_above_lidar``
+(above its highest beam, where no lidar ray ever reaches), from the calibration's lidar
+pattern (``null`` without one). The sky PSNR is split too (right halves, held-out codes as in
+the scores): ``psnr_heldout_sky_open_db`` over sky pixels with no surface pixel within 2 pixels,
+``psnr_heldout_sky_edge_db`` over the other sky pixels (silhouettes of facades and trees).
 
 The checkpoint is the end-of-epoch ``last.ckpt`` a ``experiments/bench_nerf.py`` run leaves in
 ``<work>/triplane_full/checkpoints`` (read with ``weights_only=True``); ``--scene``, ``--data``
@@ -20,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shlex
 import sys
@@ -29,12 +36,70 @@ import torch
 import torch.nn.functional as F
 
 from diffloc.config import compose_config, to_object
-from diffloc.eval.field_scores import heldout_field_scores
+from diffloc.eval.field_scores import heldout_field_scores, left_half_code
 from diffloc.io.dataset import read_sequence
-from diffloc.maps.nerf.data import build_submap_rays
+from diffloc.io.sequence import SequenceData
+from diffloc.maps.nerf.data import SubmapRays, build_submap_rays, load_image
+from diffloc.maps.nerf.field import RadianceField
+from diffloc.maps.nerf.no_return import LidarPattern
+from diffloc.maps.nerf.rays import camera_rays
 from diffloc.maps.nerf.renderer import render_image
+from diffloc.maps.nerf.sampler import DensityGrid
 from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.maps.nerf.train import load_checkpoint
+
+
+def sky_opacity_by_elevation(
+    field: RadianceField, grid: DensityGrid, seq: SequenceData, rays: SubmapRays
+) -> dict[str, float | None]:
+    """Mean rendered opacity of the held-out frames' sky pixels (no ground-truth depth) whose
+    ray elevation is at most / above the lidar's highest beam (``None`` where there is none)."""
+    calib = seq.info.get("calib")
+    pattern = LidarPattern.from_calibration(getattr(calib, "lidar", None), seq.name)
+    top = math.radians(pattern.vfov_max_deg)
+    code = field.appearance.weight.detach().mean(0)  # opacity does not depend on the code
+    uv = rays.camera.pixel_grid(torch.float32).reshape(-1, 2)
+    size = (rays.camera.height, rays.camera.width)
+    parts: dict[bool, list[torch.Tensor]] = {False: [], True: []}
+    for frame in rays.heldout:
+        T_wc = seq.T_wc[frame].float()
+        opacity = render_image(field, grid, rays.camera, T_wc, code)["opacity"].reshape(-1)
+        sky = F.interpolate(seq.load_depth(frame)[None], size=size)[0, 0].reshape(-1) <= 0
+        above = torch.asin(camera_rays(rays.camera, T_wc, uv)[1][:, 2].clamp(-1, 1)) > top
+        for side in (False, True):
+            parts[side].append(opacity[sky & (above == side)])
+    means = {side: torch.cat(values) for side, values in parts.items()}
+    return {
+        f"sky_opacity_mean_{name}": float(means[side].mean()) if len(means[side]) else None
+        for side, name in ((False, "lidar_fov"), (True, "above_lidar"))
+    }
+
+
+def sky_psnr_by_edge(
+    field: RadianceField, grid: DensityGrid, seq: SequenceData, rays: SubmapRays
+) -> dict[str, float | None]:
+    """PSNR of the held-out right halves' sky pixels (no ground-truth depth) pooled over the
+    frames, split into open sky (no surface pixel within 2 pixels) and sky at an edge."""
+    camera, half = rays.camera, rays.camera.width // 2
+    squared: dict[str, list[torch.Tensor]] = {"open": [], "edge": []}
+    for frame in rays.heldout:
+        T_wc = seq.T_wc[frame].float()
+        image = load_image(seq, frame, camera)
+        code = left_half_code(field, grid, camera, T_wc, image)
+        rgb = render_image(field, grid, camera, T_wc, code)["rgb"]
+        depth = F.interpolate(seq.load_depth(frame)[None], size=(camera.height, camera.width))
+        near_surface = F.max_pool2d((depth[0] > 0).float(), 5, stride=1, padding=2)[0] > 0
+        sky = depth[0, 0] <= 0
+        error = ((rgb - image) ** 2).mean(0)[:, half:]
+        squared["open"].append(error[(sky & ~near_surface)[:, half:]])
+        squared["edge"].append(error[(sky & near_surface)[:, half:]])
+    out = {}
+    for name, errors in squared.items():
+        pooled = torch.cat(errors)
+        out[f"psnr_heldout_sky_{name}_db"] = (
+            -10 * math.log10(max(float(pooled.mean()), 1e-12)) if len(pooled) else None
+        )
+    return out
 
 
 def main() -> None:
@@ -56,22 +121,16 @@ def main() -> None:
     rays = build_submap_rays(seq, submap.frames, nerf.data)
     module, step = load_checkpoint(rays, nerf.train, args.checkpoint)
     scores = heldout_field_scores(module.field, module.grid, seq, rays.camera, rays.heldout, True)
-    code = module.field.appearance.weight.detach().mean(0)
-    sky = []
-    for frame in rays.heldout:
-        out = render_image(module.field, module.grid, rays.camera, seq.T_wc[frame].float(), code)
-        size = (rays.camera.height, rays.camera.width)
-        gt = F.interpolate(seq.load_depth(frame)[None], size=size, mode="nearest")[0, 0]
-        sky.append(out["opacity"][0][gt <= 0])
-    sky_opacity = torch.cat(sky)
     record = {
         "command": shlex.join(["python3", *sys.argv]),
         "data": data,
         "background": nerf.train.field.background,
+        "empty_weight": nerf.train.loss.empty_weight,
         "step": step,
         "heldout_frames": len(rays.heldout),
         **scores,
-        "sky_opacity_mean": float(sky_opacity.mean()) if len(sky_opacity) else None,
+        **sky_opacity_by_elevation(module.field, module.grid, seq, rays),
+        **sky_psnr_by_edge(module.field, module.grid, seq, rays),
         "load_avg": os.getloadavg()[0],
     }
     out = Path(args.out)

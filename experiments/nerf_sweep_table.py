@@ -3,7 +3,9 @@ one row per JSONL record of the full variant, with its difference to the record 
 overrides (tri-plane) on the same dataset (the baseline; the last such record when there
 are several), and to the default of its own training seed (the record on the same dataset
 whose only override is the same ``nerf.train.seed=K``; seed 0 without one), since the
-training seed alone moves the held-out PSNR by tenths of a dB.
+training seed alone moves the held-out PSNR by tenths of a dB. ``sky opacity`` is the mean
+rendered opacity of the held-out sky pixels (``sky_opacity_mean``; records made before it
+existed show ``-``).
 
 Writes ``<out>.md`` (first line: the command) and ``<out>.json`` (the rows).
 
@@ -86,6 +88,7 @@ def sweep_rows(records: list[dict]) -> list[dict]:
                 ),
                 "surface_db": r.get("psnr_heldout_surface_db"),
                 "sky_db": r.get("psnr_heldout_sky_db"),
+                "sky_opacity": r.get("sky_opacity_mean"),
                 "depth_cm": 100 * r["depth_median_abs_err_m"],
                 "normal_deg": r["normal_median_err_deg"],
                 "steps": r["steps"],
@@ -109,9 +112,9 @@ def sweep_markdown(rows: list[dict], command: str) -> str:
         f"Made by: `{command}`",
         "",
         "| setting | data | held-out PSNR dB | vs default dB | vs default, same training seed "
-        f"dB | surface / sky dB | depth cm | normal deg | steps | CPU ms/step | {marks} | "
-        "load start / end |",
-        "|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(_MARKS_S) + "---|",
+        "dB | surface / sky dB | sky opacity | depth cm | normal deg | steps | CPU ms/step | "
+        f"{marks} | load start / end |",
+        "|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(_MARKS_S) + "---|",
     ]
     for r in rows:
         at = " | ".join(_cell(r[f"psnr_at_{m:.0f}s_db"], "{:.2f}") for m in _MARKS_S)
@@ -119,7 +122,8 @@ def sweep_markdown(rows: list[dict], command: str) -> str:
             f"| `{r['setting']}` | {Path(r['data']).name} | {r['psnr_heldout_db']:.2f} | "
             f"{_cell(r['delta_db'], '{:+.2f}')} | {_cell(r['delta_same_seed_db'], '{:+.2f}')} | "
             f"{_cell(r['surface_db'], '{:.2f}')} / "
-            f"{_cell(r['sky_db'], '{:.2f}')} | {r['depth_cm']:.1f} | {r['normal_deg']:.2f} | "
+            f"{_cell(r['sky_db'], '{:.2f}')} | {_cell(r['sky_opacity'], '{:.3f}')} | "
+            f"{r['depth_cm']:.1f} | {r['normal_deg']:.2f} | "
             f"{r['steps']} | {r['cpu_ms_per_step']:.0f} | {at} | "
             f"{r['load'][0]:.1f} / {r['load'][1]:.1f} |"
         )

@@ -17,6 +17,7 @@ from diffloc.eval.field_scores import heldout_field_scores
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.nerf.data import build_submap_rays
 from diffloc.maps.nerf.export import load_field
+from diffloc.maps.nerf.renderer import render_image
 from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline import nerf_stage
@@ -66,6 +67,15 @@ def test_the_record_holds_finite_held_out_scores_of_the_exported_field(
     if n_sky:
         total += n_sky * _mse(again["psnr_heldout_sky_db"])
     assert total / gt.numel() == pytest.approx(_mse(again["psnr_heldout_db"]), rel=1e-4)
+
+    # the sky opacity is the mean rendered opacity of the (whole) image's pixels without depth
+    sky = F.interpolate(seq.load_depth(0)[None], size=(camera.height, camera.width))[0, 0] <= 0
+    code = field.appearance.weight[0].detach()  # opacity does not depend on the code
+    opacity = render_image(field, grid, camera, seq.T_wc[0].float(), code)["opacity"][0]
+    if sky.any():
+        assert again["sky_opacity_mean"] == pytest.approx(float(opacity[sky].mean()), rel=1e-5)
+    else:
+        assert again["sky_opacity_mean"] is None
 
 
 def _mse(psnr_db: float) -> float:

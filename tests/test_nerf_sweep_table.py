@@ -48,7 +48,8 @@ def test_rows_compare_with_the_default_of_the_same_dataset() -> None:
             record("data/outdoor_seed0", 22.5, None),
             record("data/outdoor_seed0", 23.0, ["nerf.train.ray_batch=2048"]),
             record("data/outdoor_seed1", 22.0, []),
-            record("data/outdoor_seed1", 21.5, ["nerf.train.ray_batch=2048"]),
+            record("data/outdoor_seed1", 21.5, ["nerf.train.ray_batch=2048"])
+            | {"sky_opacity_mean": 0.9981},
             record("data/other", 20.0, ["nerf.train.ray_batch=2048"]),
             record("data/outdoor_seed0", 21.0, []) | {"encodings": "hashgrid"},
         ]
@@ -65,7 +66,8 @@ def test_rows_compare_with_the_default_of_the_same_dataset() -> None:
     text = script.sweep_markdown(rows, "python3 x.py")
     assert text.startswith("Made by: `python3 x.py`")
     row = "| `nerf.train.ray_batch=2048` | outdoor_seed1 | 21.50 | -0.50 | -0.50 | 20.50 / 23.50 |"
-    assert row in text
+    assert row + " 0.998 | 6.7 |" in text
+    assert "| 20.00 / 23.00 | - | 6.7 |" in text  # no sky opacity in the record
 
 
 def test_rows_compare_with_the_default_of_the_same_training_seed() -> None:

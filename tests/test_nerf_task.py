@@ -65,6 +65,17 @@ def test_train_nerf_writes_submaps_logs_and_a_loadable_field(
     assert field.config.triplane_resolutions == [16]
 
 
+def test_the_empty_space_loss_in_a_closed_room_is_a_clear_error(
+    tiny_indoor_dataset: Path, tmp_path: Path
+) -> None:
+    # the task builds the no-return rays; the tiny room returns in every direction
+    cfg = _tiny(tmp_path, submap=1)
+    loss = dataclasses.replace(cfg.train.loss, empty_weight=0.1)
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, loss=loss))
+    with pytest.raises(ValueError, match="every direction of the lidar's grid has a return"):
+        train_nerf_submap(tiny_indoor_dataset, cfg, False)
+
+
 def test_a_second_run_reuses_the_committed_field_and_a_failed_one_keeps_it(
     tiny_indoor_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -245,6 +256,8 @@ def test_a_diverged_training_is_refused_and_nothing_is_committed(
         "nerf.train.sampler.min_weight=2",
         "nerf.train.sampler.grad_min_weight=-2",
         "nerf.train.loss.depth_weight=-1",
+        "nerf.train.loss.empty_weight=-1",
+        "nerf.train.empty_batch=0",
         "nerf.train.loss.depth_sigma_m=0",
         "nerf.train.loss.depth_sigma_start_m=0.001",
         "nerf.data.image_scale=0",

@@ -137,7 +137,10 @@ def heldout_field_scores(
         ``normal_median_err_deg`` (over pixels with a reference normal), and the PSNR of the
         right halves split by the ground truth, pooled over the frames:
         ``psnr_heldout_surface_db`` (pixels with depth) and ``psnr_heldout_sky_db`` (pixels
-        without, the sky outdoors; ``None`` when there is none).
+        without, the sky outdoors; ``None`` when there is none), and ``sky_opacity_mean``,
+        the mean rendered opacity of the pixels without depth over the whole held-out images
+        (near 1: the field paints the sky with density instead of leaving it to a background
+        colour; ``None`` without such pixels).
 
     Raises:
         ValueError: no held-out frame.
@@ -148,6 +151,7 @@ def heldout_field_scores(
     field.eval()
     psnrs, depth_err, normal_err = [], [], []
     squared: dict[str, list[torch.Tensor]] = {"surface": [], "sky": []}
+    sky_opacity = []
     uv = camera.pixel_grid(torch.float32).reshape(-1, 2)
     left = uv[:, 0] < camera.width / 2
     half = camera.width // 2
@@ -170,6 +174,7 @@ def heldout_field_scores(
             error = ((right - image[:, :, half:]) ** 2).mean(0)
             squared["surface"].append(error[valid[:, half:]])
             squared["sky"].append(error[~valid[:, half:]])
+            sky_opacity.append(out["opacity"][0][~valid])
             depth_err.append((out["depth"][0] - gt[0])[valid].abs())
             n_gt = depth_image_normals(gt, camera)
             n_gt_world = torch.einsum("ij,jhw->ihw", T_wc[:3, :3], n_gt)
@@ -181,6 +186,8 @@ def heldout_field_scores(
     if full:
         result["depth_median_abs_err_m"] = float(torch.cat(depth_err).median())
         result["normal_median_err_deg"] = float(torch.cat(normal_err).median())
+        opacity = torch.cat(sky_opacity)
+        result["sky_opacity_mean"] = float(opacity.mean()) if len(opacity) else None
         for name, errors in squared.items():
             pooled = torch.cat(errors)
             result[f"psnr_heldout_{name}_db"] = (

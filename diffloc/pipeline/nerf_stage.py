@@ -272,7 +272,8 @@ def train_nerf_submap(
             return previous
         work = stage.workdir()  # a folder this run cannot write is refused here, before work
         name = f"submap {config.submap} of {dataset}"
-        rays = build_submap_rays(seq, submap.frames, config.data, name=name)
+        no_return = config.train.loss.empty_weight > 0
+        rays = build_submap_rays(seq, submap.frames, config.data, name=name, no_return=no_return)
         training_key = stage_key(training, inputs)
         resume = _prepare_checkpoints(run_dir, training_key, config)
         module = fit_submap(

@@ -14,6 +14,7 @@ from diffloc.checks import check_int_at_least, check_number
 from diffloc.geometry.camera import PinholeCamera
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.nerf.lidar_rays import LidarRays, lidar_rays
+from diffloc.maps.nerf.no_return import NoReturnRays, no_return_rays
 from diffloc.maps.nerf.rays import camera_rays
 
 __all__ = [
@@ -79,6 +80,8 @@ class SubmapRays:
         lidar: the lidar rays.
         box_min: (3,) lower corner of the field's box.
         box_max: (3,) upper corner.
+        no_return: the lidar rays without a return of the same sweeps, or ``None`` (not
+            built).
     """
 
     frames: list[int]
@@ -91,6 +94,7 @@ class SubmapRays:
     lidar: LidarRays
     box_min: torch.Tensor
     box_max: torch.Tensor
+    no_return: NoReturnRays | None = None
 
 
 def split_frames(frames: list[int], holdout_every: int) -> tuple[list[int], list[int]]:
@@ -133,7 +137,11 @@ def training_sweeps(seq: SequenceData, train: list[int], heldout: list[int]) -> 
 
 
 def build_submap_rays(
-    seq: SequenceData, frames: list[int], config: SubmapDataConfig, name: str = "submap"
+    seq: SequenceData,
+    frames: list[int],
+    config: SubmapDataConfig,
+    name: str = "submap",
+    no_return: bool = False,
 ) -> SubmapRays:
     """Training rays of the submap made of ``frames`` of the mapping sequence ``seq``.
 
@@ -144,13 +152,15 @@ def build_submap_rays(
         frames: the submap's frame indices.
         config: settings.
         name: used in error messages.
+        no_return: also build the lidar rays without a return of the training sweeps
+            (:func:`~diffloc.maps.nerf.no_return.no_return_rays`, the empty-space loss).
 
     Returns:
         The :class:`SubmapRays`.
 
     Raises:
-        ValueError: fewer than two training frames, no lidar sweep near them, or no return
-            within ``box_range_m``.
+        ValueError: fewer than two training frames, no lidar sweep near them, no return
+            within ``box_range_m``, or (``no_return``) no lidar pattern in the calibration.
     """
     train, heldout = split_frames(sorted(frames), config.holdout_every)
     if len(train) < 2:
@@ -188,4 +198,5 @@ def build_submap_rays(
         lidar=lidar,
         box_min=torch.from_numpy(low - config.box_padding_m).float(),
         box_max=torch.from_numpy(high + config.box_padding_m).float(),
+        no_return=no_return_rays(seq, sweeps) if no_return else None,
     )

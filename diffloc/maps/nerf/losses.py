@@ -16,6 +16,11 @@ starts wider and shrinks towards it (``NerfLossConfig``), as nerfstudio's depth-
 Normal (Eq. 7, MonoSDF form): ``|N_hat - N_bar|_1 + |1 - N_hat^T N_bar|`` per ray, with
 ``N_hat`` the rendered normal (weights times the normalised negative density gradient) and
 ``N_bar`` the normal of the lidar surface.
+
+Empty space (lidar rays without a return, :mod:`diffloc.maps.nerf.no_return`): a ray along which
+the lidar measured nothing should pass the whole field, ``log(1 + tau)`` per ray with
+``tau = sum_i sigma_i delta_i`` the optical depth from the near to the far bound
+(:func:`empty_space_loss`).
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ import torch
 
 from diffloc.checks import check_shape
 
-__all__ = ["depth_kl_loss", "normal_loss", "photometric_loss"]
+__all__ = ["depth_kl_loss", "empty_space_loss", "normal_loss", "photometric_loss"]
 
 
 def photometric_loss(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -90,3 +95,38 @@ def normal_loss(normal: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     check_shape(target, "R,3", "target")
     l1 = (normal - target).abs().sum(dim=-1)
     return (l1 + (1.0 - (normal * target).sum(dim=-1)).abs()).mean()
+
+
+def empty_space_loss(density: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
+    """Mean over rays of ``log(1 + tau)``, ``tau = sum_i sigma_i delta_i`` the ray's optical
+    depth over all its samples, for rays that should pass the field unhit.
+
+    Why this form: the probability that a ray passes every sample is the transmittance
+    ``T = exp(-tau)``, so ``-log T = tau`` is the negative log-likelihood of "no return", the
+    no-return counterpart of Eq. 6's cross-entropy; ``log(1 + tau)`` equals it for small
+    ``tau`` and grows only logarithmically for opaque rays, so a sky painted with density early
+    on does not swamp the photometric loss, while its gradient ``1 / (1 + tau)`` per unit of
+    optical depth never vanishes. The opacity ``1 - T`` (the obvious alternative) has gradient
+    ``T``: about 1e-3 on the opaque sky the field paints outdoors (mean sky opacity 0.998),
+    i.e. none where it is needed. Why the whole ray, to the contracted far bound
+    (``SamplerConfig.far_m``) rather than to the lidar's maximum range: the sky the camera
+    sees is explained either by density somewhere along the ray or by the background colour,
+    and only an empty ray leaves the transmittance that gives the background its gradient;
+    emptied only to the maximum range, the field could keep painting the sky beyond it.
+    What lies beyond the sensor's range along such a ray (a far facade, on a real site) is
+    then left to the background colour.
+
+    Args:
+        density: (R, S) densities of the rays' samples (zero where not evaluated), 1/m.
+        deltas: (R, S) sample interval lengths, metres.
+
+    Returns:
+        Scalar loss (zero for empty rays).
+
+    Example:
+        >>> empty_space_loss(torch.zeros(2, 3), torch.ones(2, 3))
+        tensor(0.)
+    """
+    check_shape(density, "R,S", "density")
+    check_shape(deltas, "R,S", "deltas")
+    return torch.log1p((density * deltas).sum(dim=-1)).mean()

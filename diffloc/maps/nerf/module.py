@@ -22,7 +22,12 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from diffloc.checks import check_int_at_least, check_number
 from diffloc.maps.nerf.data import SubmapRays
 from diffloc.maps.nerf.field import FieldConfig, RadianceField
-from diffloc.maps.nerf.losses import depth_kl_loss, normal_loss, photometric_loss
+from diffloc.maps.nerf.losses import (
+    depth_kl_loss,
+    empty_space_loss,
+    normal_loss,
+    photometric_loss,
+)
 from diffloc.maps.nerf.renderer import render_rays
 from diffloc.maps.nerf.sampler import DensityGrid, SamplerConfig
 
@@ -51,6 +56,9 @@ class NerfLossConfig:
         depth_sigma_start_m: the spread at step 0; it halves every
             ``depth_sigma_halflife_steps`` down to ``depth_sigma_m``.
         depth_sigma_halflife_steps: see above.
+        empty_weight: weight of the empty-space loss on lidar rays without a return
+            (:func:`~diffloc.maps.nerf.losses.empty_space_loss`; 0: off, the default). Needs
+            the submap's no-return rays (``build_submap_rays(..., no_return=True)``).
     """
 
     depth_weight: float = 0.05
@@ -58,6 +66,7 @@ class NerfLossConfig:
     depth_sigma_m: float = 0.01
     depth_sigma_start_m: float = 0.2
     depth_sigma_halflife_steps: int = 100
+    empty_weight: float = 0.0
 
     def __post_init__(self) -> None:
         check_number(self.depth_weight, "depth_weight", 0.0)
@@ -65,6 +74,7 @@ class NerfLossConfig:
         check_number(self.depth_sigma_m, "depth_sigma_m", 0.0, open_low=True)
         check_number(self.depth_sigma_start_m, "depth_sigma_start_m", self.depth_sigma_m)
         check_int_at_least(self.depth_sigma_halflife_steps, "depth_sigma_halflife_steps", 1)
+        check_number(self.empty_weight, "empty_weight", 0.0)
 
     def sigma(self, step: int) -> float:
         """The depth-loss spread at training step ``step``."""
@@ -83,6 +93,8 @@ class NerfTrainConfig:
         ray_batch: camera rays per step.
         lidar_batch: lidar rays per step (depth and normal losses).
         normal_batch: of those, rays that also get the normal loss.
+        empty_batch: lidar rays without a return per step (the empty-space loss, when
+            ``loss.empty_weight`` > 0).
         lr_encoding: Adam learning rate of the grid features.
         lr_network: Adam learning rate of the MLPs and appearance codes.
         lr_decay_steps: both learning rates fall exponentially to ``lr_final_ratio`` times
@@ -98,6 +110,7 @@ class NerfTrainConfig:
     ray_batch: int = 1024
     lidar_batch: int = 512
     normal_batch: int = 128
+    empty_batch: int = 256
     lr_encoding: float = 2e-2
     lr_network: float = 5e-3
     lr_decay_steps: int = 0
@@ -106,7 +119,7 @@ class NerfTrainConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("ray_batch", "lidar_batch", "steps_per_epoch"):
+        for name in ("ray_batch", "lidar_batch", "empty_batch", "steps_per_epoch"):
             check_int_at_least(getattr(self, name), name, 1)
         check_int_at_least(self.normal_batch, "normal_batch", 0)
         if self.normal_batch > self.lidar_batch:
@@ -145,10 +158,15 @@ class StepBatches(Dataset):
         ray_batch: camera rays per batch.
         lidar_batch: lidar rays per batch.
         seed: the run's seed.
+        empty_batch: no-return lidar rays per batch (drawn after the others, so the camera and
+            lidar rays of a step do not depend on it); 0 or rays without them: none.
     """
 
-    def __init__(self, rays: SubmapRays, ray_batch: int, lidar_batch: int, seed: int) -> None:
+    def __init__(
+        self, rays: SubmapRays, ray_batch: int, lidar_batch: int, seed: int, empty_batch: int = 0
+    ) -> None:
         self.rays, self.ray_batch, self.lidar_batch, self.seed = rays, ray_batch, lidar_batch, seed
+        self.empty_batch = empty_batch if rays.no_return is not None else 0
 
     def __len__(self) -> int:
         return 2**62
@@ -158,7 +176,13 @@ class StepBatches(Dataset):
         pix = torch.randint(len(self.rays.rgb), (self.ray_batch,), generator=g)
         lid = torch.randint(len(self.rays.lidar), (self.lidar_batch,), generator=g)
         lidar = self.rays.lidar
+        empty = {}
+        if self.empty_batch:
+            rays = self.rays.no_return
+            pick = torch.randint(len(rays), (self.empty_batch,), generator=g)
+            empty = {"empty_origins": rays.origins[pick], "empty_directions": rays.directions[pick]}
         return {
+            **empty,
             "rgb": self.rays.rgb[pix],
             "origins": self.rays.origins[pix],
             "directions": self.rays.directions[pix],
@@ -196,15 +220,30 @@ class NerfDataModule(L.LightningDataModule):
     Args:
         rays: the submap's rays (:func:`diffloc.maps.nerf.data.build_submap_rays`).
         config: training settings (batch sizes, steps per epoch, seed).
+
+    Raises:
+        ValueError: the empty-space loss is on but the no-return rays were not built, or there
+            are none.
     """
 
     def __init__(self, rays: SubmapRays, config: NerfTrainConfig) -> None:
         super().__init__()
+        if config.loss.empty_weight > 0 and rays.no_return is None:
+            raise ValueError(
+                "nerf.train.loss.empty_weight > 0 needs the lidar rays without a return, which "
+                "were not built (build_submap_rays(..., no_return=True))"
+            )
+        if config.loss.empty_weight > 0 and not len(rays.no_return):
+            raise ValueError(
+                "nerf.train.loss.empty_weight > 0, but every direction of the lidar's grid has a "
+                "return in these sweeps (an enclosed space): nothing to keep empty; set it to 0"
+            )
         self.rays, self.config = rays, config
 
     def train_dataloader(self) -> DataLoader:
         cfg = self.config
-        dataset = StepBatches(self.rays, cfg.ray_batch, cfg.lidar_batch, cfg.seed)
+        empty = cfg.empty_batch if cfg.loss.empty_weight > 0 else 0
+        dataset = StepBatches(self.rays, cfg.ray_batch, cfg.lidar_batch, cfg.seed, empty)
         sampler = StepSampler(cfg.steps_per_epoch, self._global_step)
         return DataLoader(dataset, batch_size=None, sampler=sampler)
 
@@ -271,10 +310,16 @@ class NerfModule(L.LightningModule):
                 with_normals=True,
             )
             terms["normal"] = normal_loss(nrm.normal, batch["lidar_normals"][:n][valid])
+        if cfg.loss.empty_weight > 0:
+            emp = render_rays(
+                self.field, self.grid, batch["empty_origins"], batch["empty_directions"], g
+            )
+            terms["empty"] = empty_space_loss(emp.density, emp.deltas)
         loss = (
             terms["rgb"]
             + cfg.loss.depth_weight * terms.get("depth", 0.0)
             + cfg.loss.normal_weight * terms.get("normal", 0.0)
+            + cfg.loss.empty_weight * terms.get("empty", 0.0)
         )
         if not torch.isfinite(loss):
             warnings.warn(f"step {step}: non-finite loss {float(loss)}; step skipped", stacklevel=2)

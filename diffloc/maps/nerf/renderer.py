@@ -29,6 +29,7 @@ class RenderedRays:
         opacity: (R,) sum of the weights.
         normal: (R, 3) unit rendered normal, or ``None``.
         weights: (R, S) Eq. 5 weights.
+        density: (R, S) sample densities, zero where not evaluated (1/m).
         t: (R, S) sample distances.
         deltas: (R, S) sample interval lengths.
     """
@@ -38,6 +39,7 @@ class RenderedRays:
     opacity: torch.Tensor
     normal: torch.Tensor | None
     weights: torch.Tensor
+    density: torch.Tensor
     t: torch.Tensor
     deltas: torch.Tensor
 
@@ -175,7 +177,8 @@ def render_rays(
         return field.geometry_in_cube(xyz[i], inside[i])
 
     evaluated, (density, geo, *normals) = march(evaluate, evaluated)
-    weights = render_weights(fixed.index_copy(0, evaluated, density).reshape(r, s), deltas)
+    densities = fixed.index_copy(0, evaluated, density).reshape(r, s)
+    weights = render_weights(densities, deltas)
     seen = weights.detach().reshape(-1)[evaluated] > cfg.min_weight
     visible, ray = evaluated[seen], evaluated[seen] // s
     rgb = normal = None
@@ -201,6 +204,7 @@ def render_rays(
         opacity=weights.sum(-1),
         normal=normal,
         weights=weights,
+        density=densities,
         t=t,
         deltas=deltas,
     )
