@@ -13,9 +13,10 @@ recorded thresholds (:func:`~diffloc.pipeline.crossmodal_replay.replay_validatio
 :class:`~diffloc.reloc.validation.PoseValidator`): inliers, coverage, plane share and the
 photometric consistency of the new render warped into the query; the rivals are the recorded
 candidates' inliers at their distances to the NEW pose. Pass 2 renders once more at pass 1's
-pose. A fourth verdict, **rival kept**, is pass 1's with the recorded rival verdict in place of
-its own: the rule ``task.rerender`` runs (:mod:`diffloc.pipeline.crossmodal_rerender`). The
-verdicts of the recorded evidence are replayed first and must equal the run's.
+pose. Two more verdicts: **rival kept**, pass 1's with the recorded rival verdict in place of
+its own, and **second look**, the recorded verdict of an accepted pose and the rival-kept one of
+a refused pose: the rule ``task.rerender`` runs (:mod:`diffloc.pipeline.crossmodal_rerender`).
+The verdicts of the recorded evidence are replayed first and must equal the run's.
 
 Query images are resized as the localiser got them
 (:func:`~diffloc.pipeline.crossmodal_stage.scaled_images`). Ground truth is read for scoring
@@ -77,9 +78,10 @@ RENDERED = ("pass 1", "pass 2")
 """The re-renders: at the recorded pose, at pass 1's pose."""
 MEASURED = ("recorded", *RENDERED)
 """The evidence measured (the medians of the report)."""
-PASSES = ("recorded", "pass 1", "rival kept", "pass 2")
-"""The evidence validated: the run's, each re-render's, and pass 1's with the run's rival
-verdict (the rule of ``task.rerender``, :mod:`diffloc.pipeline.crossmodal_rerender`)."""
+PASSES = ("recorded", "pass 1", "rival kept", "second look", "pass 2")
+"""The evidence validated: the run's, each re-render's, pass 1's with the run's rival verdict,
+and that for the refused poses only, the accepted ones as recorded (the rule of
+``task.rerender``, :mod:`diffloc.pipeline.crossmodal_rerender`)."""
 MAX_ROT_DEG = 30.0
 VERDICTS = ("right accepted", "wrong accepted", "right refused", "wrong refused", "no pose")
 
@@ -199,6 +201,7 @@ def measure_sequence(
             )
             T_wc = result.candidate.T_wc if result.candidate.success else None
         row["rival kept"] = _rival_kept(row["pass 1"], row["recorded"])
+        row["second look"] = row["recorded"] if row["recorded"]["accepted"] else row["rival kept"]
         queries.append(row)
     return {"sequence": sequence, "queries_total": len(loc.frames), "queries": queries}
 
@@ -320,13 +323,15 @@ def markdown(report: dict) -> str:
         f"# Re-render at the found pose: `map={report['map']}`, {report['dataset']}",
         "",
         *made_by_lines(report["command"]),
-        "Every recorded query with a pose (the best candidate succeeded) is validated four "
+        "Every recorded query with a pose (the best candidate succeeded) is validated five "
         "ways with the recorded thresholds "
         f"({report['validation']}): **recorded** (the run's evidence, replayed: equal to the "
         "run's verdicts), **pass 1** (the map rendered at the recorded pose, the query matched "
         "against it, PnP again; rivals: the recorded candidates at their distance to the new "
-        "pose), **rival kept** (pass 1's evidence, the rival test the recorded verdict: the "
-        "rule of `task.rerender`) and **pass 2** (rendered again at pass 1's pose). Right: within "
+        "pose), **rival kept** (pass 1's evidence, the rival test the recorded verdict), "
+        "**second look** (the recorded verdict of an accepted pose, "
+        "rival kept for a refused one: the rule of `task.rerender`) and **pass 2** (rendered "
+        "again at pass 1's pose). Right: within "
         f"{report['loose_m']:g} m / {MAX_ROT_DEG:g} deg of the truth (read for scoring only); "
         "a re-render that finds no PnP pose is `no pose`.",
         "",
@@ -399,7 +404,7 @@ def markdown(report: dict) -> str:
         "inliers / coverage / photometric; error of the pose in m):",
         "",
         "| sequence | frame | " + " | ".join(PASSES) + " |",
-        "|---|---:|---|---|---|",
+        "|---|---:|" + "---|" * len(PASSES),
     ]
     for seq, s in report["sequences"].items():
         for r in s["queries"]:

@@ -22,23 +22,24 @@ def _pose(x: float) -> np.ndarray:
 
 
 def _localization() -> SequenceLocalization:
-    """Four queries: three with a pose found (0, 1, 3), two of them accepted (0, 3)."""
-    arrays = {f.name: np.zeros(4) for f in fields(SequenceLocalization)}
+    """Five queries: four with a pose found (0, 1, 3, 4), one accepted (4), three refused."""
+    arrays = {f.name: np.zeros(5) for f in fields(SequenceLocalization)}
     return SequenceLocalization(
         **{
             **arrays,
-            "T_wc": np.stack([_pose(x) for x in (1.0, 2.0, 0.0, 4.0)]),
-            "success": np.array([True, True, False, True]),
-            "accepted": np.array([True, False, False, True]),
-            "accepted_without_photometric": np.array([True, False, False, True]),
-            "num_inliers": np.array([200, 90, 0, 180]),
-            "time_ms": np.full(4, 100.0),
+            "T_wc": np.stack([_pose(x) for x in (1.0, 2.0, 0.0, 4.0, 5.0)]),
+            "success": np.array([True, True, False, True, True]),
+            "accepted": np.array([False, False, False, False, True]),
+            "accepted_without_photometric": np.array([False, False, False, False, True]),
+            "num_inliers": np.array([200, 90, 0, 180, 300]),
+            "time_ms": np.full(5, 100.0),
         }
     )
 
 
 def _check(failed: list[list[str]]) -> SequenceRerender:
-    """Re-renders of queries 0, 1, 3: 0 and 1 find a pose, 3 none; ``failed`` per query."""
+    """Re-renders of the refused queries 0, 1, 3: 0 and 1 find a pose, 3 none; ``failed`` per
+    query."""
     flags = np.array([[test in f for test in REPLAYED_TESTS] for f in failed])
     success = np.array([True, True, False])
     return SequenceRerender(
@@ -62,20 +63,21 @@ def test_applying_the_check_takes_its_poses_and_verdicts():
     loc = _localization()
     checked = _check([["rival"], [], []])
     out = checked.apply(loc)
-    # 0 refused (a rival), 1 accepted at its new pose, 3 refused (no pose on the re-render)
-    assert out.accepted.tolist() == [False, True, False, False]
-    np.testing.assert_allclose(out.T_wc[:, 0, 3], [1.1, 2.2, 0.0, 4.0])
-    assert out.num_inliers.tolist() == [350, 250, 0, 180]
-    assert out.accepted_without_photometric.tolist() == [False, True, False, False]
-    assert out.time_ms.tolist() == [130.0, 140.0, 100.0, 150.0]
-    assert loc.accepted.tolist() == [True, False, False, True]  # the record is not changed
+    # 0 refused (a rival), 1 accepted at its new pose, 3 refused (no pose on the re-render),
+    # 4 (accepted, not looked at again) as it was
+    assert out.accepted.tolist() == [False, True, False, False, True]
+    np.testing.assert_allclose(out.T_wc[:, 0, 3], [1.1, 2.2, 0.0, 4.0, 5.0])
+    assert out.num_inliers.tolist() == [350, 250, 0, 180, 300]
+    assert out.accepted_without_photometric.tolist() == [False, True, False, False, True]
+    assert out.time_ms.tolist() == [130.0, 140.0, 100.0, 150.0, 100.0]
+    assert loc.accepted.tolist() == [False, False, False, False, True]  # the record is kept
     assert loc.T_wc[1, 0, 3] == 2.0
 
 
 def test_a_pose_failing_only_the_photometric_test_counts_as_accepted_without_it():
     out = _check([["photometric"], ["inliers", "photometric"], []]).apply(_localization())
-    assert out.accepted.tolist() == [False, False, False, False]
-    assert out.accepted_without_photometric.tolist() == [True, False, False, False]
+    assert out.accepted.tolist() == [False, False, False, False, True]
+    assert out.accepted_without_photometric.tolist() == [True, False, False, False, True]
 
 
 def test_an_archive_without_an_array_is_refused_with_its_name(tmp_path: Path):

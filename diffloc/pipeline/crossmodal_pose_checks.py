@@ -44,14 +44,14 @@ def _check_maps(maps: list[str], allowed: tuple[str, ...], setting: str) -> None
 
 @dataclass
 class RerenderConfig:
-    """``task.rerender``: validate each pose found on a render made at that pose.
+    """``task.rerender``: a second look at each refused pose, on a render made at that pose.
 
     The localiser matches a query against database renders up to the render spacing and 45 deg
     from it, so a right pose can rest on few inliers over part of the image and be refused.
-    With the check, the map is rendered at the pose found, the query matched against that
-    render, PnP solved again, and the new pose validated by the localiser's own tests (its
-    rivals: the candidates it tried); the new pose and verdict replace the first
-    (:mod:`diffloc.pipeline.crossmodal_rerender`).
+    With the check, the map is rendered at each refused pose, the query matched against that
+    render, PnP solved again, and the new pose validated by the localiser's own tests (the
+    rival test stays the localisation's verdict); the new pose and verdict replace the first
+    (:mod:`diffloc.pipeline.crossmodal_rerender`). Accepted poses are kept as they are.
 
     Attributes:
         maps: the ``map`` options checked (any of :data:`RERENDER_MAPS`; empty, the default:
