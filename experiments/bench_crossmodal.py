@@ -20,8 +20,9 @@ and measures, in this process, what those runs do not record. Keys:
   the 250 ms goal, meaningful only at a low ``load_average``;
 - ``rerender_wall_ms_mesh``: median wall ms of the re-render check (``task.rerender``, on for
   the mesh indoors: render at the pose found, XFeat, LighterGlue, PnP, photometric
-  consistency) per query of the same frames with a pose, the same threads: a query checked
-  costs ``query_wall_ms_mesh`` plus this;
+  consistency) per query of the same frames with a pose, the same threads; the task looks
+  again only at refused poses, so a refused query costs ``query_wall_ms_mesh`` plus this and
+  an accepted one nothing more;
 - ``render_db_s`` / ``render_db_cpu_s``: wall / CPU seconds to render the cloud (lidar map)
   database at its render poses here (``render_db_images`` renders, features not included);
   ``render_ms_per_image``;
