@@ -6,13 +6,13 @@ from __future__ import annotations
 import os
 import zipfile
 import zlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO
 
 import numpy as np
 
-__all__ = ["read_npz_archive", "write_npz"]
+__all__ = ["read_npz_archive", "read_npz_fields", "write_npz"]
 
 _FIXED_DATE = (1980, 1, 1, 0, 0, 0)
 """The date of every entry written by :func:`write_npz` (the earliest a zip file can hold)."""
@@ -44,6 +44,28 @@ def read_npz_archive(path: str | os.PathLike) -> dict[str, np.ndarray]:
             return {name: loaded[name] for name in loaded.files}
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
         raise ValueError(f"{path}: corrupt .npz archive ({exc})") from exc
+
+
+def read_npz_fields(
+    path: str | os.PathLike, names: Sequence[str], remedy: str
+) -> dict[str, np.ndarray]:
+    """The arrays ``names`` of an ``.npz`` file (:func:`read_npz_archive`), e.g. the fields of a
+    record dataclass; other entries are ignored.
+
+    Args:
+        path: the archive.
+        names: the entries wanted.
+        remedy: what to do when some are missing, for the message (e.g. "run the stage again").
+
+    Raises:
+        ValueError: an archive without some of ``names`` (the message names the file, the
+            missing entries and ``remedy``), or any error of :func:`read_npz_archive`.
+    """
+    arrays = read_npz_archive(path)
+    missing = sorted(set(names) - set(arrays))
+    if missing:
+        raise ValueError(f"{path}: no {', '.join(missing)}; {remedy}")
+    return {name: arrays[name] for name in names}
 
 
 def write_npz(handle: IO[bytes], arrays: Mapping[str, np.ndarray]) -> None:

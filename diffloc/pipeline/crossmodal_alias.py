@@ -26,7 +26,7 @@ from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.crossmodal.synthesize import RGBDMap
 from diffloc.io.atomic import atomic_open
 from diffloc.io.dataset import read_sequence
-from diffloc.io.npz import read_npz_archive, write_npz
+from diffloc.io.npz import read_npz_archive, read_npz_fields, write_npz
 from diffloc.pipeline.crossmodal_pose_checks import ALIAS_MAPS
 from diffloc.pipeline.crossmodal_stage import (
     SequenceLocalization,
@@ -92,12 +92,9 @@ class SequenceAliases:
         Raises:
             ValueError: an archive without some of the arrays (the message names the file).
         """
-        arrays = read_npz_archive(path)
-        names = [f.name for f in fields(cls)]
-        missing = sorted(set(names) - set(arrays))
-        if missing:
-            raise ValueError(f"{path}: no {', '.join(missing)}; run the alias test again")
-        return cls(**{name: arrays[name] for name in names})
+        return cls(
+            **read_npz_fields(path, [f.name for f in fields(cls)], "run the alias test again")
+        )
 
     def apply(self, loc: SequenceLocalization) -> SequenceLocalization:
         """The localisation with the storey aliases no longer accepted."""

@@ -29,7 +29,7 @@ from diffloc.crossmodal.submap_fields import SubmapFieldMap
 from diffloc.features.local import XFeatConfig, XFeatExtractor
 from diffloc.io.atomic import atomic_open
 from diffloc.io.dataset import read_sequence
-from diffloc.io.npz import read_npz_archive, write_npz
+from diffloc.io.npz import read_npz_fields, write_npz
 from diffloc.maps.pointcloud import PointMap
 from diffloc.optim.render_refine import NO_MAP, CloudMaps, FieldSubmaps, QueryMaps, refine_query
 from diffloc.pipeline.crossmodal_config import REFINE_MAPS, CrossmodalRefineConfig
@@ -192,11 +192,8 @@ class SequenceRefinement:
             ValueError: an archive without some of the arrays, or whose arrays disagree in
                 length or hold non-finite poses; the message names the file.
         """
-        arrays = read_npz_archive(path)
         names = [f.name for f in fields(cls)]
-        missing = sorted(set(names) - set(arrays))
-        if missing:
-            raise ValueError(f"{path}: no {', '.join(missing)}; run the refinement again")
+        arrays = read_npz_fields(path, names, "run the refinement again")
         lengths = {len(arrays[name]) for name in names}
         if len(lengths) != 1:
             raise ValueError(f"{path}: arrays of different lengths {sorted(lengths)}")

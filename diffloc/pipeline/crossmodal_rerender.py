@@ -35,7 +35,7 @@ from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.crossmodal.synthesize import RGBDMap
 from diffloc.io.atomic import atomic_open
 from diffloc.io.dataset import read_sequence
-from diffloc.io.npz import read_npz_archive, write_npz
+from diffloc.io.npz import read_npz_fields, write_npz
 from diffloc.pipeline.crossmodal_pose_checks import RERENDER_MAPS
 from diffloc.pipeline.crossmodal_replay import (
     REPLAYED_TESTS,
@@ -118,12 +118,8 @@ class SequenceRerender:
         Raises:
             ValueError: an archive without some of the arrays (the message names the file).
         """
-        arrays = read_npz_archive(path)
         names = [f.name for f in fields(cls)]
-        missing = sorted(set(names) - set(arrays))
-        if missing:
-            raise ValueError(f"{path}: no {', '.join(missing)}; run the re-render check again")
-        return cls(**{name: arrays[name] for name in names})
+        return cls(**read_npz_fields(path, names, "run the re-render check again"))
 
     def apply(self, loc: SequenceLocalization) -> SequenceLocalization:
         """The localisation with the re-render's poses, evidence and verdicts.

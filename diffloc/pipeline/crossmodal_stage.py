@@ -47,7 +47,7 @@ from diffloc.io.dataset import MAP_FILES, read_sequence
 from diffloc.io.identity import identity
 from diffloc.io.mesh_export import write_atlas_obj, write_atlas_ply
 from diffloc.io.mesh_obj import read_textured_mesh_obj
-from diffloc.io.npz import read_npz_archive, write_npz
+from diffloc.io.npz import read_npz_archive, read_npz_fields, write_npz
 from diffloc.io.ply import PointCloudData, read_point_cloud
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.pointcloud import PointMap
@@ -581,14 +581,11 @@ class SequenceLocalization:
             ValueError: an archive without some of the arrays (e.g. one written before
                 :data:`LOCALIZATION_RECORD` had them); the message names the file.
         """
-        arrays = read_npz_archive(path)
-        missing = sorted(set(cls.__dataclass_fields__) - set(arrays))
-        if missing:
-            raise ValueError(
-                f"{path}: no {', '.join(missing)} (written before record version "
-                f"{LOCALIZATION_RECORD}?); run the localisation again (diffloc task=crossmodal)"
-            )
-        return cls(**{name: arrays[name] for name in cls.__dataclass_fields__})
+        remedy = (
+            f"written before record version {LOCALIZATION_RECORD}? Run the localisation again "
+            "(diffloc task=crossmodal)"
+        )
+        return cls(**read_npz_fields(path, list(cls.__dataclass_fields__), remedy))
 
     def candidates(self, query: int) -> tuple[RenderedCandidate, tuple[RenderedCandidate, ...]]:
         """``(best, tried)`` of query ``query`` (index into ``frames``) rebuilt from the record,
