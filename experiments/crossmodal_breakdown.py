@@ -144,14 +144,14 @@ def outcomes(
 
 def storey_aliases(folder: Path, sequence: str, queries: int) -> np.ndarray:
     """(Q,) bool, the accepted poses ``task.storey_alias`` refused (``<map>/alias_<sequence>``;
-    all false when it did not run on this very localisation: its record names the
-    ``localization.npz`` it tested)."""
+    all false unless it tested this very localisation's answers: its record names the outputs
+    it tested, ``localization.npz`` alone; after a re-render check it tested other answers)."""
     refused = np.zeros(queries, dtype=bool)
     record = folder / f"alias_{sequence}" / "alias.json"
     localization = folder / f"localize_{sequence}" / "localization.npz"
     if record.is_file():
         tested = json.loads(record.read_text())["stage"]["key"]["inputs"]["localization"]
-        if tested == identity(localization):
+        if tested == {"localization.npz": identity(localization)}:
             aliases = SequenceAliases.load(record.parent / "alias.npz")
             refused[aliases.query[aliases.alias]] = True
     return refused

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 from pathlib import Path
 
 import numpy as np
 
+from diffloc.io.identity import identity
+from diffloc.io.npz import write_npz
 from tests.localization_records import sequence_localization
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,3 +70,35 @@ def test_every_query_gets_the_first_stage_that_decides_it():
         ("photometric", "rival"),
     ]
     assert script.outcomes(loc, accepted, correct, near, renders, failed, aliases) == list(cases)
+
+
+def test_storey_aliases_count_only_when_the_test_ran_on_this_localisation(tmp_path: Path):
+    script = load_script()
+    localization = tmp_path / "localize_query_same" / "localization.npz"
+    localization.parent.mkdir()
+    localization.write_bytes(b"the localisation's record")
+    alias = tmp_path / "alias_query_same"
+    alias.mkdir()
+    with (alias / "alias.npz").open("wb") as handle:
+        write_npz(
+            handle,
+            {
+                "query": np.array([0, 2]),
+                "own_inliers": np.array([300, 200]),
+                "alias_inliers": np.array([[10], [260]]),
+                "alias_distance_m": np.array([[3.0], [3.0]]),
+                "alias": np.array([False, True]),
+                "cpu_ms": np.zeros(2),
+            },
+        )
+
+    def tested(outputs: dict) -> list[bool]:
+        record = {"stage": {"key": {"inputs": {"localization": outputs}}}}
+        (alias / "alias.json").write_text(json.dumps(record))
+        return script.storey_aliases(tmp_path, "query_same", 3).tolist()
+
+    own = {"localization.npz": identity(localization)}
+    assert tested(own) == [False, False, True]
+    # after a re-render check the test saw other answers; another localisation, other poses
+    assert tested({**own, "rerender.npz": own["localization.npz"]}) == [False] * 3
+    assert tested({"localization.npz": {**own["localization.npz"], "size": 1}}) == [False] * 3
