@@ -8,6 +8,9 @@ ONE outcome, the first stage that decides it:
 
 - ``localized``: accepted, within ``--loose-m`` / 30 deg;
 - ``wrong accepted``: accepted, outside it;
+- ``localized: second look`` / ``wrong accepted: second look``: refused, then accepted by the
+  re-render check's second look (``task.rerender``, when it ran on this localisation), at its
+  new pose within / outside the bound;
 - ``right pose refused: storey alias`` / ``wrong pose refused: storey alias``: accepted by the
   validation, then refused by the storey-alias test (``task.storey_alias``, when it ran on this
   localisation);
@@ -23,8 +26,8 @@ ONE outcome, the first stage that decides it:
 - ``wrong pose, near reference``: a wrong pose (rejected) from a reference within them:
   matching or PnP failed on the right render.
 
-The re-render check (``task.rerender``, indoors on for ``mesh`` and ``cloud``) is not replayed:
-where it ran, these outcomes are the localisation's own, before its second look
+The re-render check (``task.rerender``, indoors on for ``mesh`` and ``cloud``) is read from its
+record, not replayed: with ``--set`` overrides of the thresholds its second look is left out
 (``experiments/rerender_check.py`` reports that check query by query).
 
 With the pose prior on (``task.localizer.prior``), each row says whether the reference came
@@ -80,12 +83,15 @@ from diffloc.pipeline.crossmodal_replay import (
     verdict_effect,
 )
 from diffloc.pipeline.crossmodal_report import RETRIEVAL_ANGLE_DEG, retrieval_hits
+from diffloc.pipeline.crossmodal_rerender import SequenceRerender
 from diffloc.pipeline.crossmodal_stage import SequenceLocalization, crossmodal_folder
 from diffloc.reloc.validation import ValidationConfig
 
 OUTCOMES = (
     "localized",
     "wrong accepted",
+    "localized: second look",
+    "wrong accepted: second look",
     "right pose refused: storey alias",
     "wrong pose refused: storey alias",
     "no pose",
@@ -106,6 +112,7 @@ def outcomes(
     near_renders: np.ndarray,
     failed: list[tuple[str, ...]],
     aliases: np.ndarray,
+    second: np.ndarray | None = None,
 ) -> list[str]:
     """The outcome (:data:`OUTCOMES`) of each of the Q queries (module docstring).
 
@@ -119,13 +126,18 @@ def outcomes(
         failed: per query, the validation tests its pose fails
             (:func:`~diffloc.pipeline.crossmodal_replay.replay_validation`).
         aliases: (Q,) bool, the storey-alias test refused the pose (:func:`storey_aliases`).
+        second: (Q,) bool, refused and then accepted by the re-render check's second look
+            (:func:`second_look`; ``correct`` of those is their new pose's); ``None``: none.
     """
+    second = np.zeros(len(loc.frames), dtype=bool) if second is None else second
     result = []
     for q in range(len(loc.frames)):
-        if accepted[q] and aliases[q]:
+        if (accepted[q] or second[q]) and aliases[q]:
             result.append(f"{'right' if correct[q] else 'wrong'} pose refused: storey alias")
         elif accepted[q]:
             result.append("localized" if correct[q] else "wrong accepted")
+        elif second[q]:
+            result.append(f"{'localized' if correct[q] else 'wrong accepted'}: second look")
         elif not loc.success[q]:
             result.append("no pose")
         elif correct[q] and "inliers" in failed[q]:
@@ -142,18 +154,35 @@ def outcomes(
     return result
 
 
-def storey_aliases(folder: Path, sequence: str, queries: int) -> np.ndarray:
+def _tested_outputs(record: Path) -> dict | None:
+    """The outputs a check's stage record says it tested (``None``: no record)."""
+    if not record.is_file():
+        return None
+    return json.loads(record.read_text())["stage"]["key"]["inputs"]["localization"]
+
+
+def second_look(folder: Path, sequence: str) -> SequenceRerender | None:
+    """The re-render check's record of ``<map>/rerender_<sequence>`` if it looked at this very
+    localisation (its record names the ``localization.npz`` it read), else ``None``."""
+    localization = folder / f"localize_{sequence}" / "localization.npz"
+    record = folder / f"rerender_{sequence}" / "rerender.json"
+    if _tested_outputs(record) != {"localization.npz": identity(localization)}:
+        return None
+    return SequenceRerender.load(record.parent / "rerender.npz")
+
+
+def storey_aliases(folder: Path, sequence: str, queries: int, looked: bool) -> np.ndarray:
     """(Q,) bool, the accepted poses ``task.storey_alias`` refused (``<map>/alias_<sequence>``;
-    all false unless it tested this very localisation's answers: its record names the outputs
-    it tested, ``localization.npz`` alone; after a re-render check it tested other answers)."""
+    all false unless it tested this very localisation's answers, after the re-render check's
+    second look when ``looked``: its record names the outputs it tested)."""
     refused = np.zeros(queries, dtype=bool)
     record = folder / f"alias_{sequence}" / "alias.json"
-    localization = folder / f"localize_{sequence}" / "localization.npz"
-    if record.is_file():
-        tested = json.loads(record.read_text())["stage"]["key"]["inputs"]["localization"]
-        if tested == {"localization.npz": identity(localization)}:
-            aliases = SequenceAliases.load(record.parent / "alias.npz")
-            refused[aliases.query[aliases.alias]] = True
+    answers = {"localization.npz": identity(folder / f"localize_{sequence}" / "localization.npz")}
+    if looked:
+        answers["rerender.npz"] = identity(folder / f"rerender_{sequence}" / "rerender.npz")
+    if _tested_outputs(record) == answers:
+        aliases = SequenceAliases.load(record.parent / "alias.npz")
+        refused[aliases.query[aliases.alias]] = True
     return refused
 
 
@@ -190,8 +219,16 @@ def breakdown(
     geometric, _ = replay(replace(validation, min_photometric=None))
     T_gt = read_sequence(dataset, sequence).T_wc[loc.frames]  # ground truth: scoring only
     found = loc.success.astype(bool)
-    errors = pose_errors(loc.T_wc, T_gt.numpy(), found)
-    correct = is_correct(errors, loose_m, 30.0)
+    first_pass = is_correct(pose_errors(loc.T_wc, T_gt.numpy(), found), loose_m, 30.0)
+    looked = None if overrides else second_look(folder, sequence)
+    second = np.zeros(len(loc.frames), dtype=bool)
+    T_wc = loc.T_wc
+    if looked is not None:  # refused poses the second look accepted, at their new pose
+        answers = looked.apply(loc)
+        second = answers.accepted.astype(bool) & ~accepted
+        T_wc = np.where(second[:, None, None], answers.T_wc, loc.T_wc)
+    errors = pose_errors(T_wc, T_gt.numpy(), found)
+    correct = is_correct(errors, loose_m, 30.0)  # the answers': first pass or second look
 
     def hits(index: np.ndarray) -> np.ndarray:
         chosen = torch.from_numpy(index).clamp_min(0)
@@ -201,8 +238,10 @@ def breakdown(
     distance, angle = pairwise_pose_distances(T_gt, db.T_wc)
     near = (distance <= spacing_m) & (angle <= np.radians(RETRIEVAL_ANGLE_DEG))
     near_renders = near.sum(1).numpy()
-    aliases = storey_aliases(folder, sequence, len(loc.frames))
-    verdicts = outcomes(loc, accepted, correct, reference_hit, near_renders, failed, aliases)
+    aliases = storey_aliases(folder, sequence, len(loc.frames), looked is not None)
+    verdicts = outcomes(
+        loc, accepted, correct, reference_hit, near_renders, failed, aliases, second
+    )
     rows = [
         {
             "frame": int(loc.frames[q]),
@@ -217,7 +256,7 @@ def breakdown(
             "photometric": None if np.isnan(loc.photometric[q]) else float(loc.photometric[q]),
             "error_m": float(errors.translation_m[q]) if found[q] else None,
             "error_deg": float(errors.rotation_deg[q]) if found[q] else None,
-            "accepted": bool(accepted[q] and not aliases[q]),
+            "accepted": bool((accepted[q] or second[q]) and not aliases[q]),
             "failed": ", ".join(failed[q]),
             "from_prior": bool(loc.from_prior[q]),
             "outcome": verdicts[q],
@@ -231,14 +270,14 @@ def breakdown(
         "sequence": sequence,
         "queries": len(rows),
         "validation": asdict(validation),
-        "rejections": rejections(failed, found & ~accepted, correct),
+        "rejections": rejections(failed, found & ~accepted, first_pass),
         "photometric": {
-            "without": verdict_effect(geometric, correct),
-            "with": verdict_effect(accepted, correct),
-            "right_scores": loc.photometric[geometric & correct].tolist(),
+            "without": verdict_effect(geometric, first_pass),
+            "with": verdict_effect(accepted, first_pass),
+            "right_scores": loc.photometric[geometric & first_pass].tolist(),
         },
         "accepted_from_prior": int(from_prior.sum()),
-        "wrong_from_prior": int((from_prior & ~correct).sum()),
+        "wrong_from_prior": int((from_prior & ~first_pass).sum()),
         "queries_with_prior": int((loc.prior_images > 0).sum()),
         "median_ms": float(np.median(loc.time_ms)),
         "load_average": json.loads((path.parent / "localize.json").read_text())["load_average"],

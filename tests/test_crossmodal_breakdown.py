@@ -27,22 +27,26 @@ def load_script():
 def test_every_query_gets_the_first_stage_that_decides_it():
     script = load_script()
     # columns: success, accepted, accepted without photometric, inliers, correct,
-    # reference near, renders near, refused as a storey alias
+    # reference near, renders near, refused as a storey alias, accepted on the second look
     cases = {
-        "localized": (True, True, True, 300, True, True, 3, False),
-        "wrong accepted": (True, True, True, 300, False, False, 3, False),
-        "right pose refused: storey alias": (True, True, True, 300, True, True, 3, True),
-        "wrong pose refused: storey alias": (True, True, True, 300, False, False, 3, True),
-        "no pose": (False, False, False, 0, False, True, 3, False),
-        "right pose rejected: inliers": (True, False, False, 120, True, True, 3, False),
-        "right pose rejected: coverage or rival": (True, False, False, 300, True, True, 3, False),
-        "right pose rejected: photometric": (True, False, True, 300, True, True, 3, False),
-        "wrong pose, no render near": (True, False, False, 90, False, False, 0, False),
-        "wrong pose, far reference": (True, False, False, 90, False, False, 2, False),
-        "wrong pose, near reference": (True, False, False, 90, False, True, 2, False),
+        "localized": (True, True, True, 300, True, True, 3, False, False),
+        "wrong accepted": (True, True, True, 300, False, False, 3, False, False),
+        "localized: second look": (True, False, False, 120, True, True, 3, False, True),
+        "wrong accepted: second look": (True, False, False, 120, False, True, 3, False, True),
+        "right pose refused: storey alias": (True, True, True, 300, True, True, 3, True, False),
+        "wrong pose refused: storey alias": (True, False, False, 120, False, False, 3, True, True),
+        "no pose": (False, False, False, 0, False, True, 3, False, False),
+        "right pose rejected: inliers": (True, False, False, 120, True, True, 3, False, False),
+        "right pose rejected: coverage or rival": (
+            *(True, False, False, 300, True, True, 3, False, False),
+        ),
+        "right pose rejected: photometric": (True, False, True, 300, True, True, 3, False, False),
+        "wrong pose, no render near": (True, False, False, 90, False, False, 0, False, False),
+        "wrong pose, far reference": (True, False, False, 90, False, False, 2, False, False),
+        "wrong pose, near reference": (True, False, False, 90, False, True, 2, False, False),
     }
     assert tuple(cases) == script.OUTCOMES
-    success, accepted, geometric, inliers, correct, near, renders, aliases = map(
+    success, accepted, geometric, inliers, correct, near, renders, aliases, second = map(
         np.array, zip(*cases.values(), strict=True)
     )
     q = len(cases)
@@ -59,8 +63,10 @@ def test_every_query_gets_the_first_stage_that_decides_it():
     failed = [
         (),
         (),
+        ("inliers",),
+        ("inliers", "coverage"),
         (),
-        (),
+        ("inliers",),
         (),
         ("inliers", "coverage"),
         ("rival",),
@@ -69,7 +75,11 @@ def test_every_query_gets_the_first_stage_that_decides_it():
         ("coverage",),
         ("photometric", "rival"),
     ]
-    assert script.outcomes(loc, accepted, correct, near, renders, failed, aliases) == list(cases)
+    verdicts = script.outcomes(loc, accepted, correct, near, renders, failed, aliases, second)
+    assert verdicts == list(cases)
+    # without the second look its queries are the refusals they were
+    first = script.outcomes(loc, accepted, correct, near, renders, failed, aliases)
+    assert first[2:4] == ["right pose rejected: inliers", "wrong pose, near reference"]
 
 
 def test_storey_aliases_count_only_when_the_test_ran_on_this_localisation(tmp_path: Path):
@@ -95,10 +105,56 @@ def test_storey_aliases_count_only_when_the_test_ran_on_this_localisation(tmp_pa
     def tested(outputs: dict) -> list[bool]:
         record = {"stage": {"key": {"inputs": {"localization": outputs}}}}
         (alias / "alias.json").write_text(json.dumps(record))
-        return script.storey_aliases(tmp_path, "query_same", 3).tolist()
+        return script.storey_aliases(tmp_path, "query_same", 3, looked).tolist()
 
     own = {"localization.npz": identity(localization)}
+    looked = False
     assert tested(own) == [False, False, True]
     # after a re-render check the test saw other answers; another localisation, other poses
-    assert tested({**own, "rerender.npz": own["localization.npz"]}) == [False] * 3
+    second = tmp_path / "rerender_query_same" / "rerender.npz"
+    second.parent.mkdir()
+    second.write_bytes(b"the second look's record")
+    after = {**own, "rerender.npz": identity(second)}
+    assert tested(after) == [False] * 3
     assert tested({"localization.npz": {**own["localization.npz"], "size": 1}}) == [False] * 3
+    looked = True  # the breakdown applies that second look: the test saw its answers
+    assert tested(after) == [False, False, True]
+    assert tested(own) == [False] * 3
+
+
+def test_the_second_look_is_read_only_when_it_looked_at_this_localisation(tmp_path: Path):
+    script = load_script()
+    localization = tmp_path / "localize_query_same" / "localization.npz"
+    localization.parent.mkdir()
+    localization.write_bytes(b"the localisation's record")
+    folder = tmp_path / "rerender_query_same"
+    folder.mkdir()
+    assert script.second_look(tmp_path, "query_same") is None  # no check ran
+    with (folder / "rerender.npz").open("wb") as handle:
+        write_npz(
+            handle,
+            {
+                "query": np.array([1]),
+                "success": np.array([True]),
+                "T_wc": np.eye(4)[None],
+                "num_matches": np.array([400]),
+                "num_points": np.array([390]),
+                "num_inliers": np.array([350]),
+                "coverage": np.array([1.0]),
+                "plane_share": np.array([0.4]),
+                "photometric": np.array([0.8]),
+                "failed": np.zeros((1, len(script.REPLAYED_TESTS)), dtype=bool),
+                "accepted": np.array([True]),
+                "wall_ms": np.array([30.0]),
+                "cpu_ms": np.array([20.0]),
+            },
+        )
+
+    def record(outputs: dict) -> None:
+        stage = {"stage": {"key": {"inputs": {"localization": outputs}}}}
+        (folder / "rerender.json").write_text(json.dumps(stage))
+
+    record({"localization.npz": identity(localization)})
+    assert script.second_look(tmp_path, "query_same").query.tolist() == [1]
+    record({"localization.npz": {**identity(localization), "size": 1}})  # another localisation
+    assert script.second_look(tmp_path, "query_same") is None
