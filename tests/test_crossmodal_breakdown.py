@@ -82,11 +82,22 @@ def test_every_query_gets_the_first_stage_that_decides_it():
     assert first[2:4] == ["right pose rejected: inliers", "wrong pose, near reference"]
 
 
+def _localization(folder: Path) -> Path:
+    """A stand-in ``localize_query_same/localization.npz`` (only its identity is read)."""
+    path = folder / "localize_query_same" / "localization.npz"
+    path.parent.mkdir()
+    path.write_bytes(b"the localisation's record")
+    return path
+
+
+def _record(path: Path, outputs: dict) -> None:
+    """A stage record at ``path`` whose key names the localisation ``outputs`` it tested."""
+    path.write_text(json.dumps({"stage": {"key": {"inputs": {"localization": outputs}}}}))
+
+
 def test_storey_aliases_count_only_when_the_test_ran_on_this_localisation(tmp_path: Path):
     script = load_script()
-    localization = tmp_path / "localize_query_same" / "localization.npz"
-    localization.parent.mkdir()
-    localization.write_bytes(b"the localisation's record")
+    localization = _localization(tmp_path)
     alias = tmp_path / "alias_query_same"
     alias.mkdir()
     with (alias / "alias.npz").open("wb") as handle:
@@ -102,13 +113,11 @@ def test_storey_aliases_count_only_when_the_test_ran_on_this_localisation(tmp_pa
             },
         )
 
-    def tested(outputs: dict) -> list[bool]:
-        record = {"stage": {"key": {"inputs": {"localization": outputs}}}}
-        (alias / "alias.json").write_text(json.dumps(record))
+    def tested(outputs: dict, looked: bool = False) -> list[bool]:
+        _record(alias / "alias.json", outputs)
         return script.storey_aliases(tmp_path, "query_same", 3, looked).tolist()
 
     own = {"localization.npz": identity(localization)}
-    looked = False
     assert tested(own) == [False, False, True]
     # after a re-render check the test saw other answers; another localisation, other poses
     second = tmp_path / "rerender_query_same" / "rerender.npz"
@@ -117,16 +126,14 @@ def test_storey_aliases_count_only_when_the_test_ran_on_this_localisation(tmp_pa
     after = {**own, "rerender.npz": identity(second)}
     assert tested(after) == [False] * 3
     assert tested({"localization.npz": {**own["localization.npz"], "size": 1}}) == [False] * 3
-    looked = True  # the breakdown applies that second look: the test saw its answers
-    assert tested(after) == [False, False, True]
-    assert tested(own) == [False] * 3
+    # the breakdown applies that second look: the test saw its answers
+    assert tested(after, looked=True) == [False, False, True]
+    assert tested(own, looked=True) == [False] * 3
 
 
 def test_the_second_look_is_read_only_when_it_looked_at_this_localisation(tmp_path: Path):
     script = load_script()
-    localization = tmp_path / "localize_query_same" / "localization.npz"
-    localization.parent.mkdir()
-    localization.write_bytes(b"the localisation's record")
+    localization = _localization(tmp_path)
     folder = tmp_path / "rerender_query_same"
     folder.mkdir()
     assert script.second_look(tmp_path, "query_same") is None  # no check ran
@@ -150,11 +157,8 @@ def test_the_second_look_is_read_only_when_it_looked_at_this_localisation(tmp_pa
             },
         )
 
-    def record(outputs: dict) -> None:
-        stage = {"stage": {"key": {"inputs": {"localization": outputs}}}}
-        (folder / "rerender.json").write_text(json.dumps(stage))
-
-    record({"localization.npz": identity(localization)})
+    _record(folder / "rerender.json", {"localization.npz": identity(localization)})
     assert script.second_look(tmp_path, "query_same").query.tolist() == [1]
-    record({"localization.npz": {**identity(localization), "size": 1}})  # another localisation
+    other = {"localization.npz": {**identity(localization), "size": 1}}  # another localisation
+    _record(folder / "rerender.json", other)
     assert script.second_look(tmp_path, "query_same") is None
