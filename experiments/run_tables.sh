@@ -208,6 +208,7 @@ crossmodal_lane data/outdoor_seed0
 
 # Indoors: main job and Tables I/II (XFeat, ORB) on seeds 1-5, Table III on seeds 1-3.
 heldout_main main
+heldout_main main_fresh  # seeds 6-8: run after the track's planarity test was set on seeds 1-5
 # Whether the validation's evidence separates the wrong query_reverse poses from right ones.
 python3 experiments/validation_evidence.py "$runs/heldout_main" \
   --out experiments/results/validation_evidence_indoor

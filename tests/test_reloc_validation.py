@@ -174,6 +174,80 @@ def test_a_track_shorter_than_two_poses_is_refused(poses: int):
         ValidationConfig(min_track_poses=poses)
 
 
+PLANAR_TRACK = ValidationConfig(
+    theta_in=15, theta_dist_m=0.3, max_speed_mps=1.0, min_track_poses=3, max_track_plane_share=0.95
+)
+
+
+def track_verdicts(validator: PoseValidator, shares: list[float]) -> list[bool]:
+    """Verdicts of a straight track at 1 m/s, one pose per second, with these plane shares."""
+    return [
+        validator.validate_position(pose_at(float(k))[:3, 3], 30, float(k), plane_share=share)
+        for k, share in enumerate(shares)
+    ]
+
+
+def test_a_track_resting_on_one_plane_throughout_is_not_accepted():
+    """A turned copy of a tiled wall: every pose of the track has all its inliers on one plane;
+    seed 1's rule and the track length accept it, the track's planarity test does not until a
+    pose sees more than the plane."""
+    shares = [1.0, 0.99, 1.0, 1.0, 0.6, 1.0]
+    tested = track_verdicts(PoseValidator(PLANAR_TRACK), shares)
+    no_test = replace(PLANAR_TRACK, max_track_plane_share=None)
+    untested = track_verdicts(PoseValidator(no_test), shares)
+    assert tested == [False, False, False, False, True, True]
+    assert untested == [False, False, True, True, True, True]
+    assert PLANAR_TRACK.seed1_rule().max_track_plane_share is None
+
+
+def test_one_planar_pose_inside_a_track_stays_accepted():
+    """A camera passing a bare wall: the track has seen more than the plane before."""
+    shares = [0.5, 0.7, 0.8, 1.0, 1.0, 0.6]
+    accepted = track_verdicts(PoseValidator(PLANAR_TRACK), shares)
+    assert accepted == [False, False, True, True, True, True]
+
+
+def test_a_new_track_forgets_the_planarity_of_the_old_one():
+    """After a jump (the reference replaced by an unverified pose) the new track must show 3D
+    evidence beyond one plane of its own."""
+    v = PoseValidator(replace(PLANAR_TRACK, conflict_keeps_reference=False))
+    assert track_verdicts(v, [0.5, 0.5, 0.5]) == [False, False, True]
+    jumped = [
+        v.validate_position(pose_at(10.0 + k)[:3, 3], 30, 3.0 + k, plane_share=1.0)
+        for k in range(4)
+    ]
+    assert jumped == [False, False, False, False]
+
+
+def test_the_tracks_planarity_test_needs_the_plane_share():
+    with pytest.raises(ValueError, match="max_track_plane_share"):
+        PoseValidator(PLANAR_TRACK).validate_position(torch.zeros(3, dtype=torch.float64), 30, 0.0)
+    with pytest.raises(ValueError, match="max_track_plane_share"):
+        ValidationConfig(max_track_plane_share=1.5)
+
+
+def test_the_tracks_planarity_is_read_from_the_recorded_evidence():
+    """The replay path (``queries.json``) reads the best candidate's plane share."""
+    v = PoseValidator(PLANAR_TRACK)
+    verdicts = []
+    for k in range(4):
+        record = {
+            "found": True,
+            "position_m": [float(k), 0.0, 0.0],
+            "candidates": [
+                {
+                    "inliers": 40,
+                    "matches": 60,
+                    "coverage": 0.8,
+                    "distance_to_chosen_m": 0.0,
+                    "plane_share": 1.0 if k < 3 else 0.4,
+                }
+            ],
+        }
+        verdicts.append(v.validate_evidence(PoseEvidence.from_record(record), float(k)))
+    assert verdicts == [False, False, False, True]
+
+
 def test_evidence_reads_the_recorded_rotation():
     T = pose_on_circle(0.3)
     record = {

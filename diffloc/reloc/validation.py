@@ -41,6 +41,15 @@ fails the motion test ends its track: the next verified pose starts counting aga
 reference. The pose that is not yet accepted still serves as the reference. ``2`` is seed 1's
 test: a pose and its reference.
 
+A track can be wrong throughout where the camera sees one plane whose texture repeats (a tiled
+wall, the same paint on the wall ahead and on the wall beside): each pose is a homography of
+that plane matched to a turned or shifted copy, and the copy's poses move as consistently as
+the right ones. With ``max_track_plane_share`` a verified pose is accepted only once its track
+holds a pose with 3D evidence beyond one plane: at most that share of its inliers' map points
+on their dominant plane (:mod:`diffloc.geometry.plane_share`). A single pose on one plane
+inside a track that has seen more (the camera passing a bare wall) stays accepted, unlike
+``max_plane_share``, which rejects every such pose.
+
 Seed 1's tests let confident wrong poses through where the scene repeats or is seen from the
 other side: a chain of consistently wrong poses passes the distance test. Three further tests,
 on the evidence of the relocaliser's candidates (:class:`PoseEvidence`),
@@ -158,6 +167,9 @@ class ValidationConfig:
         min_track_poses: fewest consecutive poses, each verified against the one before, a
             pose's track must hold (the pose included) for the pose to be accepted (module
             docstring; seed 1: 2, a pose and its reference).
+        max_track_plane_share: a verified pose is accepted only once its track (the pose
+            included) holds a pose with at most this share of its inliers on one plane
+            (module docstring; ``None``: not tested, as seed 1).
     """
 
     theta_in: int = 15
@@ -176,6 +188,7 @@ class ValidationConfig:
     max_position_sigma_m: float | None = None
     max_plane_share: float | None = None
     min_track_poses: int = 2
+    max_track_plane_share: float | None = None
 
     def __post_init__(self) -> None:
         if self.theta_in < 0:
@@ -208,7 +221,7 @@ class ValidationConfig:
         ncc = self.min_photometric
         if ncc is not None and not (math.isfinite(ncc) and -1.0 <= ncc <= 1.0):
             raise ValueError(f"validation.min_photometric must be in [-1, 1] or null, got {ncc}")
-        for name in ("max_repeated", "max_plane_share"):
+        for name in ("max_repeated", "max_plane_share", "max_track_plane_share"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and 0.0 <= value <= 1.0):
                 raise ValueError(f"validation.{name} must be in [0, 1] or null, got {value}")
@@ -221,9 +234,8 @@ class ValidationConfig:
     def seed1_rule(self) -> ValidationConfig:
         """These thresholds with the tests beyond seed 1's (ratio, coverage, ambiguity,
         photometric consistency, repetition, uniqueness, position precision, planarity, the
-        reference
-        age, the kept reference, the motion test, the track length) off; the speed allowance
-        of sparse query streams stays."""
+        reference age, the kept reference, the motion test, the track length and the track's
+        planarity) off; the speed allowance of sparse query streams stays."""
         return replace(
             self,
             min_inlier_ratio=0.0,
@@ -238,6 +250,7 @@ class ValidationConfig:
             max_position_sigma_m=None,
             max_plane_share=None,
             min_track_poses=2,
+            max_track_plane_share=None,
         )
 
 
@@ -393,6 +406,9 @@ class PoseValidator:
         self._velocity: tuple[torch.Tensor, torch.Tensor] | None = None
         # Consecutive poses of the reference's track, each verified against the one before.
         self._track_poses = 0
+        # Whether the reference rests on more than one plane, and whether a pose of its track
+        # does (always True when the track's planarity is not tested).
+        self._last_off_plane = self._track_off_plane = True
 
     def plausible(self, evidence: PoseEvidence) -> bool:
         """The tests beyond seed 1's: inlier ratio, coverage, photometric consistency, no
@@ -505,7 +521,11 @@ class PoseValidator:
         if evidence.num_inliers >= self.config.theta_in and not self.plausible(evidence):
             return False
         return self.validate_position(
-            evidence.position, evidence.num_inliers, timestamp, evidence.rotation
+            evidence.position,
+            evidence.num_inliers,
+            timestamp,
+            evidence.rotation,
+            evidence.plane_share,
         )
 
     def validate(self, T_wc: torch.Tensor, num_inliers: int, timestamp: float) -> bool:
@@ -525,6 +545,7 @@ class PoseValidator:
         num_inliers: int,
         timestamp: float,
         rotation: torch.Tensor | None = None,
+        plane_share: float | None = None,
     ) -> bool:
         """Whether a refined pose is verified; updates the reference on inlier poses.
 
@@ -534,16 +555,20 @@ class PoseValidator:
             timestamp: query time in seconds (increasing over the sequence).
             rotation: (3, 3) its camera-to-world rotation; needed by the motion test
                 (``max_accel_mps2``) only.
+            plane_share: share of its inliers' map points on their dominant plane; needed
+                by the track's planarity test (``max_track_plane_share``) only.
 
         Returns:
             ``True`` if the pose passes the inlier test and, in sequence mode, the distance
             test against the previous inlier pose, the motion test where it applies, and ends
-            a track of at least ``min_track_poses`` poses.
+            a track of at least ``min_track_poses`` poses that holds a pose beyond one plane
+            where ``max_track_plane_share`` is set.
 
         Raises:
             ShapeError: ``position`` is not (3,), ``rotation`` not (3, 3).
             ValueError: a non-finite position, rotation or timestamp, or the motion test is
-                set and ``rotation`` is missing.
+                set and ``rotation`` is missing, or the track's planarity test is set and
+                ``plane_share`` is missing.
         """
         check_shape(position, "3", "position")
         check_finite(position, "position")
@@ -560,6 +585,15 @@ class PoseValidator:
             check_shape(rotation, "3,3", "rotation")
             check_finite(rotation, "rotation")
             rotation = rotation.to(torch.float64)
+        off_plane = True
+        if cfg.temporal and cfg.max_track_plane_share is not None:
+            if plane_share is None:
+                raise ValueError(
+                    "validation.max_track_plane_share is set but this pose's plane share was "
+                    "not measured (a relocalisation record of an older diffloc: run it again, "
+                    "or set reloc.validation.max_track_plane_share=null)"
+                )
+            off_plane = plane_share <= cfg.max_track_plane_share
         if num_inliers < cfg.theta_in:
             return False
         if not cfg.temporal:
@@ -568,7 +602,7 @@ class PoseValidator:
         previous, dt = self._last_position, abs(timestamp - self._last_time)
         age = cfg.max_reference_age_s
         if previous is None or (age is not None and dt > age):
-            self._set_reference(position, rotation, timestamp, None, 1)
+            self._set_reference(position, rotation, timestamp, None, 1, off_plane, off_plane)
             return False
         limit = cfg.theta_dist_m + cfg.max_speed_mps * dt
         verified = bool(torch.linalg.vector_norm(position - previous) <= limit)
@@ -580,14 +614,18 @@ class PoseValidator:
                 # The pose or the velocity is wrong: trust neither; the track restarts at the
                 # reference.
                 self._velocity, self._track_poses = None, 1
+                self._track_off_plane = self._last_off_plane
                 return False
         if verified or not cfg.conflict_keeps_reference:
             velocity = None
             if verified and dt > 0 and self._last_rotation is not None:
                 velocity = ((position - previous) / dt, self._last_rotation)
             track_poses = self._track_poses + 1 if verified else 1
-            self._set_reference(position, rotation, timestamp, velocity, track_poses)
-        return verified and self._track_poses >= cfg.min_track_poses
+            track_off_plane = off_plane or (verified and self._track_off_plane)
+            self._set_reference(
+                position, rotation, timestamp, velocity, track_poses, off_plane, track_off_plane
+            )
+        return verified and self._track_poses >= cfg.min_track_poses and self._track_off_plane
 
     def _set_reference(
         self,
@@ -596,10 +634,13 @@ class PoseValidator:
         timestamp: float,
         velocity: tuple[torch.Tensor, torch.Tensor] | None,
         track_poses: int,
+        off_plane: bool,
+        track_off_plane: bool,
     ) -> None:
         self._last_position, self._last_rotation = position, rotation
         self._last_time, self._velocity = float(timestamp), velocity
         self._track_poses = track_poses
+        self._last_off_plane, self._track_off_plane = off_plane, track_off_plane
 
 
 def predicted_displacement(
