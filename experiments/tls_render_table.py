@@ -158,16 +158,25 @@ def markdown(report: dict) -> str:
         "(render + XFeat + NetVLAD, one thread; colouring the map is not counted)."
     )
     lines.append("")
-    head = ["setting", "map", "coloured points", "images", "holes", "render CPU s (wall)"]
+    head = [
+        "setting",
+        "overrides",
+        "map",
+        "coloured points",
+        "images",
+        "holes",
+        "render CPU s (wall)",
+    ]
     head += [f"`{s}` rate (right / accepted / queries)" for s in sequences]
     head += ["precision (pooled)"]
     lines += [
         "| " + " | ".join(head) + " |",
-        "|" + "|".join([":---"] * 2 + ["---:"] * (len(head) - 2)) + "|",
+        "|" + "|".join([":---"] * 3 + ["---:"] * (len(head) - 3)) + "|",
     ]
     for r in runs:
         cells = [
             r["name"],
+            f"`{r['overrides']}`" if r["overrides"] else "-",
             _map_cell(r["map_settings"]),
             f"{r['colored_points']} / {r['points']}",
             str(r["images"]),

@@ -118,6 +118,17 @@ def test_crossmodal_render_poses_follow_the_scene_kind(scene, cell_size_m, spaci
 
 
 @pytest.mark.parametrize(
+    ("scene", "rho_max", "visibility_radius"), [("indoor", 12.0, 8), ("outdoor", 8.0, 0)]
+)
+def test_the_tls_render_settings_follow_the_scene_kind(scene, rho_max, visibility_radius):
+    """Indoors the TLS map renders 12-px splats through the visibility filter at radius 8
+    (``map/scene/tls_indoor.yaml``); outdoors, not measured, the map's own 8 px and no filter."""
+    cfg = to_object(compose_config([f"scene={scene}", "task=crossmodal", "map=tls"]))
+    assert (cfg.map.rho_max, cfg.map.visibility_radius) == (rho_max, visibility_radius)
+    assert (cfg.map.visibility() is None) == (visibility_radius == 0)
+
+
+@pytest.mark.parametrize(
     ("scene", "option", "radius_m"),
     [
         ("indoor", "tls", 0.1),
