@@ -150,25 +150,27 @@ def test_the_floor_closing_of_the_render_poses_follows_the_point_map(scene, opti
 
 
 @pytest.mark.parametrize(
-    ("option", "theta_in", "min_photometric", "max_plane_share"),
+    ("option", "theta_in", "min_photometric", "max_plane_share", "ambiguity_ratio"),
     [
-        ("tls", 150, 0.4, 0.95),
-        ("cloud", 150, 0.4, 0.95),
-        ("mesh", 150, 0.4, 0.95),
-        ("images", 150, 0.7, None),
-        ("nerf", 150, None, None),
+        ("tls", 150, 0.3, 0.95, 0.8),
+        ("cloud", 150, 0.4, 0.95, 0.7),
+        ("mesh", 150, 0.4, 0.95, 0.7),
+        ("images", 150, 0.7, None, 0.7),
+        ("nerf", 150, None, None, 0.7),
     ],
 )
 def test_the_validation_thresholds_follow_the_map_indoors(
-    option, theta_in, min_photometric, max_plane_share
+    option, theta_in, min_photometric, max_plane_share, ambiguity_ratio
 ):
     task = to_object(compose_config(["scene=indoor", "task=crossmodal", f"map={option}"])).task
     validation = task.localizer_for(option).validation
-    assert (validation.theta_in, validation.min_photometric, validation.max_plane_share) == (
-        theta_in,
-        min_photometric,
-        max_plane_share,
+    got = (
+        validation.theta_in,
+        validation.min_photometric,
+        validation.max_plane_share,
+        validation.ambiguity_ratio,
     )
+    assert got == (theta_in, min_photometric, max_plane_share, ambiguity_ratio)
     override = f"++task.validation.{option}.theta_in=60" if option in task.validation else None
     if override:
         changed = to_object(
