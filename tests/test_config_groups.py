@@ -181,18 +181,24 @@ def test_the_validation_thresholds_follow_the_map_indoors(
 
 
 @pytest.mark.parametrize(
-    ("scene", "contracted", "max_range_m", "box_range_m", "overlap_m"),
-    [("indoor", False, 10.0, 0.0, 1.0), ("outdoor", True, 80.0, 15.0, 4.0)],
+    ("scene", "contracted", "max_range_m", "box_range_m", "overlap_m", "encoding", "log2_rows"),
+    [
+        ("indoor", False, 10.0, 0.0, 1.0, "triplane", 17),
+        ("outdoor", True, 80.0, 15.0, 4.0, "hashgrid", 19),
+    ],
 )
 def test_nerf_settings_follow_the_scene_kind(
-    scene, contracted, max_range_m, box_range_m, overlap_m
+    scene, contracted, max_range_m, box_range_m, overlap_m, encoding, log2_rows
 ):
     nerf = to_object(compose_config([f"scene={scene}", "task=train_nerf"])).nerf
     assert nerf.train.field.contracted is contracted
+    assert nerf.train.field.encoding == encoding
+    assert nerf.train.field.hash_log2_table_size == log2_rows
     assert (nerf.data.lidar_max_range_m, nerf.data.box_range_m) == (max_range_m, box_range_m)
     assert nerf.submaps.overlap_m == overlap_m
     explicit = compose_config(["scene=indoor", "task=train_nerf", "nerf/scene=silvr_outdoor"])
     assert to_object(explicit).nerf.train.field.contracted is True
+    assert to_object(explicit).nerf.train.field.encoding == "hashgrid"
 
 
 def test_outdoor_submaps_overlap_at_the_outdoor_frame_spacing():

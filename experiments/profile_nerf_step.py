@@ -1,0 +1,75 @@
+"""Where a radiance-field training step spends its CPU time (issue 19): ``steps`` training
+steps of one encoding on a submap under ``torch.profiler``, after ``warmup`` unprofiled steps;
+prints the operators by self CPU time and the CPU ms per step.
+
+    PYTHONPATH=. OMP_NUM_THREADS=1 python3 experiments/profile_nerf_step.py --scene outdoor \\
+        --data data/outdoor_seed0 --encoding hashgrid --steps 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+import time
+
+import lightning as L
+import torch
+from torch.profiler import ProfilerActivity, profile
+
+from diffloc.config import compose_config, to_object
+from diffloc.io.dataset import read_sequence
+from diffloc.maps.nerf.data import build_submap_rays
+from diffloc.maps.nerf.submaps import cluster_trajectory
+from diffloc.maps.nerf.train import fit_submap
+
+
+class _Profiled(L.Callback):
+    """Profile the training steps after ``warmup`` and stop after ``steps`` of them."""
+
+    def __init__(self, warmup: int, steps: int) -> None:
+        self.warmup, self.steps = warmup, steps
+        self.profiler = profile(activities=[ProfilerActivity.CPU])
+
+    def on_train_batch_start(self, trainer, module, batch, batch_idx) -> None:
+        if trainer.global_step == self.warmup:
+            self.cpu = time.process_time()
+            self.profiler.__enter__()
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+        if trainer.global_step == self.warmup + self.steps:
+            self.cpu = time.process_time() - self.cpu
+            self.profiler.__exit__(None, None, None)
+            trainer.should_stop = True
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", choices=("indoor", "outdoor"), default="indoor")
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--encoding", default="hashgrid")
+    parser.add_argument("--submap", type=int, default=0)
+    parser.add_argument("--warmup", type=int, default=10)
+    parser.add_argument("--steps", type=int, default=30)
+    parser.add_argument("--rows", type=int, default=25)
+    parser.add_argument("--override", nargs="+", default=[])
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    overrides = [f"scene={args.scene}", "task=train_nerf", *args.override]
+    nerf = to_object(compose_config(overrides)).nerf
+    seq = read_sequence(args.data, "mapping")
+    submap = cluster_trajectory(seq.T_wc, nerf.submaps)[args.submap]
+    rays = build_submap_rays(seq, submap.frames, nerf.data)
+    config = dataclasses.replace(
+        nerf.train, field=dataclasses.replace(nerf.train.field, encoding=args.encoding)
+    )
+    timer = _Profiled(args.warmup, args.steps)
+    with tempfile.TemporaryDirectory() as work:
+        fit_submap(rays, config, work, epochs=10**6, callbacks=[timer], show_progress=False)
+    table = timer.profiler.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows)
+    print(table)
+    print(f"{args.encoding}: {1000 * timer.cpu / args.steps:.1f} CPU ms per step (profiled)")
+
+
+if __name__ == "__main__":
+    main()
