@@ -9,6 +9,7 @@ from diffloc.maps.nerf.contraction import SceneNormalisation, contract, uncontra
 from diffloc.maps.nerf.encodings import (
     HashGridEncoding,
     TriplaneEncoding,
+    _vertex_index,
     bilinear_gather,
     trilinear_gather,
 )
@@ -28,6 +29,18 @@ def test_hash_levels_use_dense_rows_only_when_the_grid_fits() -> None:
     enc = HashGridEncoding(3, 2, 6, 3, 9, 0.1)
     assert enc.resolutions == (3, 5, 9)
     assert [len(t) for t in enc.tables] == [27, 64, 64]
+
+
+@pytest.mark.parametrize("table_size", [2**19, 1000])
+def test_hashed_rows_are_the_spatial_hash_modulo_the_table_size(table_size: int) -> None:
+    """The power-of-two mask and the general remainder give Instant-NGP's hash modulo T."""
+    vertex = torch.randint(0, 2048, (500, 3), generator=torch.Generator().manual_seed(0))
+    primes = (1, 2654435761, 805459861)
+    expected = [
+        (int(i) * primes[0] ^ int(j) * primes[1] ^ int(k) * primes[2]) % table_size
+        for i, j, k in vertex.tolist()
+    ]
+    assert _vertex_index(vertex, 2048, table_size).tolist() == expected
 
 
 @pytest.mark.parametrize("kind", ["triplane", "hashgrid"])

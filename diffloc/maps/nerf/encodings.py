@@ -134,12 +134,16 @@ def bilinear_gather(
 
 
 def _vertex_index(vertex: torch.Tensor, resolution: int, table_size: int) -> torch.Tensor:
-    """Row of each (N, 3) integer vertex: dense if the grid fits the table, else hashed."""
+    """Row of each (N, 3) integer vertex: dense if the grid fits the table, else hashed (the
+    hash modulo the table size; a mask where the size is a power of two, as the hash grid's
+    tables are: the same rows, without an integer division per corner)."""
     if resolution**3 <= table_size:
         return (vertex[:, 2] * resolution + vertex[:, 1]) * resolution + vertex[:, 0]
     h = vertex[:, 0] * _PRIMES[0]
     h = torch.bitwise_xor(h, vertex[:, 1] * _PRIMES[1])
     h = torch.bitwise_xor(h, vertex[:, 2] * _PRIMES[2])
+    if table_size & (table_size - 1) == 0:
+        return torch.bitwise_and(h, table_size - 1)
     return torch.remainder(h, table_size)
 
 
