@@ -77,6 +77,26 @@ def test_spacing_is_linear_bounded_and_inverse_beyond_the_box() -> None:
     assert float(1 / contracted[0, 3]) == pytest.approx((1 / 3.0 + 1 / 100.0) / 2)
 
 
+def test_a_ray_meeting_the_box_beyond_the_outer_far_distance_samples_nothing() -> None:
+    """A camera far outside a contracted field's box: a ray that misses the box gets a slab
+    entry beyond ``far_m``; its distances collapse onto ``far_m`` (no interval, no NaN) through
+    the uniform and the importance samples alike."""
+    s = torch.tensor([[0.0, 0.25, 0.5, 0.75, 1.0]])
+    collapsed = spacing(s, torch.tensor([449.0]), torch.tensor([449.001]), 200.0)
+    assert_close(collapsed, torch.full((1, 5), 200.0))
+    cfg = SamplerConfig(grid_resolution=8, uniform_samples=8, importance_samples=16, far_m=200.0)
+    grid = DensityGrid(cfg)
+    norm = SceneNormalisation(-torch.ones(3), torch.ones(3), True)
+    grid.refresh(lambda x: torch.full((len(x),), 10.0), norm, torch.Generator().manual_seed(0))
+    o = torch.tensor([[0.0, -300.0, 0.0]])
+    d = torch.nn.functional.normalize(torch.tensor([[1.0, 0.01, 0.0]]), dim=1)
+    near, far = ray_box_bounds(o, d, -torch.ones(3), torch.ones(3), cfg.near_m)
+    assert float(near) > cfg.far_m > float(far)
+    t = grid.sample(o, d, near, far.maximum(near + 1e-3), norm, None)
+    assert bool(torch.isfinite(t).all())
+    assert_close(t, torch.full_like(t, 200.0))
+
+
 def test_importance_samples_concentrate_at_the_surface_of_the_grid() -> None:
     """A grid with one opaque slab at x = 0.5 draws most importance samples next to it."""
     cfg = SamplerConfig(grid_resolution=16, uniform_samples=4, importance_samples=64)

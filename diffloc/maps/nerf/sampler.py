@@ -146,6 +146,10 @@ def spacing(s: torch.Tensor, near: torch.Tensor, far: torch.Tensor, far_outer: f
     near, far = near[:, None], far[:, None]
     if far_outer is None:
         return near + s * (far - near)
+    # A ray that meets the box only beyond the outer far distance (a camera far outside the
+    # box) has nothing within it to sample: its distances collapse onto far_outer.
+    far = far.clamp(max=far_outer)
+    near = near.minimum(far)
     inner = near + (2 * s).clamp(max=1.0) * (far - near)
     outer_s = (2 * s - 1).clamp(min=0.0)
     outer = 1.0 / (1.0 / far + outer_s * (1.0 / far_outer - 1.0 / far))
