@@ -264,6 +264,18 @@ class UnknownKeyError(ValueError):
     """A config key that no schema declares, e.g. one added on the command line with ``+``."""
 
 
+def nerf_settings(scene: str, overrides: Sequence[str] = ()) -> TrainNerfConfig:
+    """The ``nerf`` node ``diffloc task=train_nerf scene=<scene> <overrides>`` trains with
+    (clustering, data and training settings; ``nerf/scene/silvr_<scene>.yaml`` where it
+    exists), for scripts that train, profile or score a submap outside the task.
+
+    Example:
+        >>> nerf_settings("outdoor", ["nerf.submap=2"]).train.field.contracted
+        True
+    """
+    return to_object(compose_config([f"scene={scene}", "task=train_nerf", *overrides])).nerf
+
+
 def _walk(node: DictConfig | ListConfig, prefix: str) -> Iterator[tuple[str, DictConfig]]:
     """``(full key, node)`` of every dict node under ``node`` (itself included), skipping
     missing and interpolated values."""

@@ -64,17 +64,15 @@ import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from diffloc.config import compose_config, to_object
+from diffloc.config import nerf_settings
 from diffloc.eval.curves import common_level, time_to_reach
 from diffloc.eval.field_scores import heldout_field_scores
-from diffloc.io.dataset import read_sequence
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.nerf.data import SubmapRays, build_submap_rays
 from diffloc.maps.nerf.module import NerfModule, NerfTrainConfig
 from diffloc.maps.nerf.renderer import render_image
-from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.maps.nerf.train import fit_submap
-from diffloc.pipeline.nerf_config import TrainNerfConfig
+from diffloc.pipeline.nerf_stage import submap_training_data
 
 # variant -> (loss overrides, sampler overrides, field overrides, data overrides). "uniform"
 # drops the density grid (importance samples and empty-cell skipping) and the lidar-guided
@@ -490,13 +488,6 @@ def _finish(record: dict, out: Path, args: argparse.Namespace) -> None:
         Path(args.contraction_md).write_text(contraction_markdown(record))
 
 
-def nerf_settings(scene: str, overrides: list[str] = ()) -> TrainNerfConfig:
-    """The ``nerf`` node ``diffloc task=train_nerf scene=<scene> <overrides>`` composes
-    (clustering, data and training settings; ``nerf/scene/silvr_<scene>.yaml`` where it
-    exists)."""
-    return to_object(compose_config([f"scene={scene}", "task=train_nerf", *overrides])).nerf
-
-
 def variant_config(base: NerfTrainConfig, encoding: str, variant: str) -> NerfTrainConfig:
     """``base`` with the encoding ``encoding`` and the overrides of ``VARIANTS[variant]``."""
     loss, sampler, field, _ = VARIANTS[variant]
@@ -547,13 +538,10 @@ def main() -> None:
         return
     torch.set_num_threads(args.threads)
     data = args.data or f"data/{args.scene}_seed0"
-    nerf = nerf_settings(args.scene, args.override)
-    seq = read_sequence(data, "mapping")
-    submaps = cluster_trajectory(seq.T_wc, nerf.submaps)
-    submap = submaps[args.submap]
+    nerf = nerf_settings(args.scene, [f"nerf.submap={args.submap}", *args.override])
     tic = time.perf_counter()
-    no_return = nerf.train.loss.empty_weight > 0
-    rays = build_submap_rays(seq, submap.frames, nerf.data, no_return=no_return)
+    seq, submap, rays = submap_training_data(data, nerf)
+    no_return = rays.no_return is not None
     record: dict = {
         "command": shlex.join(["python3", *sys.argv]),
         "data": data,

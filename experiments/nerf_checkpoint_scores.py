@@ -35,18 +35,17 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from diffloc.config import compose_config, to_object
+from diffloc.config import nerf_settings
 from diffloc.eval.field_scores import heldout_field_scores, left_half_code
-from diffloc.io.dataset import read_sequence
 from diffloc.io.sequence import SequenceData
-from diffloc.maps.nerf.data import SubmapRays, build_submap_rays, load_image
+from diffloc.maps.nerf.data import SubmapRays, load_image
 from diffloc.maps.nerf.field import RadianceField
 from diffloc.maps.nerf.no_return import LidarPattern
 from diffloc.maps.nerf.rays import camera_rays
 from diffloc.maps.nerf.renderer import render_image
 from diffloc.maps.nerf.sampler import DensityGrid
-from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.maps.nerf.train import load_checkpoint
+from diffloc.pipeline.nerf_stage import submap_training_data
 
 
 def sky_opacity_by_elevation(
@@ -114,11 +113,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     data = args.data or f"data/{args.scene}_seed0"
-    overrides = [f"scene={args.scene}", "task=train_nerf", *args.override]
-    nerf = to_object(compose_config(overrides)).nerf
-    seq = read_sequence(data, "mapping")
-    submap = cluster_trajectory(seq.T_wc, nerf.submaps)[args.submap]
-    rays = build_submap_rays(seq, submap.frames, nerf.data)
+    nerf = nerf_settings(args.scene, [f"nerf.submap={args.submap}", *args.override])
+    seq, _, rays = submap_training_data(data, nerf)
     module, step = load_checkpoint(rays, nerf.train, args.checkpoint)
     scores = heldout_field_scores(module.field, module.grid, seq, rays.camera, rays.heldout, True)
     record = {

@@ -37,16 +37,15 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 
-from diffloc.config import compose_config, to_object
+from diffloc.config import nerf_settings
 from diffloc.eval.field_regions import REGIONS, pixel_regions, region_summary
 from diffloc.eval.field_scores import left_half_code, psnr
 from diffloc.eval.report_files import write_report
-from diffloc.io.dataset import read_sequence
-from diffloc.maps.nerf.data import build_submap_rays, load_image
+from diffloc.maps.nerf.data import load_image
 from diffloc.maps.nerf.module import NerfModule
 from diffloc.maps.nerf.renderer import render_image
-from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.maps.nerf.train import load_checkpoint
+from diffloc.pipeline.nerf_stage import submap_training_data
 
 _REGION_COLOURS = ("#9ecae1", "#a1d99b", "#fdae6b", "#bcbddc")
 """Colours of the regions in the PNG (sky, ground, facade, far)."""
@@ -187,12 +186,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     load_start = os.getloadavg()[0]
     data = args.data or f"data/{args.scene}_seed0"
-    overrides = [f"scene={args.scene}", "task=train_nerf", *args.override]
-    nerf = to_object(compose_config(overrides)).nerf
+    nerf = nerf_settings(args.scene, [f"nerf.submap={args.submap}", *args.override])
     far_m = args.far_m or nerf.data.box_range_m or 15.0
-    seq = read_sequence(data, "mapping")
-    submap = cluster_trajectory(seq.T_wc, nerf.submaps)[args.submap]
-    rays = build_submap_rays(seq, submap.frames, nerf.data)
+    seq, _, rays = submap_training_data(data, nerf)
     module, step = load_checkpoint(rays, nerf.train, args.checkpoint)
     module.eval()
     train = [

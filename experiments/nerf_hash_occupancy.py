@@ -13,12 +13,10 @@ import argparse
 
 import torch
 
-from diffloc.config import compose_config, to_object
-from diffloc.io.dataset import read_sequence
+from diffloc.config import nerf_settings
 from diffloc.maps.nerf.contraction import SceneNormalisation
-from diffloc.maps.nerf.data import build_submap_rays
 from diffloc.maps.nerf.encodings import HashGridEncoding
-from diffloc.maps.nerf.submaps import cluster_trajectory
+from diffloc.pipeline.nerf_stage import submap_training_data
 
 
 def occupied_cells(xyz: torch.Tensor, resolution: int) -> int:
@@ -35,11 +33,8 @@ def main() -> None:
     parser.add_argument("--submap", type=int, default=0)
     parser.add_argument("--override", nargs="+", default=[])
     args = parser.parse_args()
-    overrides = [f"scene={args.scene}", "task=train_nerf", *args.override]
-    nerf = to_object(compose_config(overrides)).nerf
-    seq = read_sequence(args.data, "mapping")
-    submap = cluster_trajectory(seq.T_wc, nerf.submaps)[args.submap]
-    rays = build_submap_rays(seq, submap.frames, nerf.data)
+    nerf = nerf_settings(args.scene, [f"nerf.submap={args.submap}", *args.override])
+    _, _, rays = submap_training_data(args.data, nerf)
     lidar = rays.lidar
     points = lidar.origins + lidar.directions * lidar.ranges[:, None]
     field = nerf.train.field

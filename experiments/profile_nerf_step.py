@@ -17,11 +17,9 @@ import lightning as L
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from diffloc.config import compose_config, to_object
-from diffloc.io.dataset import read_sequence
-from diffloc.maps.nerf.data import build_submap_rays
-from diffloc.maps.nerf.submaps import cluster_trajectory
+from diffloc.config import nerf_settings
 from diffloc.maps.nerf.train import fit_submap
+from diffloc.pipeline.nerf_stage import submap_training_data
 
 
 class _Profiled(L.Callback):
@@ -55,11 +53,8 @@ def main() -> None:
     parser.add_argument("--override", nargs="+", default=[])
     args = parser.parse_args()
     torch.set_num_threads(1)
-    overrides = [f"scene={args.scene}", "task=train_nerf", *args.override]
-    nerf = to_object(compose_config(overrides)).nerf
-    seq = read_sequence(args.data, "mapping")
-    submap = cluster_trajectory(seq.T_wc, nerf.submaps)[args.submap]
-    rays = build_submap_rays(seq, submap.frames, nerf.data)
+    nerf = nerf_settings(args.scene, [f"nerf.submap={args.submap}", *args.override])
+    _, _, rays = submap_training_data(args.data, nerf)
     config = dataclasses.replace(
         nerf.train, field=dataclasses.replace(nerf.train.field, encoding=args.encoding)
     )

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from diffloc.config import nerf_settings
 from diffloc.maps.nerf.data import SubmapDataConfig
+from diffloc.maps.nerf.module import NerfTrainConfig
 from diffloc.maps.nerf.submaps import SubmapConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -155,7 +157,7 @@ def test_contraction_table_puts_each_field_in_its_row_after_the_command():
 
 def test_the_outdoor_variant_switches_only_the_contraction_off():
     bench = load_script()
-    outdoor = bench.nerf_settings("outdoor")
+    outdoor = nerf_settings("outdoor")
     assert outdoor.train.field.contracted and outdoor.data.lidar_max_range_m == 80.0
     plain = bench.variant_config(outdoor.train, "hashgrid", "uncontracted")
     assert not plain.field.contracted and plain.field.encoding == "hashgrid"
@@ -163,9 +165,8 @@ def test_the_outdoor_variant_switches_only_the_contraction_off():
 
 
 def test_the_indoor_settings_are_the_defaults_the_benchmark_used_before():
-    bench = load_script()
-    indoor = bench.nerf_settings("indoor")
-    assert indoor.train == bench.NerfTrainConfig() and not indoor.train.field.contracted
+    indoor = nerf_settings("indoor")
+    assert indoor.train == NerfTrainConfig() and not indoor.train.field.contracted
     assert indoor.data == SubmapDataConfig()
     assert indoor.submaps == SubmapConfig(num_submaps=4)
 

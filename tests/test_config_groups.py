@@ -12,7 +12,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from diffloc.config import CONF_DIR, UnknownKeyError, compose_config, to_object
+from diffloc.config import CONF_DIR, UnknownKeyError, compose_config, nerf_settings, to_object
 from diffloc.features.local import OrbConfig, XFeatConfig
 from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.reloc.retrieval import BowConfig, NetVLADConfig
@@ -190,7 +190,9 @@ def test_the_validation_thresholds_follow_the_map_indoors(
 def test_nerf_settings_follow_the_scene_kind(
     scene, contracted, max_range_m, box_range_m, overlap_m, encoding, log2_rows
 ):
-    nerf = to_object(compose_config([f"scene={scene}", "task=train_nerf"])).nerf
+    nerf = nerf_settings(scene)
+    assert nerf == to_object(compose_config([f"scene={scene}", "task=train_nerf"])).nerf
+    assert nerf_settings(scene, ["nerf.submap=2"]).submap == 2
     assert nerf.train.field.contracted is contracted
     assert nerf.train.field.encoding == encoding
     assert nerf.train.field.hash_log2_table_size == log2_rows

@@ -23,7 +23,7 @@ from diffloc.maps.nerf.submaps import load_submaps
 from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline import nerf_stage
 from diffloc.pipeline.nerf_config import TrainNerfConfig
-from diffloc.pipeline.nerf_stage import train_nerf_submap
+from diffloc.pipeline.nerf_stage import submap_training_data, train_nerf_submap
 
 
 def test_task_config_composes_with_overrides() -> None:
@@ -103,6 +103,24 @@ def test_bad_submaps_are_clear_errors(tiny_indoor_dataset: Path, tmp_path: Path)
     single.submaps.overlap_m = 0.0
     with pytest.raises(ValueError, match="at least 2 training frames"):
         train_nerf_submap(tiny_indoor_dataset, single, False)
+
+
+def test_scripts_get_the_submap_and_rays_the_task_trains_on(
+    tiny_indoor_dataset: Path, tmp_path: Path
+) -> None:
+    """``submap_training_data`` (the experiment scripts' entry) is the task's own clustering
+    and ray building: the same frames, held-out frames and lidar rays as the record reports."""
+    cfg = _tiny(tmp_path, submap=1)
+    summary = train_nerf_submap(tiny_indoor_dataset, cfg, False)
+    seq, submap, rays = submap_training_data(tiny_indoor_dataset, cfg)
+    assert len(seq) > 0 and len(submap.frames) == summary.frames
+    assert (len(rays.frames), len(rays.heldout)) == (summary.train_frames, summary.heldout_frames)
+    assert rays.no_return is None  # the empty-space loss is off
+    loss = dataclasses.replace(cfg.train.loss, empty_weight=0.1)
+    with_empty = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, loss=loss))
+    assert submap_training_data(tiny_indoor_dataset, with_empty)[2].no_return is not None
+    with pytest.raises(ValueError, match=r"nerf.submap=2 but the clustering made 2 submaps"):
+        submap_training_data(tiny_indoor_dataset, dataclasses.replace(cfg, submap=2))
 
 
 def _field_bytes(out: Path, submap: int = 0) -> dict[str, bytes]:

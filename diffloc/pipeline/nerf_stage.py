@@ -39,10 +39,11 @@ import torch
 
 from diffloc.io.dataset import read_sequence
 from diffloc.io.identity import identity
-from diffloc.maps.nerf.data import build_submap_rays
+from diffloc.io.sequence import SequenceData
+from diffloc.maps.nerf.data import SubmapRays, build_submap_rays
 from diffloc.maps.nerf.export import export_field
 from diffloc.maps.nerf.module import NerfModule
-from diffloc.maps.nerf.submaps import cluster_trajectory, plot_submaps, save_submaps
+from diffloc.maps.nerf.submaps import Submap, cluster_trajectory, plot_submaps, save_submaps
 from diffloc.maps.nerf.train import fit_submap
 from diffloc.pipeline.hints import Command, StaleStageError
 from diffloc.pipeline.nerf_config import TrainNerfConfig
@@ -62,9 +63,12 @@ __all__ = [
     "TRAINING_KEY",
     "NerfSummary",
     "TrainedField",
+    "cluster_mapping_run",
     "nerf_out_dir",
     "read_trained_field",
+    "submap_training_data",
     "train_nerf_submap",
+    "training_rays",
 ]
 
 
@@ -231,6 +235,56 @@ def read_trained_field(
         )
 
 
+def _submap_name(dataset: str | os.PathLike, config: TrainNerfConfig) -> str:
+    """How errors and warnings name the submap."""
+    return f"submap {config.submap} of {dataset}"
+
+
+def cluster_mapping_run(
+    dataset: str | os.PathLike, config: TrainNerfConfig
+) -> tuple[SequenceData, list[Submap]]:
+    """The mapping run of ``dataset`` (``config.sequence``) and its submaps
+    (``config.submaps``; the clustering is deterministic, so every caller gets the same).
+
+    Raises:
+        ValueError: ``config.submap`` is not one of the submaps.
+    """
+    seq = read_sequence(dataset, config.sequence)
+    submaps = cluster_trajectory(seq.T_wc, config.submaps)
+    if not 0 <= config.submap < len(submaps):
+        raise ValueError(
+            f"nerf.submap={config.submap} but the clustering made {len(submaps)} submaps "
+            f"(0..{len(submaps) - 1})"
+        )
+    return seq, submaps
+
+
+def training_rays(
+    dataset: str | os.PathLike, seq: SequenceData, submap: Submap, config: TrainNerfConfig
+) -> SubmapRays:
+    """The training and held-out rays of ``submap`` as ``task=train_nerf`` builds them
+    (``config.data``; the lidar rays without a return only where the empty-space loss uses
+    them, ``nerf.train.loss.empty_weight > 0``)."""
+    no_return = config.train.loss.empty_weight > 0
+    name = _submap_name(dataset, config)
+    return build_submap_rays(seq, submap.frames, config.data, name=name, no_return=no_return)
+
+
+def submap_training_data(
+    dataset: str | os.PathLike, config: TrainNerfConfig
+) -> tuple[SequenceData, Submap, SubmapRays]:
+    """The mapping run, submap ``config.submap`` and its rays, as ``task=train_nerf`` trains
+    them (for scripts that train, profile or score one submap outside the task).
+
+    Raises:
+        ValueError: ``config.submap`` out of range, or a submap that cannot be trained (see
+            :func:`~diffloc.maps.nerf.data.build_submap_rays`).
+    """
+    seq, submaps = cluster_mapping_run(dataset, config)
+    submap = submaps[config.submap]
+    return seq, submap, training_rays(dataset, seq, submap, config)
+
+
 def train_nerf_submap(
     dataset: str | os.PathLike, config: TrainNerfConfig, show_progress: bool = True
 ) -> NerfSummary:
@@ -251,13 +305,7 @@ def train_nerf_submap(
     """
     dataset = Path(dataset)
     out_dir = nerf_out_dir(dataset, config)
-    seq = read_sequence(dataset, config.sequence)
-    submaps = cluster_trajectory(seq.T_wc, config.submaps)
-    if not 0 <= config.submap < len(submaps):
-        raise ValueError(
-            f"nerf.submap={config.submap} but the clustering made {len(submaps)} submaps "
-            f"(0..{len(submaps) - 1})"
-        )
+    seq, submaps = cluster_mapping_run(dataset, config)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_submaps(out_dir / "submaps.json", submaps, config.submaps)
     plot_submaps(out_dir / "submaps.png", seq.T_wc, submaps)
@@ -271,9 +319,7 @@ def train_nerf_submap(
         if (previous := stage.reusable(key, NerfSummary)) is not None:
             return previous
         work = stage.workdir()  # a folder this run cannot write is refused here, before work
-        name = f"submap {config.submap} of {dataset}"
-        no_return = config.train.loss.empty_weight > 0
-        rays = build_submap_rays(seq, submap.frames, config.data, name=name, no_return=no_return)
+        rays = training_rays(dataset, seq, submap, config)
         training_key = stage_key(training, inputs)
         resume = _prepare_checkpoints(run_dir, training_key, config)
         module = fit_submap(
@@ -285,7 +331,7 @@ def train_nerf_submap(
             callbacks=[_TrainingIdentity(training_key)],
             show_progress=show_progress,
         )
-        _check_finite(module, name)
+        _check_finite(module, _submap_name(dataset, config))
         export_field(work / "field", module.field, module.grid)
         scores, note = heldout_scores(
             module.field, module.grid, seq, rays, config.data.holdout_every
