@@ -264,9 +264,9 @@ def markdown(results: dict, frame: int) -> str:
         f"Recorded exposures of the texturing frames span {rng['recorded_range'][0]:.2f} - "
         f"{rng['recorded_range'][1]:.2f} (after normalising to geometric mean 1).",
         "The exposure estimator's pair weighting (by shared samples) was chosen on this scene "
-        "(seed 0); no other seed has been run. The atlas layout (UVAtlas partitions) varies "
-        "from run to run: two earlier runs of this command differed by up to 0.15 dB in a "
-        "variant's gain-fitted PSNR, so smaller differences are noise.",
+        "(seed 0); no other seed has been run. The atlas (xatlas) is the same on every run; "
+        "with open3d's UVAtlas before, whose layout varied from run to run, two runs of this "
+        "command differed by up to 0.15 dB in a variant's gain-fitted PSNR.",
         f"Load average at start / end: {results['load_average']['start']} / "
         f"{results['load_average']['end']} (2 cores, shared).",
         "",

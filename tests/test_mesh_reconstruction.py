@@ -113,9 +113,10 @@ def test_bad_config_is_refused():
 
 def test_atlas_charts_the_mesh_without_overlap(sphere_mesh):
     size = 256
-    uvs = compute_uv_atlas(sphere_mesh.vertices, sphere_mesh.faces, size, faces_per_partition=800)
+    uvs = compute_uv_atlas(sphere_mesh.vertices, sphere_mesh.faces, size)
     assert uvs.shape == (len(sphere_mesh.faces), 3, 2)
     assert uvs.min() >= 0.0 and uvs.max() <= 1.0
+    assert uvs.reshape(-1, 2).max(axis=0).max() > 0.9  # the layout fills the atlas's side
     texels = rasterize_atlas(uvs, size, margin=0)
     # Every texel centre belongs to one triangle, so covered texels are distinct and the
     # surface points they map to lie on their triangles (on the sphere).
@@ -124,6 +125,17 @@ def test_atlas_charts_the_mesh_without_overlap(sphere_mesh):
     points = texels.points(sphere_mesh.vertices, sphere_mesh.faces).numpy()
     assert np.abs(np.linalg.norm(points, axis=1) - RADIUS).max() < 0.03
     assert bool((texels.barycentric >= -1e-9).all())
+
+
+def test_the_same_mesh_gets_the_same_atlas(sphere_mesh):
+    """A mesh map built twice from the same inputs must be the same map (content-keyed
+    stages assume it): the atlas is a function of the mesh and the settings."""
+    first = compute_uv_atlas(sphere_mesh.vertices, sphere_mesh.faces, 256)
+    np.testing.assert_array_equal(
+        first, compute_uv_atlas(sphere_mesh.vertices, sphere_mesh.faces, 256)
+    )
+    finer = compute_uv_atlas(sphere_mesh.vertices, sphere_mesh.faces, 256, max_cost=0.5)
+    assert not np.array_equal(first, finer)  # the settings reach xatlas
 
 
 def test_texel_map_inverts_a_known_affine_layout():

@@ -56,8 +56,7 @@ class TexturedMeshConfig:
         reconstruction: surface reconstruction.
         atlas_size: side of the square texture atlas in texels.
         atlas_gutter: texels between charts.
-        atlas_max_stretch: UVAtlas stretch limit.
-        atlas_faces_per_partition: faces charted together (see :func:`compute_uv_atlas`).
+        atlas_max_cost: xatlas's chart cost limit (see :func:`compute_uv_atlas`).
         atlas_margin: gutter texels given surface points (see :func:`rasterize_atlas`).
         blend: the Eq. 3-4 blend.
     """
@@ -65,8 +64,7 @@ class TexturedMeshConfig:
     reconstruction: MeshReconstructionConfig = field(default_factory=MeshReconstructionConfig)
     atlas_size: int = 1024
     atlas_gutter: float = 2.0
-    atlas_max_stretch: float = 0.16
-    atlas_faces_per_partition: int = 2500
+    atlas_max_cost: float = 2.0
     atlas_margin: int = 2
     blend: TextureBlendConfig = field(default_factory=TextureBlendConfig)
 
@@ -130,12 +128,7 @@ def texture_mesh(
     size = cfg.atlas_size
     start = time.perf_counter()
     corner_uvs = compute_uv_atlas(
-        geometry.vertices,
-        geometry.faces,
-        size,
-        cfg.atlas_gutter,
-        cfg.atlas_max_stretch,
-        cfg.atlas_faces_per_partition,
+        geometry.vertices, geometry.faces, size, cfg.atlas_gutter, cfg.atlas_max_cost
     )
     texels = rasterize_atlas(corner_uvs, size, cfg.atlas_margin)
     points = texels.points(geometry.vertices, geometry.faces)

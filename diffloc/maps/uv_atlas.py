@@ -1,14 +1,13 @@
 """UV atlas of a triangle mesh and the texel -> surface point map ``A^-1`` of seed 2 Eq. 4.
 
-The atlas comes from open3d's ``t.geometry.TriangleMesh.compute_uvatlas`` (Microsoft's UVAtlas:
-charts cut so that their stretch stays below ``max_stretch``, packed into one square texture
-with ``gutter`` texels between charts). The mesh is first split into partitions of about
-``faces_per_partition`` faces that are charted separately: UVAtlas's cost grows faster than
-linearly with the faces (a 20k-face mesh: 79 s in one partition, 3 s in eight). With several
-partitions the packing order of the charts varies from run to run, so the layout is not
-bitwise reproducible (the surface each chart maps is). Corner UVs
-follow :class:`TexturedMesh`: ``v = 0`` is the top row, texel ``(row, col)`` of an ``S x S``
-texture has its centre at ``((col + 0.5) / S, (row + 0.5) / S)``.
+The atlas comes from xatlas (the library ``trimesh.Trimesh.unwrap`` calls; here directly, for
+the gutter and the atlas size): charts grown over faces whose normals agree, within a chart
+cost ``max_cost``, parameterised and packed into one atlas with ``gutter`` texels between
+charts. The same mesh always gets the same atlas (``tests/test_mesh_reconstruction.py``), so a
+mesh map built twice from the same inputs is the same map; open3d's UVAtlas, used before, packed
+its charts in a run-dependent order. Corner UVs follow :class:`TexturedMesh`: ``v = 0`` is the
+top row, texel ``(row, col)`` of an ``S x S`` texture has its centre at ``((col + 0.5) / S,
+(row + 0.5) / S)``.
 
 :func:`rasterize_atlas` inverts the atlas: every texel whose centre lies in a triangle's UV
 footprint gets that triangle and its barycentric coordinates, hence a surface point. Texels
@@ -19,14 +18,15 @@ texture, not background.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+import xatlas
 from scipy import ndimage
 
 from diffloc.checks import check_shape
-from diffloc.o3d import open3d
 
 __all__ = ["AtlasTexels", "compute_uv_atlas", "rasterize_atlas"]
 
@@ -36,47 +36,62 @@ def compute_uv_atlas(
     faces: np.ndarray,
     size: int,
     gutter: float = 2.0,
-    max_stretch: float = 0.16,
-    faces_per_partition: int = 2500,
+    max_cost: float = 2.0,
 ) -> np.ndarray:
-    """Chart and pack a manifold triangle mesh into one square UV atlas.
+    """Chart and pack a triangle mesh into one square UV atlas (xatlas), deterministically.
+
+    xatlas sizes its layout to about ``size`` texels (its own estimate of the texel density,
+    so the layout's longer side may come out some 20 % over or under); the layout is scaled to
+    ``size`` keeping its aspect, so the gutter between charts is ``gutter`` texels at xatlas's
+    size and about that at ``size``.
 
     Args:
         vertices: (V, 3) positions.
-        faces: (F, 3) vertex indices of a manifold mesh (see :mod:`diffloc.maps.mesh`).
-        size: atlas side in texels (the gutter is measured at this size).
-        gutter: texels between charts.
-        max_stretch: UVAtlas's stretch limit in [0, 1] (0: no stretch, many charts).
-        faces_per_partition: about this many faces are charted together.
+        faces: (F, 3) vertex indices.
+        size: atlas side in texels (the gutter is planned at about this size).
+        gutter: texels between charts (rounded up to whole texels).
+        max_cost: xatlas's chart cost limit (normal deviation, roundness, straightness):
+            lower makes more, flatter charts.
 
     Returns:
-        (F, 3, 2) float32 corner UVs in [0, 1].
+        (F, 3, 2) float32 corner UVs in [0, 1], face ``i``'s corners in the order of
+        ``faces[i]``.
 
     Raises:
-        ValueError: empty mesh or bad sizes; RuntimeError from open3d for a non-manifold mesh.
+        ValueError: empty mesh or bad sizes.
+        RuntimeError: xatlas did not pack the mesh into one atlas.
+
+    Example:
+        >>> import trimesh
+        >>> box = trimesh.creation.box()
+        >>> uvs = compute_uv_atlas(box.vertices, box.faces, 64)
+        >>> uvs.shape, bool((uvs >= 0).all() and (uvs <= 1).all())
+        ((12, 3, 2), True)
+        >>> bool((uvs == compute_uv_atlas(box.vertices, box.faces, 64)).all())
+        True
     """
     check_shape(vertices, "V,3", "vertices")
     check_shape(faces, "F,3", "faces")
     if len(faces) == 0:
         raise ValueError("cannot build a UV atlas for a mesh without faces")
-    if size < 16 or gutter < 0 or not 0.0 <= max_stretch <= 1.0 or faces_per_partition < 1:
+    if size < 16 or gutter < 0 or max_cost <= 0:
         raise ValueError(
-            "atlas needs size >= 16, gutter >= 0, max_stretch in [0, 1], faces_per_partition "
-            f">= 1; got {size}, {gutter}, {max_stretch}, {faces_per_partition}"
+            f"atlas needs size >= 16, gutter >= 0, max_cost > 0; got {size}, {gutter}, {max_cost}"
         )
-    partitions = -(-len(faces) // faces_per_partition)
-    o3d = open3d()
-    mesh = o3d.t.geometry.TriangleMesh()
-    mesh.vertex.positions = o3d.core.Tensor(np.asarray(vertices, dtype=np.float32))
-    mesh.triangle.indices = o3d.core.Tensor(np.asarray(faces, dtype=np.int64))
-    mesh.compute_uvatlas(
-        size=size,
-        gutter=gutter,
-        max_stretch=max_stretch,
-        parallel_partitions=partitions,
-        nthreads=1,
-    )
-    return mesh.triangle.texture_uvs.numpy().astype(np.float32).reshape(-1, 3, 2)
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(np.asarray(vertices, dtype=np.float32), np.asarray(faces, dtype=np.uint32))
+    charts = xatlas.ChartOptions()
+    charts.max_cost = max_cost
+    pack = xatlas.PackOptions()
+    pack.resolution = size
+    pack.padding = math.ceil(gutter)
+    atlas.generate(charts, pack)
+    if atlas.atlas_count != 1:
+        raise RuntimeError(f"xatlas packed the mesh into {atlas.atlas_count} atlases, not one")
+    _, corner_vertices, uvs = atlas[0]  # uvs per xatlas vertex, each axis scaled to [0, 1]
+    texels = uvs.astype(np.float64) * (atlas.width, atlas.height)
+    corner_uvs = texels[corner_vertices] / max(atlas.width, atlas.height)
+    return corner_uvs.astype(np.float32)
 
 
 @dataclass
