@@ -194,6 +194,7 @@ def main() -> None:
         if checked
         else ""
     )
+    seed1 = args.seed1 is not None
     text = "\n".join(
         [
             f"# {args.title}: {names} of {first['dataset']}, every {every}-th frame",
@@ -202,14 +203,20 @@ def main() -> None:
             table,
             "",
             f"Queries: every {every}-th frame of {names} (frames 0, {every}, ...). "
-            "Accepted: a pose was found and passed the localiser's validation (seed 1: its "
-            f"accepted poses). Precision: accepted poses within {loose_m:g} m / 30 deg. Rates: "
+            "Accepted: a pose was found and passed the localiser's validation"
+            + (" (seed 1: its accepted poses)" if seed1 else "")
+            + f". Precision: accepted poses within {loose_m:g} m / 30 deg. Rates: "
             "share of ALL queries accepted within the bound. Retrieval: the top-1 database "
             "image lies within the render spacing and 45 deg of the query. ms / query: median "
             f"wall time per query including features{rerendered}, under the machine's load "
             "(1-minute load "
-            f"average when each localisation ran: {loads}; 2 cores); seed 1's is its "
-            "median total (features included) from its own run over every frame."
+            f"average when each localisation ran: {loads}; 2 cores)"
+            + (
+                "; seed 1's is its median total (features included) from its own run over "
+                "every frame."
+                if seed1
+                else "."
+            )
             + (f"\n\n{args.note}" if args.note else ""),
             "",
         ]
