@@ -1,14 +1,17 @@
 """Seed 2's Tables I, III and IV from ``diffloc task=crossmodal`` runs, one row per database.
 
-Each ``--run MAP=RESULTS`` is the ``results.json`` of ``diffloc task=crossmodal map=MAP`` (the
-rendered ``tls`` / ``cloud`` / ``mesh`` databases, ``images``: the mapping frames with
-surfel-map depth, or ``hybrid``: both, the renders no mapping frame covers). The table of
-a query sequence gives per database its size and hole share, the queries (every
-``task.every``-th frame), the accepted poses and their precision (within the loose bound and
-30 deg), the localisation rates at 0.25 m / 2 deg, 0.5 m / 5 deg and the loose bound / 30 deg
-(shares of all queries), the top-1 retrieval rate, the mATE of the accepted poses and the
-median wall ms per query (features, retrieval, matching, PnP; the load average it ran under
-is in the JSON).
+Each ``--run NAME=RESULTS`` is the ``results.json`` of a ``diffloc task=crossmodal map=MAP``
+run, NAME naming it in the report (usually MAP: the rendered ``tls`` / ``cloud`` / ``mesh``
+databases, ``images``: the mapping frames with surfel-map depth, or ``hybrid``: both, the
+renders no mapping frame covers; the row's label comes from the run's own settings, so
+``map=images`` over ``map.sequences=[mapping,mapping_left,mapping_right]`` is the front + side
+cameras row). The table of a query sequence gives per database its size and hole share, the
+queries (every ``task.every``-th frame), the accepted poses and their precision (within the
+loose bound and 30 deg), the localisation rates at 0.25 m / 2 deg, 0.5 m / 5 deg and the
+loose bound / 30 deg (shares of all queries), the top-1 retrieval rate, the mATE of the
+accepted poses and the median wall ms per query (features, retrieval, matching, PnP; the load
+average it ran under is in the JSON). ``--sequence`` given several times makes one table with
+a row per sequence and run.
 
 ``--seed1 RESULTS`` adds seed 1's hierarchical relocaliser (``diffloc task=main``, its
 ``<sequence>/estimates.tum`` of accepted poses) scored on the SAME query frames with the same
@@ -48,13 +51,24 @@ SOURCES = {
 """What each ``map`` option's database is."""
 
 
-def crossmodal_row(option: str, results: dict, sequence: str) -> dict:
-    """The table row of one ``task=crossmodal`` run for ``sequence``."""
+def database_label(results: dict) -> str:
+    """What the database of a ``task=crossmodal`` run is (:data:`SOURCES`; ``map=images`` over
+    other sequences than the front camera's names them)."""
+    option = results["map"]
+    sequences = results["map_settings"].get("sequences", ["mapping"])
+    if option == "images" and sequences != ["mapping"]:
+        return f"real images ({' + '.join(sequences)})"
+    return SOURCES.get(option, option)
+
+
+def crossmodal_row(name: str, results: dict, sequence: str) -> dict:
+    """The table row of one ``task=crossmodal`` run (called ``name``) for ``sequence``."""
     entry = results["sequences"][sequence]
     load = results["stages"][f"localize_{sequence}"]["load_average"]
     return {
-        "database": SOURCES.get(option, option),
-        "map": option,
+        "sequence": sequence,
+        "database": database_label(results),
+        "map": name,
         "images": results["database_images"],
         "hole_share": results["hole_share"],
         "queries": entry["queries"],
@@ -87,6 +101,7 @@ def seed1_row(
     estimates[accepted] = T_est.numpy()[[i for i in found if i is not None]]
     errors = pose_errors(estimates, seq.T_wc[frames].numpy(), accepted)
     return {
+        "sequence": sequence,
         "database": "seed 1 hierarchical (mapping keyframes + surfels)",
         "map": "seed1",
         "images": None,
@@ -117,8 +132,9 @@ def _finite(x: float) -> float | None:
     return None if np.isnan(x) else float(x)
 
 
-def _columns(loose_m: float) -> list[Column]:
+def _columns(loose_m: float, by_sequence: bool) -> list[Column]:
     return [
+        *([Column("sequence", align="left")] if by_sequence else []),
         Column("database", align="left"),
         Column("images", "DB images", "d"),
         Column("hole_share", "holes [%]", ".1f", scale=100),
@@ -136,8 +152,8 @@ def _columns(loose_m: float) -> list[Column]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sequence", required=True)
-    parser.add_argument("--run", action="append", required=True, help="MAP=results.json")
+    parser.add_argument("--sequence", action="append", required=True, help="(repeatable)")
+    parser.add_argument("--run", action="append", required=True, help="NAME=results.json")
     parser.add_argument("--seed1", type=Path, help="results.json of diffloc task=main")
     parser.add_argument("--dataset", type=Path, help="the dataset (ground truth for --seed1)")
     parser.add_argument("--title", required=True)
@@ -147,49 +163,66 @@ def main() -> None:
     args = parser.parse_args()
     runs = dict(item.split("=", 1) for item in args.run)
     loaded = {option: json.loads(Path(path).read_text()) for option, path in runs.items()}
-    rows = [crossmodal_row(o, r, args.sequence) for o, r in loaded.items()]
     first = next(iter(loaded.values()))
     every, loose_m = first["every"], first["loose_m"]
     if any(r["every"] != every or r["loose_m"] != loose_m for r in loaded.values()):
         raise SystemExit("the runs disagree on task.every or task.loose_m: not the same queries")
-    if args.seed1 is not None:
-        if not args.seed1.is_file():
-            raise SystemExit(f"{args.seed1} is missing: run diffloc task=main first")
-        n = first["sequences"][args.sequence]["queries"]
-        frames = np.arange(0, n * every, every)
-        rows.append(seed1_row(args.seed1, args.dataset, args.sequence, frames, loose_m))
-    table = markdown_table(rows, _columns(loose_m))
+    if args.seed1 is not None and not args.seed1.is_file():
+        raise SystemExit(f"{args.seed1} is missing: run diffloc task=main first")
+    rows = []
+    for sequence in args.sequence:
+        rows += [crossmodal_row(o, r, sequence) for o, r in loaded.items()]
+        if args.seed1 is not None:
+            n = first["sequences"][sequence]["queries"]
+            frames = np.arange(0, n * every, every)
+            rows.append(seed1_row(args.seed1, args.dataset, sequence, frames, loose_m))
+    several = len(args.sequence) > 1
+    table = markdown_table(rows, _columns(loose_m, several))
+    names = ", ".join(f"`{name}`" for name in args.sequence)
     loads = ", ".join(
-        f"{r['map']} {r['load_average'][0]:.1f}" for r in rows if r["load_average"] is not None
+        " ".join([r["map"], *([r["sequence"]] if several else []), f"{r['load_average'][0]:.1f}"])
+        for r in rows
+        if r["load_average"] is not None
     )
-    checked = [o for o, r in loaded.items() if f"rerender_{args.sequence}" in r["stages"]]
+    checked = [
+        o
+        for o, r in loaded.items()
+        if any(f"rerender_{sequence}" in r["stages"] for sequence in args.sequence)
+    ]
     rerendered = (
         f" (for {', '.join(checked)} the re-render check's time included, `task.rerender`)"
         if checked
         else ""
     )
+    seed1 = args.seed1 is not None
     text = "\n".join(
         [
-            f"# {args.title}: `{args.sequence}` of {first['dataset']}, every {every}-th frame",
+            f"# {args.title}: {names} of {first['dataset']}, every {every}-th frame",
             "",
             *made_by_lines(args.command),
             table,
             "",
-            f"Queries: every {every}-th frame of `{args.sequence}` (frames 0, {every}, ...). "
-            "Accepted: a pose was found and passed the localiser's validation (seed 1: its "
-            f"accepted poses). Precision: accepted poses within {loose_m:g} m / 30 deg. Rates: "
+            f"Queries: every {every}-th frame of {names} (frames 0, {every}, ...). "
+            "Accepted: a pose was found and passed the localiser's validation"
+            + (" (seed 1: its accepted poses)" if seed1 else "")
+            + f". Precision: accepted poses within {loose_m:g} m / 30 deg. Rates: "
             "share of ALL queries accepted within the bound. Retrieval: the top-1 database "
             "image lies within the render spacing and 45 deg of the query. ms / query: median "
             f"wall time per query including features{rerendered}, under the machine's load "
             "(1-minute load "
-            f"average when each localisation ran: {loads}; 2 cores); seed 1's is its "
-            "median total (features included) from its own run over every frame."
+            f"average when each localisation ran: {loads}; 2 cores)"
+            + (
+                "; seed 1's is its median total (features included) from its own run over "
+                "every frame."
+                if seed1
+                else "."
+            )
             + (f"\n\n{args.note}" if args.note else ""),
             "",
         ]
     )
     report = {
-        "sequence": args.sequence,
+        "sequence": args.sequence if several else args.sequence[0],
         "every": every,
         "loose_m": loose_m,
         "command": args.command,

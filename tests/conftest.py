@@ -75,6 +75,31 @@ def tiny_indoor_mapped(tiny_indoor_dataset: Path, tmp_path_factory: pytest.TempP
     return root
 
 
+SIDE_CAMERAS = ["scene.rig.side_camera_yaw_deg=[90,-90]"]
+"""A left and a right camera on the tiny scene's mapping run (``mapping_left``, ``_right``)."""
+
+
+@pytest.fixture(scope="session")
+def tiny_indoor_side_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny indoor dataset (seed 0) simulated with :data:`SIDE_CAMERAS`, made once."""
+    out = tmp_path_factory.mktemp("side") / "indoor_seed0_side"
+    cfg = scene_config(TINY + ["scene=indoor", *SIDE_CAMERAS])
+    return simulate_dataset(cfg, out, show_progress=False)
+
+
+@pytest.fixture(scope="session")
+def tiny_indoor_side_mapped(
+    tiny_indoor_side_dataset: Path, tmp_path_factory: pytest.TempPathFactory
+) -> Path:
+    """:func:`tiny_indoor_side_dataset` with its surfel map (as :func:`tiny_indoor_mapped`)."""
+    root = tmp_path_factory.mktemp("side_mapped") / "indoor_seed0_side"
+    shutil.copytree(tiny_indoor_side_dataset, root)
+    build_maps(
+        root, BuildMapConfig(point_maps=[], preview_frames=1), FINE_SURFELS, show_progress=False
+    )
+    return root
+
+
 def digests(root: Path) -> dict[str, str]:
     """sha256 of every file under ``root``, by its path relative to ``root``."""
     return {

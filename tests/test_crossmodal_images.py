@@ -15,6 +15,7 @@ import torch
 
 from diffloc.cli import run
 from diffloc.config import compose_config
+from diffloc.crossmodal.database import RenderedDatabase
 from diffloc.crossmodal.real_images import surfel_depth_views
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.surfel import SurfelMap
@@ -114,3 +115,45 @@ def test_images_of_another_size_than_the_camera_are_refused(tiny_indoor_mapped):
     surfels = SurfelMap.load(tiny_indoor_mapped / "map" / "surfel_map.ply")
     with pytest.raises(ValueError, match="images"):
         surfel_depth_views(torch.zeros(1, 3, 60, 80), mapping.T_wc[:1], mapping.camera, surfels)
+
+
+def test_the_front_camera_database_keeps_its_key(dataset, first):
+    record = json.loads((dataset / RECORD).read_text())
+    assert record["stage"]["key"]["config"]["images"] == {"every": 2}
+
+
+def test_a_database_of_the_front_and_side_cameras(tiny_indoor_side_mapped, tmp_path):
+    root = tmp_path / tiny_indoor_side_mapped.name
+    shutil.copytree(tiny_indoor_side_mapped, root)
+    sides = ["mapping", "mapping_left", "mapping_right"]
+    results = _run(root, tmp_path / "out", f"map.sequences=[{','.join(sides)}]")
+    assert results["database_images"] == 9 and results["map_settings"]["sequences"] == sides
+    record = json.loads((root / RECORD).read_text())
+    key = record["stage"]["key"]
+    assert key["config"]["images"] == {"every": 2, "sequences": sides}
+    assert {f"{name}/poses.txt" for name in sides} <= set(key["inputs"])
+    db = RenderedDatabase.load(root / RECORD.parent / "rgbd")
+    expected = torch.cat([read_sequence(root, name).T_wc[[0, 2, 4]] for name in sides])
+    torch.testing.assert_close(db.T_wc.to(expected.dtype), expected, atol=1e-5, rtol=0)
+    # The side cameras look where the front one does not: other images.
+    assert not torch.equal(db.rgb[0], db.rgb[3]) and not torch.equal(db.rgb[3], db.rgb[6])
+    assert results["sequences"]["query_same"]["queries"] == 5
+    # The front camera alone again: another key, the database of 3 images made again.
+    again = _run(root, tmp_path / "front")
+    assert again["database_images"] == 3
+    assert json.loads((root / RECORD).read_text())["stage"]["key"]["config"]["images"] == {
+        "every": 2
+    }
+
+
+def test_a_missing_sequence_names_it_and_how_to_simulate_side_cameras(dataset, tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"no sequence 'mapping_left'.*side_camera_yaw"):
+        _run(dataset, tmp_path, "map.sequences=[mapping,mapping_left]")
+
+
+@pytest.mark.parametrize(
+    ("sequences", "message"), [("[]", "at least one"), ("[mapping,mapping]", "repeats")]
+)
+def test_bad_sequence_lists_are_refused(sequences, message):
+    with pytest.raises(ValueError, match=f"map.sequences.*{message}|{message}"):
+        run(compose_config(["task=crossmodal", "map=images", f"map.sequences={sequences}"]))

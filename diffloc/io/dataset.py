@@ -13,6 +13,12 @@ Layout::
     <root>/<seq>/lidar/poses.txt     TUM trajectory of T_world_lidar at sweep times
     <root>/<seq>/exposure.txt        per-frame exposure, simulator ground truth (only with
                                      auto exposure; see diffloc.io.exposure)
+    <root>/<seq>_left/ ...           another camera of a multi-camera rig: a sequence of its
+                                     own (calib.yaml with its T_body_camera, poses.txt at
+                                     the same timestamps, rgb/, optional depth/; no lidar/),
+                                     e.g. the simulator's side cameras (mapping_left,
+                                     mapping_right; dataset.json "side_cameras" names the
+                                     sequence each belongs to and its yaw)
     <root>/map/lidar_map.ply         accumulated lidar map (points + normals)
     <root>/map/tls_map.ply           terrestrial laser scanner map
     <root>/map/mesh/scene.obj        textured mesh of the mapped scene

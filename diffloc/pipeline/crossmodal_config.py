@@ -60,6 +60,8 @@ __all__ = [
     "map_option",
 ]
 
+MAPPING_SEQUENCE = "mapping"
+"""The mapping run: the sequence ``map=images`` takes its frames from by default."""
 POINT_MAP_OPTIONS = {"tls_map": "tls", "lidar_map": "cloud"}
 """The ``map`` option of each dataset point map rendered as a cloud."""
 
@@ -185,18 +187,45 @@ class MeshMapConfig:
 @dataclass
 class ImageMapConfig:
     """``map=images``: a database of the mapping run's real images instead of renders (seed 2's
-    real-image rows): every ``every``-th ``mapping`` frame with its pose and z-depth rendered
-    from the surfel map (``<dataset>/map/surfel_map.ply``, ``diffloc task=build_map``); the
-    simulator's depth images are never read.
+    real-image rows): every ``every``-th frame of each of ``sequences`` with its pose and
+    z-depth rendered from the surfel map (``<dataset>/map/surfel_map.ply``, ``diffloc
+    task=build_map``); the simulator's depth images are never read.
 
     Attributes:
-        every: keep every n-th mapping frame (frames 0, n, 2n, ...).
+        every: keep every n-th frame of each sequence (frames 0, n, 2n, ...).
+        sequences: the sequences whose frames make the database: the mapping run's front
+            camera, and with a multi-camera rig its other cameras too (seed 2's "front + side"
+            rows: ``[mapping, mapping_left, mapping_right]``, the side cameras of a dataset
+            simulated with ``scene.rig.side_camera_yaw_deg=[90,-90]``), all in the surfel
+            map's frame.
+
+    Example:
+        >>> ImageMapConfig(sequences=["mapping", "mapping_left"]).key()
+        {'every': 2, 'sequences': ['mapping', 'mapping_left']}
+        >>> ImageMapConfig().key()  # the front camera only: the key of before the setting
+        {'every': 2}
     """
 
     every: int = 2
+    sequences: list[str] = field(default_factory=lambda: [MAPPING_SEQUENCE])
 
     def __post_init__(self) -> None:
         check_positive_int(self.every, "every")
+        if not self.sequences:
+            raise ValueError("map.sequences must name at least one sequence (e.g. [mapping])")
+        for name in self.sequences:
+            if not isinstance(name, str) or not name:
+                raise ValueError(f"map.sequences must be sequence names, got {name!r}")
+        if len(set(self.sequences)) != len(self.sequences):
+            raise ValueError(f"map.sequences repeats a sequence: {list(self.sequences)}")
+
+    def key(self) -> dict[str, Any]:
+        """The settings the database depends on, as its stage key records them
+        (``sequences`` only when it is not the front camera alone)."""
+        out = asdict(self)
+        if out["sequences"] == [MAPPING_SEQUENCE]:
+            del out["sequences"]
+        return out
 
 
 @dataclass

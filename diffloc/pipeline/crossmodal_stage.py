@@ -52,6 +52,7 @@ from diffloc.io.ply import PointCloudData, read_point_cloud
 from diffloc.io.sequence import SequenceData
 from diffloc.maps.pointcloud import PointMap
 from diffloc.pipeline.crossmodal_config import (
+    MAPPING_SEQUENCE,
     MeshMapConfig,
     NerfMapConfig,
     PointMapConfig,
@@ -96,7 +97,7 @@ __all__ = [
     "stage_command",
 ]
 
-MAPPING = "mapping"
+MAPPING = MAPPING_SEQUENCE
 """The sequence whose images colour or texture the map."""
 
 MAP_OUTPUTS: dict[type, str] = {

@@ -33,13 +33,18 @@ class RigConfig:
     """Sensor extrinsics in the body frame (x forward, y left, z up), URDF xyz (m) + rpy (rad).
 
     The default camera rpy turns the OpenCV optical frame (z forward, y down) to look along
-    the body's x axis.
+    the body's x axis. ``side_camera_yaw_deg`` adds cameras to the mapping run (the map's
+    sequence, ``scene.map.lidar_sequence``): each is the front camera turned by that yaw
+    about the body's up (z) axis, e.g. ``[90, -90]`` for a left and a right camera, written as
+    sequences of their own (:mod:`diffloc.sim.side_cameras`); empty (the default): the front
+    camera only.
     """
 
     camera_xyz: list[float] = field(default_factory=lambda: [0.1, 0.0, 0.0])
     camera_rpy: list[float] = field(default_factory=lambda: [-HALF_PI, 0.0, -HALF_PI])
     lidar_xyz: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.25])
     lidar_rpy: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    side_camera_yaw_deg: list[float] = field(default_factory=list)
 
 
 @dataclass

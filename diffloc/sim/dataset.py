@@ -50,6 +50,7 @@ from diffloc.sim.lidar import accumulate_map, simulate_station_scan, simulate_sw
 from diffloc.sim.placement import check_free_space
 from diffloc.sim.preview import write_preview
 from diffloc.sim.scene import generate_world
+from diffloc.sim.side_cameras import side_camera_extrinsic, side_sequence_names
 from diffloc.sim.trajectory import (
     TrajectoryConfig,
     interpolate_pose,
@@ -114,6 +115,13 @@ def validate_scene_config(cfg: SceneConfig) -> None:
             raise ValueError(f"sequence name {name!r} must be letters, digits, '_' or '-'")
     if cfg.map.lidar_sequence not in names:
         raise ValueError(f"scene.map.lidar_sequence {cfg.map.lidar_sequence!r} is not in {names}")
+    sides = side_sequence_names(cfg.map.lidar_sequence, cfg.rig.side_camera_yaw_deg)
+    clash = [name for name in sides if name in names]
+    if clash:
+        raise ValueError(
+            f"scene.rig.side_camera_yaw_deg: the side camera sequence(s) {clash} would replace "
+            "simulated sequences of that name; rename those sequences"
+        )
     check_positive_int(cfg.sensor.motion_blur_samples, "scene.sensor.motion_blur_samples")
     camera_from_config(cfg.camera)
     rate = cfg.lidar.rate_hz
@@ -139,11 +147,14 @@ def validate_scene_config(cfg: SceneConfig) -> None:
 def config_record(cfg: SceneConfig) -> dict:
     """The scene configuration as recorded in ``dataset.json`` and compared for reuse.
 
-    A sequence's ``auto_exposure`` is recorded only when it is enabled: switched off it has no
-    effect, and leaving it out keeps the record (and so every file) of datasets made before the
-    option existed byte-identical, and those datasets reusable.
+    A sequence's ``auto_exposure`` is recorded only when it is enabled, and the rig's
+    ``side_camera_yaw_deg`` only when it lists a camera: switched off they have no effect, and
+    leaving them out keeps the record (and so every file) of datasets made before the options
+    existed byte-identical, and those datasets reusable.
     """
     config = OmegaConf.to_container(OmegaConf.structured(cfg))
+    if not config["rig"]["side_camera_yaw_deg"]:
+        del config["rig"]["side_camera_yaw_deg"]
     for sequence in config["sequences"]:
         if not sequence["auto_exposure"]["enabled"]:
             del sequence["auto_exposure"]
@@ -168,6 +179,13 @@ class DatasetSimulator:
         with torch.no_grad():
             self.T_body_camera = self.rig.T_body_sensor("camera").to(torch.float64)
             self.T_body_lidar = self.rig.T_body_sensor("lidar").to(torch.float64)
+        self.side_cameras = {
+            name: side_camera_extrinsic(self.T_body_camera, yaw)
+            for name, yaw in side_sequence_names(
+                cfg.map.lidar_sequence, cfg.rig.side_camera_yaw_deg
+            ).items()
+        }
+        """``{sequence name: T_body_camera (4, 4)}`` of the side cameras (may be empty)."""
         self._renderers: dict[bool, MeshRenderer] = {}
 
     def renderer(self, changed: bool) -> MeshRenderer:
@@ -177,14 +195,19 @@ class DatasetSimulator:
             self._renderers[changed] = MeshRenderer(mesh)
         return self._renderers[changed]
 
-    def calibration(self) -> Calibration:
+    def calibration(self, T_body_camera: torch.Tensor | None = None) -> Calibration:
+        """The calibration of the front camera, or (``T_body_camera`` given) of a side camera
+        of the same rig: its extrinsic, and a rig URDF whose ``camera`` is that camera."""
         lidar = OmegaConf.to_container(OmegaConf.structured(self.cfg.lidar))
+        rig = self.rig
+        if T_body_camera is not None:
+            rig = SensorRig.from_transforms({"camera": T_body_camera, "lidar": self.T_body_lidar})
         return Calibration(
             camera=self.camera,
             depth_scale=DEPTH_SCALE,
-            T_body_camera=self.T_body_camera,
+            T_body_camera=self.T_body_camera if T_body_camera is None else T_body_camera,
             T_body_lidar=self.T_body_lidar,
-            rig_urdf=self.rig.to_urdf(),
+            rig_urdf=rig.to_urdf(),
             lidar=lidar,
         )
 
@@ -206,11 +229,13 @@ class DatasetSimulator:
         timestamps: np.ndarray,
         T_wb: torch.Tensor,
         frame_ids: np.ndarray,
+        T_body_camera: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Linear radiance (B, 3, H, W) before exposure and depth (B, 1, H, W) of some frames.
 
         Motion blur averages ``sensor.motion_blur_samples`` renders spread over the exposure
-        time ending at each frame's timestamp; depth is that of the frame's own pose.
+        time ending at each frame's timestamp; depth is that of the frame's own pose. The
+        camera is the front one, or the one of extrinsic ``T_body_camera`` (4, 4).
         """
         sensor = self.cfg.sensor
         samples = sensor.motion_blur_samples
@@ -218,7 +243,7 @@ class DatasetSimulator:
         times = timestamps[frame_ids][:, None] + np.asarray(offsets)[None, :]
         times = np.clip(times, timestamps[0], timestamps[-1]).reshape(-1)
         T_wb_sub = interpolate_pose(timestamps, T_wb, times)
-        T_wc_sub = T_wb_sub @ self.T_body_camera
+        T_wc_sub = T_wb_sub @ (self.T_body_camera if T_body_camera is None else T_body_camera)
         render = renderer.render(T_wc_sub, self.camera)
         linear = shade(render, seq.lighting, sensor, renderer.raycaster)
         linear = linear.reshape(len(frame_ids), samples, *linear.shape[1:]).mean(dim=1)
@@ -233,10 +258,13 @@ class DatasetSimulator:
         T_wb: torch.Tensor,
         frame_ids: np.ndarray,
         generator: torch.Generator,
+        T_body_camera: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """RGB (B, 3, H, W) in [0, 1] at the sequence's fixed exposure and depth (B, 1, H, W)
         in metres of some frames (see :meth:`render_linear`)."""
-        linear, depth = self.render_linear(renderer, seq, timestamps, T_wb, frame_ids)
+        linear, depth = self.render_linear(
+            renderer, seq, timestamps, T_wb, frame_ids, T_body_camera
+        )
         return expose(linear, seq.lighting, self.cfg.sensor, generator), depth
 
     def render_auto_exposed(
@@ -248,6 +276,7 @@ class DatasetSimulator:
         frame_ids: np.ndarray,
         generator: torch.Generator,
         previous_scale: float,
+        T_body_camera: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Like :meth:`render_frames` under the sequence's auto exposure.
 
@@ -255,41 +284,74 @@ class DatasetSimulator:
             RGB (B, 3, H, W), depth (B, 1, H, W) and the (B,) auto-exposure multipliers,
             following on from the previous frame's multiplier ``previous_scale``.
         """
-        linear, depth = self.render_linear(renderer, seq, timestamps, T_wb, frame_ids)
+        linear, depth = self.render_linear(
+            renderer, seq, timestamps, T_wb, frame_ids, T_body_camera
+        )
         metered = metered_luminance(linear, seq.lighting)
         scales = auto_exposure_scales(metered, previous_scale, seq.auto_exposure)
         rgb = expose(linear, seq.lighting, self.cfg.sensor, generator, exposure_scales=scales)
         return rgb, depth, scales
 
-    def simulate_sequence(self, index: int, seq: SequenceConfig, seq_dir: Path) -> dict:
-        """Write one sequence folder; return its camera positions and (for mapping) sweeps."""
+    def write_frames(
+        self,
+        name: str,
+        seq: SequenceConfig,
+        writer: SequenceWriter,
+        generator: torch.Generator,
+        T_body_camera: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Render every frame of one camera of ``seq`` in batches into ``writer``.
+
+        Args:
+            name: the written sequence's name (the progress bar's label).
+            seq: the simulated traversal (trajectory, scene state, lighting, exposure).
+            writer: the sequence folder's writer (closed by the caller).
+            generator: the camera's noise stream.
+            T_body_camera: (4, 4) the camera's extrinsic; ``None``: the front camera.
+
+        Returns:
+            The camera poses T_wc (N, 4, 4) and the first frame's RGB (3, H, W).
+
+        Raises:
+            ValueError: a camera pose not in free space.
+        """
         renderer = self.renderer(seq.changed_scene)
         timestamps, T_wb = self.body_trajectory(seq)
-        T_wc = T_wb @ self.T_body_camera
+        T_wc = T_wb @ (self.T_body_camera if T_body_camera is None else T_body_camera)
         check_free_space(renderer.raycaster, self.world.bounds, T_wc[:, :3, 3], what="camera")
-        generator = torch.Generator().manual_seed(self.cfg.seed * 1009 + index)
-        rng = np.random.default_rng([self.cfg.seed, index])
-        writer = SequenceWriter(seq_dir, self.calibration())
         batches = np.array_split(
             np.arange(len(timestamps)), math.ceil(len(timestamps) / FRAMES_PER_BATCH)
         )
         first_frame = None
         scales: list[torch.Tensor] = []
-        for frame_ids in progress(batches, f"{seq.name}: frames", self.show_progress):
+        for frame_ids in progress(batches, f"{name}: frames", self.show_progress):
             if seq.auto_exposure.enabled:
                 previous = float(scales[-1][-1]) if scales else 1.0
                 rgb, depth, batch_scales = self.render_auto_exposed(
-                    renderer, seq, timestamps, T_wb, frame_ids, generator, previous
+                    renderer, seq, timestamps, T_wb, frame_ids, generator, previous, T_body_camera
                 )
                 scales.append(batch_scales)
             else:
                 rgb, depth = self.render_frames(
-                    renderer, seq, timestamps, T_wb, frame_ids, generator
+                    renderer, seq, timestamps, T_wb, frame_ids, generator, T_body_camera
                 )
             for k, i in enumerate(frame_ids):
                 writer.add_frame(float(timestamps[i]), T_wc[i], rgb[k], depth[k, 0])
             if first_frame is None:
                 first_frame = rgb[0]
+        if scales:
+            exposures = seq.lighting.exposure * torch.cat(scales).numpy()
+            write_exposures(writer.seq_dir / EXPOSURE_FILE, timestamps, exposures)
+        return T_wc, first_frame
+
+    def simulate_sequence(self, index: int, seq: SequenceConfig, seq_dir: Path) -> dict:
+        """Write one sequence folder; return its camera positions and (for mapping) sweeps."""
+        renderer = self.renderer(seq.changed_scene)
+        timestamps, T_wb = self.body_trajectory(seq)
+        generator = torch.Generator().manual_seed(self.cfg.seed * 1009 + index)
+        rng = np.random.default_rng([self.cfg.seed, index])
+        writer = SequenceWriter(seq_dir, self.calibration())
+        T_wc, first_frame = self.write_frames(seq.name, seq, writer, generator)
         sweep_times = np.arange(timestamps[0], timestamps[-1] + 1e-9, 1.0 / self.cfg.lidar.rate_hz)
         T_wl = interpolate_pose(timestamps, T_wb, sweep_times) @ self.T_body_lidar
         sweeps_world, origins = [], []
@@ -301,9 +363,6 @@ class DatasetSimulator:
             sweeps_world.append(points @ rotation.T + translation)
             origins.append(translation)
         writer.close()
-        if scales:
-            exposures = seq.lighting.exposure * torch.cat(scales).numpy()
-            write_exposures(seq_dir / EXPOSURE_FILE, timestamps, exposures)
         return {
             "T_wc": T_wc,
             "positions": T_wc[:, :3, 3].numpy(),
@@ -311,6 +370,19 @@ class DatasetSimulator:
             "sweeps_world": sweeps_world,
             "sweep_origins": origins,
         }
+
+    def simulate_side_cameras(self, index: int, seq: SequenceConfig, root: Path) -> list[str]:
+        """Write the side cameras' sequences of ``seq`` (the ``index``-th sequence) into
+        ``root``, each its own folder of frames, poses and calibration (no lidar), after the
+        front camera's and each from its own noise stream, so the front camera's files are
+        those of a rig without side cameras. Returns their names."""
+        for k, (name, T_body_camera) in enumerate(self.side_cameras.items()):
+            stream = np.random.SeedSequence([self.cfg.seed, index, k + 1]).generate_state(1)
+            generator = torch.Generator().manual_seed(int(stream[0]))
+            writer = SequenceWriter(root / name, self.calibration(T_body_camera))
+            self.write_frames(name, seq, writer, generator, T_body_camera)
+            writer.close()
+        return list(self.side_cameras)
 
     def write_maps(self, root: Path, mapping: dict) -> np.ndarray:
         """Accumulated lidar map and terrestrial-scanner map with normals; returns map points."""
@@ -351,9 +423,11 @@ class DatasetSimulator:
 
     def write(self, root: Path) -> None:
         """Simulate every sequence and map into the (empty, temporary) folder ``root``."""
-        results = {}
+        results, sides = {}, []
         for index, seq in enumerate(self.cfg.sequences):
             results[seq.name] = self.simulate_sequence(index, seq, root / seq.name)
+            if seq.name == self.cfg.map.lidar_sequence:
+                sides = self.simulate_side_cameras(index, seq, root)
         map_points = self.write_maps(root, results[self.cfg.map.lidar_sequence])
         frames = [(name, r["first_frame"]) for name, r in results.items()]
         trajectories = {name: r["positions"] for name, r in results.items()}
@@ -363,7 +437,7 @@ class DatasetSimulator:
             "format_version": DATASET_FORMAT_VERSION,
             "kind": "diffloc-dataset",
             "generator": f"diffloc {__version__}",
-            "sequences": list(results),
+            "sequences": list(results) + sides,
             "config": config_record(self.cfg),
             "world": self.world.metadata(),
             "nearest_mapping_pose": self.nearest_mapping_pose(results),
@@ -375,6 +449,12 @@ class DatasetSimulator:
                 for seq in self.cfg.sequences
             },
         }
+        if sides:
+            yaws = dict(zip(sides, self.cfg.rig.side_camera_yaw_deg, strict=True))
+            info["side_cameras"] = {
+                name: {"of": self.cfg.map.lidar_sequence, "yaw_deg": float(yaw)}
+                for name, yaw in yaws.items()
+            }
         atomic_write_text(root / "dataset.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
 
 
