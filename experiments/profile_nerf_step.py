@@ -1,9 +1,11 @@
 """Where a radiance-field training step spends its CPU time (issue 19): ``steps`` training
 steps of one encoding on a submap under ``torch.profiler``, after ``warmup`` unprofiled steps;
-prints the operators by self CPU time and the CPU ms per step.
+prints the operators by self CPU time and the CPU ms per step. With ``--render``, then also
+one 320x240 RGB-D render (the benchmark's ``render_320x240_s``: the first held-out pose, the
+mean appearance code) of the field as trained so far, profiled the same way.
 
     PYTHONPATH=. OMP_NUM_THREADS=1 python3 experiments/profile_nerf_step.py --scene outdoor \\
-        --data data/outdoor_seed0 --encoding hashgrid --steps 30
+        --data data/outdoor_seed0 --encoding hashgrid --steps 30 [--render]
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from torch.profiler import ProfilerActivity, profile
 from diffloc.config import compose_config, to_object
 from diffloc.io.dataset import read_sequence
 from diffloc.maps.nerf.data import build_submap_rays
+from diffloc.maps.nerf.renderer import render_image
 from diffloc.maps.nerf.submaps import cluster_trajectory
 from diffloc.maps.nerf.train import fit_submap
 
@@ -53,6 +56,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--rows", type=int, default=25)
     parser.add_argument("--override", nargs="+", default=[])
+    parser.add_argument("--render", action="store_true", help="also profile a 320x240 render")
     args = parser.parse_args()
     torch.set_num_threads(1)
     overrides = [f"scene={args.scene}", "task=train_nerf", *args.override]
@@ -65,10 +69,21 @@ def main() -> None:
     )
     timer = _Profiled(args.warmup, args.steps)
     with tempfile.TemporaryDirectory() as work:
-        fit_submap(rays, config, work, epochs=10**6, callbacks=[timer], show_progress=False)
+        module = fit_submap(
+            rays, config, work, epochs=10**6, callbacks=[timer], show_progress=False
+        )
     table = timer.profiler.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows)
     print(table)
     print(f"{args.encoding}: {1000 * timer.cpu / args.steps:.1f} CPU ms per step (profiled)")
+    if args.render:
+        code = module.field.appearance.weight.detach().mean(0)
+        pose = seq.T_wc[rays.heldout[0]]
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            cpu = time.process_time()
+            render_image(module.field, module.grid, seq.camera.scaled(0.5), pose, code)
+            cpu = time.process_time() - cpu
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows))
+        print(f"{args.encoding}: {cpu:.3f} CPU s per 320x240 RGB-D render (profiled)")
 
 
 if __name__ == "__main__":

@@ -9,9 +9,11 @@ from diffloc.maps.nerf.contraction import SceneNormalisation, contract, uncontra
 from diffloc.maps.nerf.encodings import (
     HashGridEncoding,
     TriplaneEncoding,
+    _cell_rows,
     _vertex_index,
     bilinear_gather,
     trilinear_gather,
+    trilinear_lookup,
 )
 from diffloc.maps.nerf.field import FieldConfig, RadianceField, build_encoding
 from diffloc.testing import assert_close, gradcheck
@@ -41,6 +43,39 @@ def test_hashed_rows_are_the_spatial_hash_modulo_the_table_size(table_size: int)
         for i, j, k in vertex.tolist()
     ]
     assert _vertex_index(vertex, 2048, table_size).tolist() == expected
+
+
+@pytest.mark.parametrize(("resolution", "table_size"), [(9, 1000), (2048, 2**19), (2048, 1000)])
+def test_cell_rows_are_the_vertex_index_of_each_corner(resolution: int, table_size: int) -> None:
+    """Per-axis rows of the eight corners (dense, hashed with a mask, hashed with a remainder)
+    are :func:`_vertex_index` of the corner vertices, in the corner order of the gathers."""
+    g = torch.Generator().manual_seed(0)
+    lower = torch.randint(0, resolution - 1, (300, 3), generator=g)
+    corners = torch.tensor([[(c >> a) & 1 for a in range(3)] for c in range(8)])
+    vertex = (lower[:, None] + corners).reshape(-1, 3)
+    expected = _vertex_index(vertex, resolution, table_size).view(300, 8)
+    assert torch.equal(_cell_rows(lower.T, resolution, table_size), expected)
+
+
+@pytest.mark.parametrize("resolution", [5, 40])
+def test_trilinear_lookup_is_the_gather_interpolation_in_float64(resolution: int) -> None:
+    """The fused lookup (dense and hashed level) gives the gathers' values, table and
+    position gradients, and second derivatives (float64); no points give no rows."""
+    torch.manual_seed(2)
+    table = torch.randn(2**9, 3, dtype=torch.float64, requires_grad=True)
+    x = encoding_points(60, 4).double().requires_grad_(True)
+    fast, ref = trilinear_lookup(table, x, resolution), trilinear_gather(table, x, resolution)
+    assert_close(fast, ref, rtol=1e-12, atol=1e-12)
+    w = torch.randn_like(fast)
+    g_fast = torch.autograd.grad((fast * w).sum(), [x, table], create_graph=True)
+    g_ref = torch.autograd.grad((ref * w).sum(), [x, table], create_graph=True)
+    for a, b in zip(g_fast, g_ref, strict=True):
+        assert_close(a, b, rtol=1e-12, atol=1e-12)
+    gg_fast = torch.autograd.grad(g_fast[0].square().sum(), [x, table])
+    gg_ref = torch.autograd.grad(g_ref[0].square().sum(), [x, table])
+    for a, b in zip(gg_fast, gg_ref, strict=True):
+        assert_close(a, b, rtol=1e-12, atol=1e-12)
+    assert trilinear_lookup(table, x[:0], resolution).shape == (0, 3)
 
 
 @pytest.mark.parametrize("kind", ["triplane", "hashgrid"])
