@@ -129,6 +129,21 @@ def test_contraction_is_identity_inside_and_inverted_by_uncontract() -> None:
     assert_close(uncontract(y), x, rtol=1e-5, atol=1e-5)
 
 
+def test_contraction_is_mip_nerf_360s_formula_in_float64() -> None:
+    """The per-point factor gives ``(2 - 1 / n) x / n`` beyond the unit cube (L-infinity n),
+    and ``x`` inside, to float64 rounding; so do its gradients."""
+    x = (torch.randn(500, 3, generator=torch.Generator().manual_seed(1)) * 3).double()
+    x.requires_grad_(True)
+    n = x.abs().amax(dim=-1, keepdim=True)
+    expected = torch.where(n <= 1.0, x, (2.0 - 1.0 / n) * x / n)
+    assert bool((n <= 1.0).any()) and bool((n > 1.0).any())
+    assert_close(contract(x), expected, rtol=1e-14, atol=1e-14)
+    v = torch.randn_like(x)
+    (fast,) = torch.autograd.grad(contract(x), x, v)
+    (ref,) = torch.autograd.grad(expected, x, v)
+    assert_close(fast, ref, rtol=1e-12, atol=1e-12)
+
+
 def test_normalisation_maps_the_box_to_the_cube_and_flags_outside() -> None:
     norm = SceneNormalisation(torch.tensor([0.0, 0, 0]), torch.tensor([2.0, 4, 6]), False)
     xyz, inside = norm(torch.tensor([[1.0, 2, 3], [2.0, 4, 6], [3.0, 2, 3]]))
