@@ -1,8 +1,10 @@
 """Grid encodings of points in the normalised cube ``[-1, 1]^3``: tri-plane and hash grid.
 
 Both interpolate learnable feature tables, with ``grid_sample`` where the table is a dense
-grid and explicit gathers where it is hashed; both are twice differentiable in the positions.
-The gathers also serve as the slow reference of the fast path. ``forward_with_jacobian``
+grid and a fused weighted sum of the eight corner rows (:func:`trilinear_lookup`) where it is
+hashed; both are twice differentiable in the positions. Explicit gathers
+(:func:`trilinear_gather`, :func:`bilinear_gather`) serve as the slow reference of the fast
+paths. ``forward_with_jacobian``
 returns the features and their analytic derivatives with respect to the position from the
 cell corners of one lookup: the rendered normal (the negative density gradient, Eq. 7) then
 costs no second evaluation and no double backward, since the derivatives are ordinary
