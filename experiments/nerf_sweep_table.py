@@ -5,7 +5,9 @@ are several), and to the default of its own training seed (the record on the sam
 whose only override is the same ``nerf.train.seed=K``; seed 0 without one), since the
 training seed alone moves the held-out PSNR by tenths of a dB. ``sky opacity`` is the mean
 rendered opacity of the held-out sky pixels (``sky_opacity_mean``; records made before it
-existed show ``-``).
+existed show ``-``). ``run`` is the name of the JSONL file the record's command wrote (its
+``--out``), which tells apart runs of one setting made with different code; ``render CPU s``
+the CPU time of the run's 320x240 RGB-D render (``render_320x240_cpu_s``).
 
 Writes ``<out>.md`` (first line: the command) and ``<out>.json`` (the rows).
 
@@ -47,6 +49,13 @@ def _setting(record: dict) -> str:
 _SEED = "nerf.train.seed="
 
 
+def _run_name(record: dict) -> str:
+    """The stem of the ``--out`` file of a record's command, ``"-"`` without one."""
+    words = shlex.split(record.get("command", ""))
+    outs = [words[i + 1] for i, w in enumerate(words[:-1]) if w == "--out"]
+    return Path(outs[-1]).stem if outs else "-"
+
+
 def _train_seed(record: dict) -> tuple[int, str]:
     """A record's training seed (0 without a ``nerf.train.seed`` override) and its setting
     without that override."""
@@ -80,6 +89,7 @@ def sweep_rows(records: list[dict]) -> list[dict]:
         rows.append(
             {
                 "setting": _setting(r),
+                "run": _run_name(r),
                 "data": r["data"],
                 "psnr_heldout_db": r["psnr_heldout_db"],
                 "delta_db": None if base is None else r["psnr_heldout_db"] - base,
@@ -94,6 +104,7 @@ def sweep_rows(records: list[dict]) -> list[dict]:
                 "steps": r["steps"],
                 "cpu_ms_per_step": r["cpu_ms_per_step"],
                 "train_cpu_s": r["train_cpu_s"],
+                "render_cpu_s": r.get("render_320x240_cpu_s"),
                 **{f"psnr_at_{m:.0f}s_db": _at_mark(r["curve"], m) for m in _MARKS_S},
                 "load": [r["load_avg_start"], r["load_avg_end"]],
             }
@@ -111,21 +122,22 @@ def sweep_markdown(rows: list[dict], command: str) -> str:
     lines = [
         f"Made by: `{command}`",
         "",
-        "| setting | data | held-out PSNR dB | vs default dB | vs default, same training seed "
-        "dB | surface / sky dB | sky opacity | depth cm | normal deg | steps | CPU ms/step | "
-        f"{marks} | load start / end |",
-        "|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(_MARKS_S) + "---|",
+        "| setting | run | data | held-out PSNR dB | vs default dB | vs default, same training "
+        "seed dB | surface / sky dB | sky opacity | depth cm | normal deg | steps | CPU ms/step | "
+        f"{marks} | render CPU s | load start / end |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(_MARKS_S) + "---|---|",
     ]
     for r in rows:
         at = " | ".join(_cell(r[f"psnr_at_{m:.0f}s_db"], "{:.2f}") for m in _MARKS_S)
         lines.append(
-            f"| `{r['setting']}` | {Path(r['data']).name} | {r['psnr_heldout_db']:.2f} | "
+            f"| `{r['setting']}` | {r['run']} | {Path(r['data']).name} | "
+            f"{r['psnr_heldout_db']:.2f} | "
             f"{_cell(r['delta_db'], '{:+.2f}')} | {_cell(r['delta_same_seed_db'], '{:+.2f}')} | "
             f"{_cell(r['surface_db'], '{:.2f}')} / "
             f"{_cell(r['sky_db'], '{:.2f}')} | {_cell(r['sky_opacity'], '{:.3f}')} | "
             f"{r['depth_cm']:.1f} | {r['normal_deg']:.2f} | "
             f"{r['steps']} | {r['cpu_ms_per_step']:.0f} | {at} | "
-            f"{r['load'][0]:.1f} / {r['load'][1]:.1f} |"
+            f"{_cell(r['render_cpu_s'], '{:.2f}')} | {r['load'][0]:.1f} / {r['load'][1]:.1f} |"
         )
     return "\n".join(lines) + "\n"
 

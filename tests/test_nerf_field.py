@@ -9,9 +9,11 @@ from diffloc.maps.nerf.contraction import SceneNormalisation, contract, uncontra
 from diffloc.maps.nerf.encodings import (
     HashGridEncoding,
     TriplaneEncoding,
+    _cell_rows,
     _vertex_index,
     bilinear_gather,
     trilinear_gather,
+    trilinear_lookup,
 )
 from diffloc.maps.nerf.field import FieldConfig, RadianceField, build_encoding
 from diffloc.testing import assert_close, gradcheck
@@ -41,6 +43,39 @@ def test_hashed_rows_are_the_spatial_hash_modulo_the_table_size(table_size: int)
         for i, j, k in vertex.tolist()
     ]
     assert _vertex_index(vertex, 2048, table_size).tolist() == expected
+
+
+@pytest.mark.parametrize(("resolution", "table_size"), [(9, 1000), (2048, 2**19), (2048, 1000)])
+def test_cell_rows_are_the_vertex_index_of_each_corner(resolution: int, table_size: int) -> None:
+    """Per-axis rows of the eight corners (dense, hashed with a mask, hashed with a remainder)
+    are :func:`_vertex_index` of the corner vertices, in the corner order of the gathers."""
+    g = torch.Generator().manual_seed(0)
+    lower = torch.randint(0, resolution - 1, (300, 3), generator=g)
+    corners = torch.tensor([[(c >> a) & 1 for a in range(3)] for c in range(8)])
+    vertex = (lower[:, None] + corners).reshape(-1, 3)
+    expected = _vertex_index(vertex, resolution, table_size).view(300, 8)
+    assert torch.equal(_cell_rows(lower.T, resolution, table_size), expected)
+
+
+@pytest.mark.parametrize("resolution", [5, 40])
+def test_trilinear_lookup_is_the_gather_interpolation_in_float64(resolution: int) -> None:
+    """The fused lookup (dense and hashed level) gives the gathers' values, table and
+    position gradients, and second derivatives (float64); no points give no rows."""
+    torch.manual_seed(2)
+    table = torch.randn(2**9, 3, dtype=torch.float64, requires_grad=True)
+    x = encoding_points(60, 4).double().requires_grad_(True)
+    fast, ref = trilinear_lookup(table, x, resolution), trilinear_gather(table, x, resolution)
+    assert_close(fast, ref, rtol=1e-12, atol=1e-12)
+    w = torch.randn_like(fast)
+    g_fast = torch.autograd.grad((fast * w).sum(), [x, table], create_graph=True)
+    g_ref = torch.autograd.grad((ref * w).sum(), [x, table], create_graph=True)
+    for a, b in zip(g_fast, g_ref, strict=True):
+        assert_close(a, b, rtol=1e-12, atol=1e-12)
+    gg_fast = torch.autograd.grad(g_fast[0].square().sum(), [x, table])
+    gg_ref = torch.autograd.grad(g_ref[0].square().sum(), [x, table])
+    for a, b in zip(gg_fast, gg_ref, strict=True):
+        assert_close(a, b, rtol=1e-12, atol=1e-12)
+    assert trilinear_lookup(table, x[:0], resolution).shape == (0, 3)
 
 
 @pytest.mark.parametrize("kind", ["triplane", "hashgrid"])
@@ -92,6 +127,21 @@ def test_contraction_is_identity_inside_and_inverted_by_uncontract() -> None:
     assert float(y.abs().max()) < 2.0
     assert_close(y[1], torch.tensor([5.0 / 3.0, 0.0, 0.0]))
     assert_close(uncontract(y), x, rtol=1e-5, atol=1e-5)
+
+
+def test_contraction_is_mip_nerf_360s_formula_in_float64() -> None:
+    """The per-point factor gives ``(2 - 1 / n) x / n`` beyond the unit cube (L-infinity n),
+    and ``x`` inside, to float64 rounding; so do its gradients."""
+    x = (torch.randn(500, 3, generator=torch.Generator().manual_seed(1)) * 3).double()
+    x.requires_grad_(True)
+    n = x.abs().amax(dim=-1, keepdim=True)
+    expected = torch.where(n <= 1.0, x, (2.0 - 1.0 / n) * x / n)
+    assert bool((n <= 1.0).any()) and bool((n > 1.0).any())
+    assert_close(contract(x), expected, rtol=1e-14, atol=1e-14)
+    v = torch.randn_like(x)
+    (fast,) = torch.autograd.grad(contract(x), x, v)
+    (ref,) = torch.autograd.grad(expected, x, v)
+    assert_close(fast, ref, rtol=1e-12, atol=1e-12)
 
 
 def test_normalisation_maps_the_box_to_the_cube_and_flags_outside() -> None:

@@ -41,6 +41,17 @@ def record(data: str, psnr: float, overrides: list[str] | None) -> dict:
     return out
 
 
+def test_rows_name_the_file_each_run_wrote_and_its_render_time() -> None:
+    script = load_script()
+    command = "python3 experiments/bench_nerf.py --out experiments/results/speed_seed0.jsonl"
+    rows = script.sweep_rows(
+        [record("data/outdoor_seed0", 22.5, []) | {"command": command, "render_320x240_cpu_s": 1.9}]
+    )
+    assert rows[0]["run"] == "speed_seed0" and rows[0]["render_cpu_s"] == 1.9
+    assert "| speed_seed0 | outdoor_seed0 | 22.50 |" in script.sweep_markdown(rows, "cmd")
+    assert "| 1.90 | 3.5 / 4.0 |" in script.sweep_markdown(rows, "cmd")
+
+
 def test_rows_compare_with_the_default_of_the_same_dataset() -> None:
     script = load_script()
     rows = script.sweep_rows(
@@ -55,6 +66,7 @@ def test_rows_compare_with_the_default_of_the_same_dataset() -> None:
         ]
     )
     assert rows[5]["setting"] == "--encodings hashgrid"
+    assert [r["run"] for r in rows[:2]] == ["-", "-"] and rows[0]["render_cpu_s"] is None
     assert rows[5]["delta_db"] == pytest.approx(-1.5)
     assert [r["setting"] for r in rows[:2]] == ["default", "nerf.train.ray_batch=2048"]
     assert rows[0]["delta_db"] == 0.0 and rows[2]["delta_db"] == 0.0
@@ -65,7 +77,10 @@ def test_rows_compare_with_the_default_of_the_same_dataset() -> None:
     assert rows[0]["depth_cm"] == pytest.approx(6.7)
     text = script.sweep_markdown(rows, "python3 x.py")
     assert text.startswith("Made by: `python3 x.py`")
-    row = "| `nerf.train.ray_batch=2048` | outdoor_seed1 | 21.50 | -0.50 | -0.50 | 20.50 / 23.50 |"
+    row = (
+        "| `nerf.train.ray_batch=2048` | - | outdoor_seed1 | 21.50 | -0.50 | -0.50 | "
+        "20.50 / 23.50 |"
+    )
     assert row + " 0.998 | 6.7 |" in text
     assert "| 20.00 / 23.00 | - | 6.7 |" in text  # no sky opacity in the record
 

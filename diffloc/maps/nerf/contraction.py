@@ -19,9 +19,14 @@ __all__ = ["SceneNormalisation", "contract", "contract_pullback", "uncontract"]
 
 
 def contract(x: torch.Tensor) -> torch.Tensor:
-    """mip-NeRF 360 contraction with the L-infinity norm: (..., 3) -> (..., 3) in [-2, 2]."""
-    norm = x.abs().amax(dim=-1, keepdim=True).clamp_min(1e-9)
-    return torch.where(norm <= 1.0, x, (2.0 - 1.0 / norm) * x / norm)
+    """mip-NeRF 360 contraction with the L-infinity norm: (..., 3) -> (..., 3) in [-2, 2].
+
+    The factor ``(2 - 1 / n) / n`` (1 inside the unit cube) is formed per point and applied
+    in one product: element-wise operations between (..., 3) and (..., 1) tensors cost ~10x
+    more per element on CPU than per-point ones (inner loops of 3 elements)."""
+    norm = x.abs().amax(dim=-1).clamp_min(1e-9)
+    scale = torch.where(norm <= 1.0, 1.0, (2.0 - 1.0 / norm) / norm)
+    return x * scale[..., None]
 
 
 def contract_pullback(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

