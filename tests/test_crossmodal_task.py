@@ -408,6 +408,8 @@ def test_the_mesh_map_stage_never_reads_the_ground_truth(dataset, tmp_path, monk
         ("+task.validation.lidar.theta_in=50", r"task.validation.lidar: not a map option"),
         ("+task.validation.mesh.theta=50", r"task.validation.mesh.theta: not a validation setting"),
         ("task.validation.mesh.max_plane_share=1.5", r"task.validation.mesh: .*max_plane_share"),
+        ("+task.top_k.lidar=10", r"task.top_k.lidar: not a map option"),
+        ("task.top_k.tls=0", r"task.top_k.tls must be"),
     ],
 )
 def test_a_per_map_threshold_of_an_unknown_map_or_setting_or_out_of_range_is_refused(

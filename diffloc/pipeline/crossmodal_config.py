@@ -415,6 +415,9 @@ class CrossmodalTaskConfig:
             how many inliers, how much coverage and what photometric consistency a right pose
             reaches, so the thresholds are set per map and scene kind
             (``task/scene/crossmodal_<scene>.yaml``), see :meth:`localizer_for`.
+        top_k: per ``map`` option, the ``localizer.top_k`` (re-ranked images matched) that map
+            uses instead (an option not listed keeps the localizer's own; see
+            :meth:`localizer_for`).
         loose_m: position bound of the loose localisation criterion (with 30 deg): 1 m
             indoors, 2 m outdoors (seed 2).
         plot_queries: queries shown beside their retrieved render per sequence.
@@ -441,6 +444,7 @@ class CrossmodalTaskConfig:
     floor_closing_m: dict[str, float] = field(default_factory=dict)
     trajectory_gap_m: dict[str, float] = field(default_factory=dict)
     validation: dict[str, dict[str, Any]] = field(default_factory=dict)
+    top_k: dict[str, int] = field(default_factory=dict)
     loose_m: float = 1.0
     plot_queries: int = 4
     refine: CrossmodalRefineConfig = field(default_factory=CrossmodalRefineConfig)
@@ -465,6 +469,10 @@ class CrossmodalTaskConfig:
                         f"{tuple(POINT_MAP_OPTIONS)})"
                     )
                 self.poses_for(point_map)  # the pose selection checks the values
+        for option, k in self.top_k.items():
+            if option not in MAP_OPTIONS:
+                raise ValueError(f"task.top_k.{option}: not a map option (one of {MAP_OPTIONS})")
+            check_positive_int(k, f"task.top_k.{option}")
         for option in self.validation:
             if option not in MAP_OPTIONS:
                 raise ValueError(
@@ -500,10 +508,11 @@ class CrossmodalTaskConfig:
 
     def localizer_for(self, option: str) -> RenderedLocalizerConfig:
         """The localiser settings of the ``map`` option ``option``: ``localizer`` with the
-        validation fields :attr:`validation` lists for the option (a localiser without
-        validation stays without); ``map=hybrid`` holds its real images to the ``images``
-        entry's ``min_photometric`` (``min_photometric_real``) where it is listed; a pose prior
-        without its own ``growth_mps`` takes :attr:`prior_growth_mps`.
+        option's :attr:`top_k` where listed and the validation fields :attr:`validation` lists
+        for the option (a localiser without validation stays without); ``map=hybrid`` holds
+        its real images to the ``images`` entry's ``min_photometric``
+        (``min_photometric_real``) where it is listed; a pose prior without its own
+        ``growth_mps`` takes :attr:`prior_growth_mps`.
 
         Raises:
             ValueError: a listed field that is no validation setting, or a value the
@@ -530,8 +539,13 @@ class CrossmodalTaskConfig:
             >>> mesh = task.localizer_for("mesh").validation
             >>> mesh.theta_in, mesh.max_plane_share, task.localizer.validation.theta_in
             (80, 0.95, 150)
+            >>> task = CrossmodalTaskConfig(top_k={"tls": 10})
+            >>> task.localizer_for("tls").top_k, task.localizer_for("mesh").top_k
+            (10, 5)
         """
         localizer = self.localizer
+        if option in self.top_k:
+            localizer = replace(localizer, top_k=self.top_k[option])
         if localizer.prior is not None and localizer.prior.growth_mps is None:
             prior = replace(localizer.prior, growth_mps=self.prior_growth_mps)
             localizer = replace(localizer, prior=prior)
