@@ -255,7 +255,7 @@ def test_a_changed_localizer_setting_runs_only_the_localization(
 ):
     before = _records(dataset)
     _refuse(monkeypatch, UPSTREAM)
-    _run(dataset, tmp_path, "task.localizer.top_k=3")
+    _run(dataset, tmp_path, "task.top_k.tls=3")  # scene=indoor: task.top_k.tls=10
     after = _records(dataset)
     assert all(after[rel] == before[rel] for rel in STAGE_RECORDS)
     record = json.loads(after[LOCALIZE_RECORD][0])
