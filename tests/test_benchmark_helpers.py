@@ -84,5 +84,7 @@ def test_retain_freed_heap_stops_page_faults_of_repeated_renders():
         return int(run.stdout.split()[-1])
 
     plain, retained = faults_per_render("plain"), faults_per_render("retain")
-    assert plain > 2000  # fresh pages for the 640x480 temporaries on every render
+    # fresh pages for the 640x480 temporaries on every render: 1719-5828 per render seen on
+    # the 2-core CI machine (the count depends on the allocator's state), retained 32-110
+    assert plain > 1000
     assert retained < plain / 4
