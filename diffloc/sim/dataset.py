@@ -195,6 +195,10 @@ class DatasetSimulator:
             self._renderers[changed] = MeshRenderer(mesh)
         return self._renderers[changed]
 
+    def _extrinsic(self, T_body_camera: torch.Tensor | None) -> torch.Tensor:
+        """(4, 4) ``T_body_camera`` of a camera: the front one for ``None``."""
+        return self.T_body_camera if T_body_camera is None else T_body_camera
+
     def calibration(self, T_body_camera: torch.Tensor | None = None) -> Calibration:
         """The calibration of the front camera, or (``T_body_camera`` given) of a side camera
         of the same rig: its extrinsic, and a rig URDF whose ``camera`` is that camera."""
@@ -205,7 +209,7 @@ class DatasetSimulator:
         return Calibration(
             camera=self.camera,
             depth_scale=DEPTH_SCALE,
-            T_body_camera=self.T_body_camera if T_body_camera is None else T_body_camera,
+            T_body_camera=self._extrinsic(T_body_camera),
             T_body_lidar=self.T_body_lidar,
             rig_urdf=rig.to_urdf(),
             lidar=lidar,
@@ -243,7 +247,7 @@ class DatasetSimulator:
         times = timestamps[frame_ids][:, None] + np.asarray(offsets)[None, :]
         times = np.clip(times, timestamps[0], timestamps[-1]).reshape(-1)
         T_wb_sub = interpolate_pose(timestamps, T_wb, times)
-        T_wc_sub = T_wb_sub @ (self.T_body_camera if T_body_camera is None else T_body_camera)
+        T_wc_sub = T_wb_sub @ self._extrinsic(T_body_camera)
         render = renderer.render(T_wc_sub, self.camera)
         linear = shade(render, seq.lighting, sensor, renderer.raycaster)
         linear = linear.reshape(len(frame_ids), samples, *linear.shape[1:]).mean(dim=1)
@@ -296,6 +300,7 @@ class DatasetSimulator:
         self,
         name: str,
         seq: SequenceConfig,
+        trajectory: tuple[np.ndarray, torch.Tensor],
         writer: SequenceWriter,
         generator: torch.Generator,
         T_body_camera: torch.Tensor | None = None,
@@ -304,7 +309,9 @@ class DatasetSimulator:
 
         Args:
             name: the written sequence's name (the progress bar's label).
-            seq: the simulated traversal (trajectory, scene state, lighting, exposure).
+            seq: the simulated traversal (scene state, lighting, exposure).
+            trajectory: its timestamps (N,) and body poses T_wb (N, 4, 4)
+                (:meth:`body_trajectory`).
             writer: the sequence folder's writer (closed by the caller).
             generator: the camera's noise stream.
             T_body_camera: (4, 4) the camera's extrinsic; ``None``: the front camera.
@@ -316,8 +323,8 @@ class DatasetSimulator:
             ValueError: a camera pose not in free space.
         """
         renderer = self.renderer(seq.changed_scene)
-        timestamps, T_wb = self.body_trajectory(seq)
-        T_wc = T_wb @ (self.T_body_camera if T_body_camera is None else T_body_camera)
+        timestamps, T_wb = trajectory
+        T_wc = T_wb @ self._extrinsic(T_body_camera)
         check_free_space(renderer.raycaster, self.world.bounds, T_wc[:, :3, 3], what="camera")
         batches = np.array_split(
             np.arange(len(timestamps)), math.ceil(len(timestamps) / FRAMES_PER_BATCH)
@@ -351,7 +358,7 @@ class DatasetSimulator:
         generator = torch.Generator().manual_seed(self.cfg.seed * 1009 + index)
         rng = np.random.default_rng([self.cfg.seed, index])
         writer = SequenceWriter(seq_dir, self.calibration())
-        T_wc, first_frame = self.write_frames(seq.name, seq, writer, generator)
+        T_wc, first_frame = self.write_frames(seq.name, seq, (timestamps, T_wb), writer, generator)
         sweep_times = np.arange(timestamps[0], timestamps[-1] + 1e-9, 1.0 / self.cfg.lidar.rate_hz)
         T_wl = interpolate_pose(timestamps, T_wb, sweep_times) @ self.T_body_lidar
         sweeps_world, origins = [], []
@@ -376,11 +383,12 @@ class DatasetSimulator:
         ``root``, each its own folder of frames, poses and calibration (no lidar), after the
         front camera's and each from its own noise stream, so the front camera's files are
         those of a rig without side cameras. Returns their names."""
+        trajectory = self.body_trajectory(seq)
         for k, (name, T_body_camera) in enumerate(self.side_cameras.items()):
             stream = np.random.SeedSequence([self.cfg.seed, index, k + 1]).generate_state(1)
             generator = torch.Generator().manual_seed(int(stream[0]))
             writer = SequenceWriter(root / name, self.calibration(T_body_camera))
-            self.write_frames(name, seq, writer, generator, T_body_camera)
+            self.write_frames(name, seq, trajectory, writer, generator, T_body_camera)
             writer.close()
         return list(self.side_cameras)
 
