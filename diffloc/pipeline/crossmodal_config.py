@@ -366,6 +366,8 @@ POSE_SETTINGS = {
     "trajectory_gap_m": "trajectory_gap_m",
 }
 """Per-point-map task settings -> the :class:`PoseSelectionConfig` field each sets."""
+MAP_SETTINGS = ("top_k", "validation")
+"""Per-``map``-option task settings (read by :meth:`CrossmodalTaskConfig.localizer_for`)."""
 
 
 @dataclass
@@ -469,15 +471,15 @@ class CrossmodalTaskConfig:
                         f"{tuple(POINT_MAP_OPTIONS)})"
                     )
                 self.poses_for(point_map)  # the pose selection checks the values
+        for name in MAP_SETTINGS:
+            for option in getattr(self, name):
+                if option not in MAP_OPTIONS:
+                    raise ValueError(
+                        f"task.{name}.{option}: not a map option (one of {MAP_OPTIONS})"
+                    )
         for option, k in self.top_k.items():
-            if option not in MAP_OPTIONS:
-                raise ValueError(f"task.top_k.{option}: not a map option (one of {MAP_OPTIONS})")
             check_positive_int(k, f"task.top_k.{option}")
         for option in self.validation:
-            if option not in MAP_OPTIONS:
-                raise ValueError(
-                    f"task.validation.{option}: not a map option (one of {MAP_OPTIONS})"
-                )
             self.localizer_for(option)  # the validation checks the names and values
 
     def poses_for(self, point_map: str) -> PoseSelectionConfig:
